@@ -1,0 +1,106 @@
+/* The portable dualscale core: Modbus RTU server, sequencer, event FIFO and safety logic.
+ *
+ * Usage from a target's main loop:
+ *     ds_core_init(&core, &hal, DS_DEFAULT_ADDRESS, now);
+ *     loop: ds_core_rx(&core, bytes, n, now) as bytes arrive;
+ *           ds_core_camera_edge(&core, cam, t_edge) on camera edges;
+ *           ds_core_poll(&core, now) often, and at the latest at ds_core_next_deadline().
+ * The core never blocks and never allocates. All state lives in ds_core_t. */
+#ifndef DS_CORE_H
+#define DS_CORE_H
+
+#include <stddef.h>
+#include <stdint.h>
+
+#include "ds_hal.h"
+#include "ds_regmap.h"
+
+#define DS_RTU_MAX_ADU 256u   /* address + 253-byte PDU + CRC */
+#define DS_NO_DEADLINE UINT64_MAX
+#define DS_N_SOURCES (DS_N_LEDS + DS_N_BACKLIGHTS + DS_N_DIFFUSE)
+
+typedef struct {
+    uint16_t seq;      /* event sequence number, wraps */
+    uint16_t kind_arg; /* kind | arg << 8 */
+    uint16_t step;
+    uint64_t ts_us;    /* 48 bits on the wire */
+} ds_event_t;
+
+typedef struct {
+    uint16_t source, intensity, polarizer;
+    uint32_t settle_us, exposure_us;
+    uint16_t pulse_us, brackets, triggers;
+} ds_step_t;
+
+/* Leaky-bucket thermal state of one light source (see PROTOCOL.md, "Safety"). */
+typedef struct {
+    uint64_t level_us;   /* accumulated on-time credit used */
+    uint64_t since_us;   /* time of the last update */
+    uint16_t intensity;  /* 0 = off */
+    uint8_t manual;      /* switched on by a coil */
+} ds_light_t;
+
+typedef struct ds_core {
+    const ds_hal_t *hal;
+    uint8_t address;
+
+    /* RTU receiver */
+    uint8_t rx[DS_RTU_MAX_ADU];
+    uint16_t rx_len;
+    uint8_t rx_overflow;
+    uint64_t rx_last_us;
+    uint8_t tx[DS_RTU_MAX_ADU];
+
+    /* registers */
+    uint16_t hr[32];                                 /* holding registers 0..31 */
+    uint16_t steps[DS_MAX_STEPS * DS_STEP_WORDS];    /* the step table */
+    uint16_t state, error, error_step, cur_step;
+    uint16_t polarizer_now;
+    uint16_t frames_ok, frames_bad_crc, frames_bad, watchdog_trips;
+    uint64_t seq_duration_us;
+    uint64_t last_host_us;
+
+    /* event FIFO (ring) */
+    ds_event_t fifo[DS_FIFO_DEPTH];
+    uint16_t fifo_head, fifo_count, next_seq, dropped;
+
+    /* sequencer */
+    uint16_t seq_len_run;      /* steps in the running sequence */
+    uint8_t phase;             /* internal phase of the current step */
+    uint8_t bracket;
+    uint8_t edges_in_step;
+    uint8_t trig_level;
+    uint64_t step_start_us, next_us, last_edge_us;
+
+    ds_light_t lights[DS_N_SOURCES];
+} ds_core_t;
+
+void ds_core_init(ds_core_t *c, const ds_hal_t *hal, uint8_t address, uint64_t now_us);
+
+/* Bytes received on the serial line at now_us. A gap of t3.5 (ds_rtu_t35_us) ends a frame. */
+void ds_core_rx(ds_core_t *c, const uint8_t *buf, size_t n, uint64_t now_us);
+
+/* Run everything due at now_us: frame end, sequencer phases, watchdog, light limits. */
+void ds_core_poll(ds_core_t *c, uint64_t now_us);
+
+/* Earliest time ds_core_poll must be called again; DS_NO_DEADLINE if nothing is pending. */
+uint64_t ds_core_next_deadline(const ds_core_t *c);
+
+/* An exposure-active / flash-sync edge from camera `camera` at now_us. */
+void ds_core_camera_edge(ds_core_t *c, uint8_t camera, uint64_t now_us);
+
+/* Process one complete RTU frame (address .. CRC) as if it had just ended at now_us.
+ * Writes the response into resp and returns its length; 0 means silence
+ * (bad CRC, other address, broadcast). Used by ds_core_rx, the vector tests and the fuzzers. */
+size_t ds_core_handle_frame(ds_core_t *c, const uint8_t *req, size_t n, uint8_t *resp, uint64_t now_us);
+
+/* Safety: true if any light is on. */
+int ds_core_any_light_on(const ds_core_t *c);
+
+/* CRC-16/MODBUS (poly 0xA001 reflected, init 0xFFFF); low byte first on the wire. */
+uint16_t ds_crc16(const uint8_t *buf, size_t n);
+
+/* t3.5 silence for a baud rate: 3.5 characters (11 bits) up to 19200 baud, else 1750 us. */
+uint32_t ds_rtu_t35_us(uint32_t baud);
+
+#endif /* DS_CORE_H */
