@@ -1,0 +1,79 @@
+# dualscale: two commands set up a fresh machine (Debian/Ubuntu):
+#   make demo   the main job, on the simulated rig
+#   make test   everything CI runs
+# Both install what they need: Debian packages (apt-get), the virtualenv and the pip packages.
+
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+BUILD := build
+FUZZ_SECONDS ?= 20
+
+# Debian packages: ARM toolchain + newlib, QEMU, an independent Modbus peer (mbpoll),
+# C test framework (cmocka), clang + its runtime for libFuzzer.
+APT_PKGS := gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm mbpoll libmodbus-dev \
+            libcmocka-dev clang make gcc python3-venv
+SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+
+.PHONY: all deps apt venv gen gen-check firmware sim test test-fast test-slow demo bench fuzz fuzz-long clean
+
+all: firmware sim
+
+deps: apt venv
+
+apt: $(BUILD)/.apt-stamp
+$(BUILD)/.apt-stamp: Makefile
+	@mkdir -p $(BUILD)
+	@missing=$$(for p in $(APT_PKGS); do dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q "ok installed" || echo $$p; done); \
+	if [ -n "$$missing" ]; then \
+	  echo "installing Debian packages: $$missing"; \
+	  $(SUDO) apt-get update -qq && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq $$missing; \
+	fi
+	@touch $@
+
+venv: $(VENV)/.stamp
+$(VENV)/.stamp: pyproject.toml
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q torch==2.13.0
+	$(PY) -m pip install -q -e '.[dev]'
+	@touch $@
+
+gen: venv
+	$(PY) protocol/gen.py
+
+gen-check: venv
+	$(PY) protocol/gen.py --check
+
+firmware: apt
+	$(MAKE) -C firmware stm32
+
+sim: apt
+	$(MAKE) -C firmware posix
+
+test: deps gen-check
+	$(MAKE) -C firmware all
+	$(MAKE) -C firmware test
+	$(MAKE) -C firmware fuzz FUZZ_SECONDS=$(FUZZ_SECONDS)
+	$(PY) -m pytest -m "not slow" -q
+
+test-slow: deps
+	$(MAKE) -C firmware all
+	$(PY) -m pytest -m slow -q
+
+demo: deps
+	$(MAKE) -C firmware posix
+	$(VENV)/bin/dualscale demo
+
+bench: deps
+	$(MAKE) -C firmware all
+	$(PY) bench/bench_rig.py
+	@if [ -f bench/bench_bsdf.py ]; then $(PY) bench/bench_bsdf.py; fi
+
+fuzz-long: apt
+	$(MAKE) -C firmware fuzz FUZZ_SECONDS=600
+
+clean:
+	$(MAKE) -C firmware clean || true
+	rm -rf $(BUILD)

@@ -1,0 +1,1 @@
+"""The device layer: Modbus client, sequences, events, simulator launcher, console, flashing."""

@@ -1,0 +1,139 @@
+"""Start the simulated rig: the POSIX build of the firmware core, or the ARM image in QEMU.
+
+Both expose the Modbus RTU server on a pseudo-terminal; `SimulatedRig.port` is its path.
+The binaries are built by `make -C firmware` into firmware/build/ (override the folder with
+the DUALSCALE_FIRMWARE_BUILD environment variable).
+"""
+from __future__ import annotations
+
+import os
+import re
+import select
+import shutil
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[3]
+TARGETS = ("posix", "qemu")
+
+
+def build_dir() -> Path:
+    return Path(os.environ.get("DUALSCALE_FIRMWARE_BUILD", REPO / "firmware" / "build"))
+
+
+def sim_binary() -> Path:
+    return build_dir() / "posix" / "dualscale-sim"
+
+
+def firmware_elf() -> Path:
+    return build_dir() / "stm32f405" / "dualscale.elf"
+
+
+class SimError(RuntimeError):
+    """The simulated rig could not be started."""
+
+
+def qemu_command(elf: Path, icount: str | None = None) -> list[str]:
+    """qemu-system-arm on the netduinoplus2 board (an STM32F405), USART1 on a pty."""
+    cmd = ["qemu-system-arm", "-M", "netduinoplus2", "-nographic", "-monitor", "none",
+           "-serial", "pty", "-kernel", str(elf)]
+    if icount:
+        cmd += ["-icount", icount]
+    return cmd
+
+
+class SimulatedRig:
+    """A running simulated rig. Use as a context manager; `port` is the serial device."""
+
+    def __init__(self, target: str = "posix", link: str | os.PathLike | None = None,
+                 speed: float = 1.0, hw_socket: str | os.PathLike | None = None,
+                 icount: str | None = None, startup_s: float = 10.0):
+        if target not in TARGETS:
+            raise ValueError(f"target must be one of {TARGETS}, not {target!r}")
+        self.target, self.speed = target, speed
+        self.link = Path(link) if link else None
+        self.hw_socket = Path(hw_socket) if hw_socket else None
+        self.icount, self.startup_s = icount, startup_s
+        self.proc: subprocess.Popen | None = None
+        self.port: str = ""
+
+    def start(self) -> SimulatedRig:
+        if self.target == "posix":
+            exe = sim_binary()
+            if not exe.exists():
+                raise SimError(f"{exe} is missing: build it with `make -C firmware posix`")
+            cmd = [str(exe), "--speed", repr(float(self.speed))]
+            if self.hw_socket:
+                cmd += ["--hw-socket", str(self.hw_socket)]
+            self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+            line = self._read_line(self.proc.stdout, lambda s: s.startswith("/dev/"))
+            self.port = line.strip()
+        else:
+            elf = firmware_elf()
+            if not elf.exists():
+                raise SimError(f"{elf} is missing: build it with `make firmware`")
+            if not shutil.which("qemu-system-arm"):
+                raise SimError("qemu-system-arm is not installed (apt-get install qemu-system-arm)")
+            self.proc = subprocess.Popen(qemu_command(elf, self.icount), stdin=subprocess.DEVNULL,
+                                         stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+            line = self._read_line(self.proc.stderr, lambda s: "redirected to /dev/" in s)
+            m = re.search(r"(/dev/\S+)", line)
+            if not m:
+                self.stop()
+                raise SimError(f"cannot find the pty in QEMU's output: {line!r}")
+            self.port = m.group(1)
+            time.sleep(0.3)  # let the guest reach its main loop before the first frame
+        if self.link:
+            if self.link.is_symlink() or self.link.exists():
+                self.link.unlink()
+            self.link.symlink_to(self.port)
+        return self
+
+    def _read_line(self, stream, want) -> str:
+        """The first line from `stream` satisfying `want`, within startup_s."""
+        deadline = time.monotonic() + self.startup_s
+        buf = b""
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                err = self.proc.stderr.read().decode(errors="replace") if self.proc.stderr else ""
+                raise SimError(f"the {self.target} simulator exited with {self.proc.returncode}: {err}")
+            r, _, _ = select.select([stream], [], [], 0.1)
+            if r:
+                chunk = os.read(stream.fileno(), 4096)
+                buf += chunk
+                for ln in buf.decode(errors="replace").splitlines():
+                    if want(ln):
+                        return ln
+        self.stop()
+        raise SimError(f"the {self.target} simulator did not report its serial device "
+                       f"within {self.startup_s} s")
+
+    def alive(self) -> bool:
+        return self.proc is not None and self.proc.poll() is None
+
+    def stop(self) -> int | None:
+        rc = None
+        if self.proc is not None:
+            if self.proc.poll() is None:
+                self.proc.send_signal(signal.SIGTERM if self.target == "qemu" else signal.SIGINT)
+                try:
+                    self.proc.wait(5)
+                except subprocess.TimeoutExpired:
+                    self.proc.kill()
+                    self.proc.wait()
+            rc = self.proc.returncode
+            for s in (self.proc.stdout, self.proc.stderr):
+                if s:
+                    s.close()
+            self.proc = None
+        if self.link and self.link.is_symlink():
+            self.link.unlink()
+        return rc
+
+    def __enter__(self) -> SimulatedRig:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
