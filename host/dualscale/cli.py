@@ -89,6 +89,10 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--speed", type=float, default=10.0, help="posix simulator speed (see sim)")
     d.add_argument("--events", action="store_true", help="print every event")
     d.set_defaults(fn=cmd_demo)
+
+    from .cli_appearance import register as register_appearance
+
+    register_appearance(sub)
     return p
 
 

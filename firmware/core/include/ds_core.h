@@ -18,6 +18,8 @@
 #define DS_RTU_MAX_ADU 256u   /* address + 253-byte PDU + CRC */
 #define DS_NO_DEADLINE UINT64_MAX
 #define DS_N_SOURCES (DS_N_LEDS + DS_N_BACKLIGHTS + DS_N_DIFFUSE)
+#define DS_NO_SOURCE 0xFFFFu
+#define DS_TARGET_NAME_MAX 31u  /* longest target name kept by ds_core_set_target */
 
 typedef struct {
     uint16_t seq;      /* event sequence number, wraps */
@@ -43,6 +45,8 @@ typedef struct {
 typedef struct ds_core {
     const ds_hal_t *hal;
     uint8_t address;
+    uint32_t t35_us;                                 /* end-of-frame silence (ds_rtu_t35_us) */
+    char target[DS_TARGET_NAME_MAX + 1];             /* FC 11 / 2B object 0x05 */
 
     /* RTU receiver */
     uint8_t rx[DS_RTU_MAX_ADU];
@@ -71,8 +75,20 @@ typedef struct ds_core {
     uint8_t edges_in_step;
     uint8_t trig_level;
     uint64_t step_start_us, next_us, last_edge_us;
+    uint64_t bracket_start_us; /* device-master: t_b of the current bracket */
+    uint64_t latch_us;         /* camera-master: time of the last latch */
+    uint32_t run_gap_us;       /* FRAME_GAP_US snapshot taken at START */
+    uint8_t run_mode;          /* TRIGGER_MODE snapshot taken at START */
+    uint8_t run_camera;        /* MASTER_CAMERA snapshot taken at START */
+    uint16_t seq_light;        /* source index lit by the sequencer, DS_NO_SOURCE if none */
+    uint16_t preload_light;    /* camera-master: source preloaded for the next latch */
+    uint16_t preload_intensity;
 
     ds_light_t lights[DS_N_SOURCES];
+
+    /* scratch for the leaky-bucket replay at START (kept here: no big stack frames) */
+    uint64_t sim_level[DS_N_SOURCES];
+    uint64_t sim_since[DS_N_SOURCES];
 } ds_core_t;
 
 void ds_core_init(ds_core_t *c, const ds_hal_t *hal, uint8_t address, uint64_t now_us);
@@ -102,5 +118,15 @@ uint16_t ds_crc16(const uint8_t *buf, size_t n);
 
 /* t3.5 silence for a baud rate: 3.5 characters (11 bits) up to 19200 baud, else 1750 us. */
 uint32_t ds_rtu_t35_us(uint32_t baud);
+
+/* Name of the target reported by FC 11 (`target=NAME`) and FC 2B object 0x05 (ModelName),
+ * e.g. "posix" or "stm32f405". Copied (at most DS_TARGET_NAME_MAX chars). Default "unknown". */
+void ds_core_set_target(ds_core_t *c, const char *name);
+
+/* Serial baud rate: sets the t3.5 end-of-frame silence. Default DS_DEFAULT_BAUD. */
+void ds_core_set_baud(ds_core_t *c, uint32_t baud);
+
+/* Sequencer state (DS_STATE_*), as in input register STATE. */
+uint16_t ds_core_state(const ds_core_t *c);
 
 #endif /* DS_CORE_H */

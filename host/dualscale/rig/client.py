@@ -27,6 +27,12 @@ log = logging.getLogger(__name__)
 
 EXCEPTION_NAMES = {1: "ILLEGAL FUNCTION", 2: "ILLEGAL DATA ADDRESS", 3: "ILLEGAL DATA VALUE",
                    4: "SERVER DEVICE FAILURE", 6: "SERVER DEVICE BUSY"}
+# Function code of each pymodbus call: RTU has no transaction id, so a reply that arrives after
+# its request timed out would otherwise be taken as the answer to the next request.
+FC_OF = {"read_coils": 0x01, "read_discrete_inputs": 0x02, "read_holding_registers": 0x03,
+         "read_input_registers": 0x04, "write_coil": 0x05, "write_register": 0x06, "write_coils": 0x0F,
+         "write_registers": 0x10, "report_device_id": 0x11, "readwrite_registers": 0x17,
+         "read_device_information": 0x2B}
 MAX_READ = 125
 MAX_WRITE = 123
 STEPS_PER_WRITE = MAX_WRITE // rm.STEP_WORDS  # 12 steps per FC 10
@@ -154,6 +160,7 @@ class RigClient:
         """Connect and negotiate (PROTOCOL.md §7). Raises IncompatibleDevice."""
         if not self._mb.connect():
             raise RigError(f"cannot open serial port {self.port}")
+        self._flush()
         w = self.read_input(rm.IR.MAGIC, 8)
         if w[0] != rm.MAGIC:
             raise IncompatibleDevice(f"{self.port}: MAGIC is 0x{w[0]:04X}, not a dualscale rig")
@@ -193,6 +200,13 @@ class RigClient:
             time.sleep(0.05)
         raise RigError(f"lost the serial link to {self.port} and could not reopen it")
 
+    def _flush(self) -> None:
+        """Drop whatever late replies sit in the receive buffer."""
+        time.sleep(0.01)
+        sock = getattr(self._mb, "socket", None)
+        if sock is not None and hasattr(sock, "reset_input_buffer"):
+            sock.reset_input_buffer()
+
     def _call(self, what: str, fn: Callable[..., ModbusPDU], *args, **kw) -> ModbusPDU:
         """One request with retries; a dead port is reopened. Exceptions become DeviceException."""
         last: Exception | None = None
@@ -204,6 +218,8 @@ class RigClient:
             except (ModbusIOException, ConnectionException, OSError, serial.SerialException) as e:
                 last = e
                 log.debug("%s failed (attempt %d): %s", what, attempt + 1, e)
+                if isinstance(e, ModbusIOException):
+                    self._flush()
                 if isinstance(e, (ConnectionException, OSError, serial.SerialException)) or \
                         "closed" in str(e).lower():
                     try:
@@ -213,6 +229,10 @@ class RigClient:
                 continue
             except ModbusException as e:
                 raise RigError(f"{what}: {e}") from e
+            if (rr.function_code & 0x7F) != FC_OF.get(fn.__name__, rr.function_code & 0x7F):
+                last = RigError(f"stale reply FC {rr.function_code:02X} while {what}")
+                self._flush()
+                continue
             if rr.isError():
                 raise DeviceException(rr.function_code & 0x7F, getattr(rr, "exception_code", 0), what)
             return rr
@@ -235,10 +255,18 @@ class RigClient:
                               a, count=n).registers
         return out
 
+    @staticmethod
+    def _check_words(values: Sequence[int]) -> None:
+        bad = [v for v in values if not 0 <= int(v) <= 0xFFFF]
+        if bad:
+            raise ValueError(f"register values must be 0..65535, got {bad[0]}")
+
     def write_register(self, addr: int, value: int) -> None:
+        self._check_words([value])
         self._call(f"writing holding register {addr}", self._mb.write_register, addr, value)
 
     def write_registers(self, addr: int, values: Sequence[int]) -> None:
+        self._check_words(values)
         self._call(f"writing holding registers {addr}+{len(values)}", self._mb.write_registers,
                    addr, list(values))
 

@@ -12,7 +12,9 @@ import select
 import shutil
 import signal
 import subprocess
+import termios
 import time
+import tty
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[3]
@@ -58,6 +60,7 @@ class SimulatedRig:
         self.icount, self.startup_s = icount, startup_s
         self.proc: subprocess.Popen | None = None
         self.port: str = ""
+        self._hold: int | None = None
 
     def start(self) -> SimulatedRig:
         if self.target == "posix":
@@ -76,20 +79,34 @@ class SimulatedRig:
                 raise SimError(f"{elf} is missing: build it with `make firmware`")
             if not shutil.which("qemu-system-arm"):
                 raise SimError("qemu-system-arm is not installed (apt-get install qemu-system-arm)")
+            # QEMU 7.2 prints "char device redirected to /dev/pts/N" on stdout: read both
             self.proc = subprocess.Popen(qemu_command(elf, self.icount), stdin=subprocess.DEVNULL,
-                                         stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-            line = self._read_line(self.proc.stderr, lambda s: "redirected to /dev/" in s)
+                                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+            line = self._read_line(self.proc.stdout, lambda s: "redirected to /dev/" in s)
             m = re.search(r"(/dev/\S+)", line)
             if not m:
                 self.stop()
                 raise SimError(f"cannot find the pty in QEMU's output: {line!r}")
             self.port = m.group(1)
-            time.sleep(0.3)  # let the guest reach its main loop before the first frame
+            self._hold_open()
         if self.link:
             if self.link.is_symlink() or self.link.exists():
                 self.link.unlink()
             self.link.symlink_to(self.port)
         return self
+
+    def _hold_open(self) -> None:
+        """Keep the pty open for QEMU's lifetime, and give QEMU time to notice.
+
+        QEMU's pty backend polls for a connected peer on a 1 s timer and drops the guest's output
+        while it thinks nobody is there, so a client that opened the port later would lose its
+        first reply. Holding one descriptor open (and never reading it) keeps it connected. No
+        frame is sent, so the device starts exactly as booted.
+        """
+        self._hold = os.open(self.port, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+        tty.setraw(self._hold)
+        time.sleep(1.2)
+        termios.tcflush(self._hold, termios.TCIOFLUSH)
 
     def _read_line(self, stream, want) -> str:
         """The first line from `stream` satisfying `want`, within startup_s."""
@@ -97,7 +114,7 @@ class SimulatedRig:
         buf = b""
         while time.monotonic() < deadline:
             if self.proc.poll() is not None:
-                err = self.proc.stderr.read().decode(errors="replace") if self.proc.stderr else ""
+                err = (self.proc.stderr or stream).read().decode(errors="replace")
                 raise SimError(f"the {self.target} simulator exited with {self.proc.returncode}: {err}")
             r, _, _ = select.select([stream], [], [], 0.1)
             if r:
@@ -115,6 +132,9 @@ class SimulatedRig:
 
     def stop(self) -> int | None:
         rc = None
+        if self._hold is not None:
+            os.close(self._hold)
+            self._hold = None
         if self.proc is not None:
             if self.proc.poll() is None:
                 self.proc.send_signal(signal.SIGTERM if self.target == "qemu" else signal.SIGINT)

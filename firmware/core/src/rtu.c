@@ -1,0 +1,66 @@
+/* Modbus RTU framing: bytes accumulate until t3.5 of silence ends the frame. */
+#include "ds_priv.h"
+
+uint32_t ds_rtu_t35_us(uint32_t baud)
+{
+    if (baud == 0u || baud > 19200u) {
+        return 1750u;
+    }
+    /* 3.5 characters of 11 bits = 38.5 bit times, rounded up */
+    return (uint32_t)((38500000u + baud - 1u) / baud);
+}
+
+void ds_core_set_baud(ds_core_t *c, uint32_t baud)
+{
+    c->t35_us = ds_rtu_t35_us(baud);
+}
+
+static uint64_t frame_end_us(const ds_core_t *c)
+{
+    return c->rx_last_us + c->t35_us;
+}
+
+/* Deadline of the frame being received, DS_NO_DEADLINE if none. */
+uint64_t ds_rtu_deadline(const ds_core_t *c)
+{
+    return c->rx_len ? frame_end_us(c) : DS_NO_DEADLINE;
+}
+
+/* End the pending frame if its t3.5 has elapsed at now: handle it and send the response. */
+void ds_rtu_check_end(ds_core_t *c, uint64_t now)
+{
+    if (c->rx_len == 0u || now < frame_end_us(c)) {
+        return;
+    }
+    uint64_t end = frame_end_us(c);
+    uint16_t len = c->rx_len;
+    uint8_t overflow = c->rx_overflow;
+    c->rx_len = 0u;
+    c->rx_overflow = 0u;
+    /* timers due before the frame ended act first, then the frame is handled now */
+    ds_run_timers(c, end);
+    if (overflow) {
+        c->frames_bad++;
+        return;
+    }
+    size_t r = ds_modbus_process(c, c->rx, len, c->tx, now);
+    if (r != 0u && c->hal && c->hal->uart_write) {
+        c->hal->uart_write(c->hal->ctx, c->tx, (uint16_t)r);
+    }
+}
+
+void ds_core_rx(ds_core_t *c, const uint8_t *buf, size_t n, uint64_t now_us)
+{
+    if (n == 0u || buf == NULL) {
+        return;
+    }
+    ds_rtu_check_end(c, now_us); /* a gap >= t3.5 ended the previous frame */
+    for (size_t i = 0; i < n; i++) {
+        if (c->rx_len < DS_RTU_MAX_ADU) {
+            c->rx[c->rx_len++] = buf[i];
+        } else {
+            c->rx_overflow = 1u;
+        }
+    }
+    c->rx_last_us = now_us;
+}

@@ -1,0 +1,155 @@
+"""``dualscale synth`` and ``dualscale render``: synthetic ground truth and rendering to EXR.
+
+The lead wires :func:`register` into the ``dualscale`` CLI; each subcommand sets ``func``
+(called with the parsed namespace, returns an exit code).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import torch
+
+from dualscale.protocol import regmap
+
+
+def _analyzers(text: str | None) -> list[float | None]:
+    if text is None or text == "none":
+        return [None]
+    return [float(x) for x in text.split(",")]
+
+
+def _write_capture(writer, img: torch.Tensor, cam, png_dir: Path | None, kind: str, lid: int | None, direction,
+                   analyzer: float | None, relative: bool, exposure_s: float) -> None:
+    from dualscale.dome.exr import write_png_preview
+
+    rec = writer.add(img.detach().cpu().numpy(), cam, kind, lid, direction, 1.0, analyzer, relative, exposure_s)
+    if png_dir is not None:
+        write_png_preview(png_dir / (Path(rec.file).stem + ".png"), img.detach().cpu().numpy())
+
+
+def _capture_set(maps, cam, out: Path, lights: list[tuple[str, int | None]], analyzers: list[float | None],
+                 relative: bool, texel_mm: float | None, sensor, previews: bool, extra: dict) -> Path:
+    from dualscale.dome.dataset import DatasetWriter
+    from dualscale.dome.geometry import DomeGeometry
+    from dualscale.dome.render import Analyzer, LightState, render
+    from dualscale.dome.sensor import capture
+
+    dome = DomeGeometry.from_regmap()
+    units = "dn_normalized" if sensor is not None else "relative_radiance"
+    space = f"camera_raw:{sensor.spectral_camera}" if sensor is not None and sensor.spectral_camera else "linear_rec709"
+    png_dir = out / "previews" if previews else None
+    with DatasetWriter(out, units=units, colour_space=space, extra=extra,
+                       dome={"source": dome.source, "polarizer": dome.polarizer, "radius_mm": dome.radius_mm}) as w:
+        for kind, lid in lights:
+            state = {"led": LightState.led, "backlight": LightState.backlight}[kind](lid) if kind != "diffuse" \
+                else LightState.diffuse_group()
+            direction = [float(x) for x in dome.led_dirs[lid]] if kind == "led" else None
+            for a in analyzers:
+                an = None if a is None or not cam.has_analyzer else Analyzer(a, relative)
+                img = render(maps, cam, state, dome, an, texel_mm=texel_mm)
+                if sensor is not None:
+                    img = capture(img, cam, sensor, seed=(lid or 0) * 1000 + int((a or 0) * 10))
+                _write_capture(w, img, cam, png_dir, kind, lid, direction, None if an is None else a,
+                               relative and an is not None, sensor.exposure_s if sensor else 1.0)
+    return out / "manifest.json"
+
+
+def cmd_synth(args: argparse.Namespace) -> int:
+    from dualscale.dome.cameras import micro_camera, mid_camera
+    from dualscale.dome.sensor import SensorModel
+    from dualscale.materials import generate
+    from dualscale.materials.io import save_material
+
+    out = Path(args.output)
+    texel = args.texel_um / 1000.0
+    mat = generate(args.material, args.size, texel, args.seed)
+    save_material(out / "maps", mat, previews=not args.no_previews)
+    print(f"wrote ground-truth maps to {out / 'maps'}")
+    sensor = SensorModel.realistic() if args.realistic else None
+    if args.dataset:
+        leds = range(regmap.N_LEDS) if args.lights == "all" else range(0, regmap.N_LEDS, int(args.lights[3:]))
+        lights: list[tuple[str, int | None]] = [("led", i) for i in leds]
+        if not mat.maps.components().opaque:
+            lights.append(("backlight", 0))
+        path = _capture_set(mat.maps, micro_camera(args.size, args.texel_um), out / "micro", lights,
+                            _analyzers(args.analyzers), True, None, sensor, not args.no_previews,
+                            {"material": mat.meta})
+        print(f"wrote micro photometric dataset {path}")
+    if args.mid:
+        mid_texel = 100.0 / args.mid_size
+        coarse = generate(args.material, args.mid_size, mid_texel, args.seed)
+        cam = mid_camera(args.mid_size)
+        path = _capture_set(coarse.maps, cam, out / "mid", [("diffuse", None)], [None], False, mid_texel, sensor,
+                            not args.no_previews, {"material": coarse.meta})
+        print(f"wrote mid-range guidance image {path}")
+    return 0
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    from dualscale.dome.cameras import micro_camera, mid_camera, polar_camera
+    from dualscale.dome.sensor import SensorModel
+    from dualscale.materials.io import load_maps
+
+    maps, meta = load_maps(args.maps, dtype=torch.float64 if args.float64 else torch.float32)
+    h, w = maps.shape
+    if args.camera == "micro":
+        if h != w:
+            raise SystemExit("the micro camera needs square maps")
+        cam = micro_camera(w, args.texel_um)
+        texel = None
+    else:
+        size = args.size or 512
+        cam = mid_camera(size) if args.camera == "mid" else polar_camera(int(args.camera[-1]), size)
+        texel = args.texel_um / 1000.0
+    lights: list[tuple[str, int | None]] = [("led", i) for i in args.led or []]
+    lights += [("backlight", i) for i in args.backlight or []]
+    if args.diffuse:
+        lights.append(("diffuse", None))
+    if not lights:
+        raise SystemExit("choose at least one light: --led ID, --backlight ID or --diffuse")
+    bad = [i for k, i in lights if k == "led" and not 0 <= i < regmap.N_LEDS]
+    if bad:
+        raise SystemExit(f"LED ids out of range 0..{regmap.N_LEDS - 1}: {bad}")
+    sensor = SensorModel.realistic() if args.realistic else None
+    path = _capture_set(maps, cam, Path(args.output), lights, _analyzers(args.analyzer), args.relative, texel,
+                        sensor, True, {"maps": str(args.maps), "material": meta})
+    print(f"wrote {path}")
+    return 0
+
+
+def register(subparsers) -> None:
+    """Add ``synth`` and ``render`` to an ``argparse`` subparsers object."""
+    from dualscale.materials import MATERIALS
+
+    p = subparsers.add_parser("synth", help="write ground-truth maps (and optionally captures) of a synthetic material")
+    p.add_argument("material", choices=sorted(MATERIALS))
+    p.add_argument("-o", "--output", required=True, help="output directory")
+    p.add_argument("--size", type=int, default=512, help="map size in texels (square)")
+    p.add_argument("--texel-um", type=float, default=1.8, help="texel (= micro pixel) size in micrometres")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--dataset", action="store_true", help="also render a micro photometric dataset")
+    p.add_argument("--lights", default="all", help="'all' or 'modN' (every N-th LED)")
+    p.add_argument("--analyzers", default="0,90", help="analyser angles relative to each LED polariser, or 'none'")
+    p.add_argument("--mid", action="store_true", help="also render a mid-range guidance image (diffuse group)")
+    p.add_argument("--mid-size", type=int, default=256)
+    p.add_argument("--realistic", action="store_true", help="apply the full sensor model (noise, 12 bit, ...)")
+    p.add_argument("--no-previews", action="store_true")
+    p.set_defaults(fn=cmd_synth)
+
+    r = subparsers.add_parser("render", help="render maps under chosen lights/analyser to EXR + PNG previews")
+    r.add_argument("maps", help="directory written by 'synth' (its maps/ folder) or save_maps")
+    r.add_argument("-o", "--output", required=True)
+    r.add_argument("--camera", choices=list(regmap.CAMERA_NAMES), default="micro")
+    r.add_argument("--led", type=int, nargs="*", help="LED ids (one image each)")
+    r.add_argument("--backlight", type=int, nargs="*", help="back-light ids")
+    r.add_argument("--diffuse", action="store_true", help="also render the diffuse group")
+    r.add_argument("--analyzer", default=None, help="comma-separated analyser angles [deg], or 'none'")
+    r.add_argument("--relative", action="store_true", help="angles are relative to each LED polariser (0 = P0)")
+    r.add_argument("--texel-um", type=float, default=1.8, help="texel size in micrometres")
+    r.add_argument("--size", type=int, default=None, help="image size for mid/polar cameras")
+    r.add_argument("--realistic", action="store_true")
+    r.add_argument("--float64", action="store_true")
+    r.set_defaults(fn=cmd_render)

@@ -1,0 +1,1 @@
+"""Virtual dome: LED geometry, cameras, polarised rendering, sensor realism, dataset format."""

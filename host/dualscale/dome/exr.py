@@ -1,0 +1,98 @@
+"""Image I/O through OpenImageIO: float EXR (data) and 8-bit sRGB PNG (previews only)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+_DEFAULT_NAMES = {1: ("Y",), 2: ("X", "Y"), 3: ("R", "G", "B"), 4: ("R", "G", "B", "A")}
+
+
+def write_exr(path: str | Path, image: np.ndarray, channels: Sequence[str] | None = None,
+              attributes: dict[str, str] | None = None) -> None:
+    """Write ``(H, W)`` or ``(H, W, C)`` float data as a float32 EXR (zip compression)."""
+    import OpenImageIO as oiio
+
+    img = np.asarray(image, dtype=np.float32)
+    if img.ndim == 2:
+        img = img[..., None]
+    if img.ndim != 3:
+        raise ValueError(f"image must be (H, W) or (H, W, C), got {img.shape}")
+    names = tuple(channels) if channels is not None else _DEFAULT_NAMES.get(img.shape[2])
+    if names is None or len(names) != img.shape[2]:
+        raise ValueError(f"need {img.shape[2]} channel names, got {names}")
+    spec = oiio.ImageSpec(img.shape[1], img.shape[0], img.shape[2], "float")
+    spec.channelnames = names
+    spec.attribute("compression", "zip")
+    for k, v in (attributes or {}).items():
+        spec.attribute(k, str(v))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    out = oiio.ImageOutput.create(str(path))
+    if out is None or not out.open(str(path), spec):
+        raise OSError(f"cannot write {path}: {oiio.geterror()}")
+    try:
+        if not out.write_image(np.ascontiguousarray(img)):
+            raise OSError(f"cannot write {path}: {out.geterror()}")
+    finally:
+        out.close()
+
+
+def read_exr(path: str | Path, channels: Sequence[str] | None = None) -> np.ndarray:
+    """Read an image as float32 ``(H, W, C)``; ``channels`` selects by name (EXR reorders them)."""
+    import OpenImageIO as oiio
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"image not found: {path}")
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise OSError(f"cannot read {path}: {oiio.geterror()}")
+    try:
+        spec = inp.spec()
+        data = inp.read_image(0, 0, 0, spec.nchannels, "float")
+    finally:
+        inp.close()
+    if data is None:
+        raise OSError(f"cannot read pixels of {path}")
+    data = np.asarray(data, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
+    if channels is None:
+        return data
+    idx = []
+    for c in channels:
+        i = spec.channelindex(c)
+        if i < 0:
+            raise ValueError(f"{path}: no channel {c!r} (has {list(spec.channelnames)})")
+        idx.append(i)
+    return data[..., idx]
+
+
+def srgb_encode(linear: np.ndarray) -> np.ndarray:
+    """IEC 61966-2-1 transfer function on [0, 1]-clipped linear values."""
+    x = np.clip(np.nan_to_num(linear), 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+
+
+def write_png_preview(path: str | Path, image: np.ndarray, srgb: bool = True, exposure: float = 1.0) -> None:
+    """8-bit preview; ``srgb=True`` applies the sRGB curve (use it for linear radiance/albedo)."""
+    import OpenImageIO as oiio
+
+    img = np.asarray(image, dtype=np.float64) * exposure
+    if img.ndim == 2:
+        img = img[..., None]
+    if img.shape[2] == 2:
+        img = np.concatenate([img, np.zeros_like(img[..., :1])], -1)
+    img = srgb_encode(img) if srgb else np.clip(img, 0, 1)
+    u8 = np.ascontiguousarray(np.round(img * 255).astype(np.uint8))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    out = oiio.ImageOutput.create(str(path))
+    spec = oiio.ImageSpec(u8.shape[1], u8.shape[0], u8.shape[2], "uint8")
+    if out is None or not out.open(str(path), spec):
+        raise OSError(f"cannot write {path}: {oiio.geterror()}")
+    try:
+        out.write_image(u8)
+    finally:
+        out.close()
