@@ -11,7 +11,7 @@ image is restated in platformio.ini. platformio.ini lists this script twice:
 Outside SCons it is a plain program:
   python3 pio_sources.py --print   prints what PlatformIO would use, in the same format as
                                    `make -s -C firmware flags` (stm32.* lines), so a test can
-                                   compare the two (tools/check_pio_flags.py does).
+                                   compare the two (tests/test_cli.py does).
 """
 import os
 import re

@@ -69,13 +69,13 @@ static void h_triggers(void *ctx, uint8_t mask)
     log_call(th, TH_TRIGGERS, 0, 0, mask);
 }
 
-static void h_event(void *ctx, uint16_t kind_arg, uint16_t step, uint64_t ts)
+static void h_event(void *ctx, const ds_event_t *e)
 {
     test_hal_t *th = ctx;
     if (th->n_events < TH_MAX_EVENTS) {
-        th->events[th->n_events].kind_arg = kind_arg;
-        th->events[th->n_events].step = step;
-        th->events[th->n_events].ts = ts;
+        th->events[th->n_events].kind_arg = e->kind_arg;
+        th->events[th->n_events].step = e->step;
+        th->events[th->n_events].ts = e->ts_us;
         th->n_events++;
     }
 }

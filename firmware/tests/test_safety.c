@@ -23,10 +23,11 @@ static int setup(void **state)
     return 0;
 }
 
-/* A valid device-master step: LED 0, 1 ms exposure, trigger 0. */
+/* A valid device-master step: LED 0, 1 ms exposure, a 100 us pulse on trigger 0 (so two of them
+ * in a row leave the line low 900 us). */
 static th_step_t good(void)
 {
-    return (th_step_t){0x0100, 1000, 0xFFFF, 0, 1000, 0, 1, 0, 0x1};
+    return (th_step_t){0x0100, 1000, 0xFFFF, 0, 1000, 100, 1, 0, 0x1};
 }
 
 /* Two steps, the second one `bad`: START must answer 03 with ERROR = code, ERROR_STEP = 1,
@@ -193,6 +194,29 @@ static void test_err_trigger_mask(void **state)
     expect_valid(s); /* a dark pause needs no trigger */
 }
 
+static void test_err_trigger_gap(void **state)
+{
+    (void)state;
+    th_step_t s = good();
+    s.pulse = 0; /* gate mode, 2 brackets, no frame gap: the line never goes low between them */
+    s.count = 2;
+    expect_invalid(s, DS_ERR_TRIGGER_GAP);
+    s.pulse = 1000 - DS_TRIGGER_MIN_LOW_US + 1u; /* one microsecond too little low time */
+    expect_invalid(s, DS_ERR_TRIGGER_GAP);
+    s.pulse = 1000 - DS_TRIGGER_MIN_LOW_US; /* exactly the minimum */
+    expect_valid(s);
+    s = good();
+    s.triggers = 0x2; /* another line: no constraint from step 0's pulse */
+    s.pulse = 0;
+    expect_valid(s);
+    uint16_t gap[2] = {0, DS_TRIGGER_MIN_LOW_US}; /* a frame gap makes gate mode legal */
+    assert_int_equal(th_writen(&core, &th, DS_HR_FRAME_GAP_US, gap, 2), 0);
+    s = good();
+    s.pulse = 0;
+    s.count = 2;
+    expect_valid(s);
+}
+
 static void test_trigger_mask_may_be_empty_in_camera_master(void **state)
 {
     (void)state;
@@ -222,7 +246,7 @@ static void test_err_led_duty_leaky_bucket(void **state)
     (void)state;
     /* capacity 10 ms, duty 50 %: drains at 1 us/us while off */
     assert_int_equal(th_write1(&core, &th, DS_HR_LED_MAX_ON_MS, 10), 0);
-    th_step_t on = {0x0107, 10, 0xFFFF, 0, 8000, 0, 1, 0, 1};
+    th_step_t on = {0x0107, 10, 0xFFFF, 0, 8000, 100, 1, 0, 1};
     th_step_t off = {0x0000, 0, 0xFFFF, 0, 1000, 0, 1, 0, 0};
     th_step_t seq[3] = {on, off, on}; /* 8 ms, 1 ms off -> 7 ms, + 8 ms = 15 ms > 10 ms */
     assert_int_equal(th_upload(&core, &th, seq, 3), 0);
@@ -471,6 +495,7 @@ int main(void)
         cmocka_unit_test_setup(test_err_pulse_range, setup),
         cmocka_unit_test_setup(test_err_brackets_range, setup),
         cmocka_unit_test_setup(test_err_trigger_mask, setup),
+        cmocka_unit_test_setup(test_err_trigger_gap, setup),
         cmocka_unit_test_setup(test_trigger_mask_may_be_empty_in_camera_master, setup),
         cmocka_unit_test_setup(test_err_led_on_time, setup),
         cmocka_unit_test_setup(test_err_led_duty_leaky_bucket, setup),

@@ -156,6 +156,9 @@ UNSAFE = [
     ("on-time over the limit", [lit(0, exposure_us=11_000_000)], rm.Error.LED_ON_TIME, 0),
     ("servo cannot make it", [lit(0, polarizer_cdeg=0, settle_us=300_000), lit(1, polarizer_cdeg=9000, settle_us=1000)],
      rm.Error.SERVO_SETTLE, 1),
+    ("gate-mode brackets with no time low", [lit(0, pulse_us=0, brackets=2)], rm.Error.TRIGGER_GAP, 0),
+    ("pulse leaves the line low too briefly", [lit(0, pulse_us=1995, brackets=2)], rm.Error.TRIGGER_GAP, 0),
+    ("next step re-triggers too soon", [lit(0, pulse_us=0), lit(1, settle_us=5, pulse_us=0)], rm.Error.TRIGGER_GAP, 1),
     ("duty cycle over budget", [lit(0, exposure_us=4_000_000)] * 4, rm.Error.LED_DUTY, None),
 ]
 
@@ -211,3 +214,12 @@ def test_host_disappears_mid_sequence(rig):
     assert rig.lights_on() == []
     kinds = [e.kind for e in rig.poll_events()]
     assert rm.Event.SEQ_ABORT in kinds and rm.Event.WATCHDOG in kinds
+
+
+def test_run_ends_even_when_the_fifo_overflows_and_drops_seq_done(rig, sim):
+    if sim.target != "posix":
+        pytest.skip("needs events faster than any host can read them: 700 in a few ms")
+    steps = [lit(i % 127, settle_us=0, exposure_us=20, pulse_us=10) for i in range(230)]
+    res = rig.run(steps, timeout_s=30)
+    assert res.state == rm.State.DONE and res.dropped > 0
+    assert len(res.events) + res.dropped == 2 + 3 * len(steps)  # SEQ_START/DONE + 3 per step

@@ -26,9 +26,10 @@ def test_full_micro_capture_lands_exactly_on_schedule_in_virtual_time():
 def _steps():
     out = []
     for i in range(12):
+        gate = i % 2 == 0  # gate mode (PULSE_US = 0) needs one bracket: no frame gap here
         out.append(Step(rm.Source.LED, i, 2000, 0 if i == 0 else None, settle_us=3000 + 500 * i,
-                        exposure_us=4000, pulse_us=200 * (i % 2), brackets=1 + i % 3, ev_step=1,
-                        triggers=1))
+                        exposure_us=4000, pulse_us=0 if gate else 200, brackets=1 if gate else 1 + i % 3,
+                        ev_step=1, triggers=1))
     return out
 
 
@@ -36,7 +37,8 @@ def _steps():
 def test_qemu_event_order_and_step_durations_match_the_schedule():
     steps = _steps()
     sched = schedule(steps, frame_gap_us=0)
-    with SimulatedRig("qemu") as sim, RigClient(sim.port, timeout=1.0) as rig:
+    # -icount: guest time follows instructions, so host scheduling hiccups don't show as lateness
+    with SimulatedRig("qemu", icount="shift=2") as sim, RigClient(sim.port, timeout=2.0) as rig:
         res = rig.run(steps, timeout_s=60)
     assert res.state == rm.State.DONE
     per = [e for e in res.events if e.kind in (rm.Event.STEP_START, rm.Event.TRIGGER, rm.Event.STEP_END)]
@@ -49,8 +51,8 @@ def test_qemu_event_order_and_step_durations_match_the_schedule():
     for k, t in enumerate(sched):
         got = ends[k] - starts[k]
         want = t.end - t.start
-        # the guest busy-polls a 1 MHz-resolution SysTick clock: allow a few ticks of latency
-        assert abs(got - want) <= 50 + want // 1000, (k, got, want)
+        # the guest busy-polls its SysTick microsecond clock: allow a few µs of polling latency
+        assert abs(got - want) <= 20, (k, got, want)
 
 
 def test_camera_master_latches_steps_on_camera_edges(tmp_path):

@@ -21,7 +21,7 @@
 #define DS_NO_SOURCE 0xFFFFu
 #define DS_TARGET_NAME_MAX 31u  /* longest target name kept by ds_core_set_target */
 
-typedef struct {
+typedef struct ds_event {
     uint16_t seq;      /* event sequence number, wraps */
     uint16_t kind_arg; /* kind | arg << 8 */
     uint16_t step;
@@ -109,6 +109,9 @@ void ds_core_camera_edge(ds_core_t *c, uint8_t camera, uint64_t now_us);
  * Writes the response into resp and returns its length; 0 means silence
  * (bad CRC, other address, broadcast). Used by ds_core_rx, the vector tests and the fuzzers. */
 size_t ds_core_handle_frame(ds_core_t *c, const uint8_t *req, size_t n, uint8_t *resp, uint64_t now_us);
+
+/* Events waiting in the FIFO for the host's ack. */
+uint16_t ds_core_events_pending(const ds_core_t *c);
 
 /* Safety: true if any light is on. */
 int ds_core_any_light_on(const ds_core_t *c);

@@ -9,6 +9,8 @@
 
 #include <stdint.h>
 
+struct ds_event; /* ds_core.h */
+
 typedef struct ds_hal {
     void *ctx; /* passed back to every hook */
 
@@ -30,8 +32,8 @@ typedef struct ds_hal {
     /* Set the trigger outputs: bit i of mask = trigger line i level. */
     void (*triggers_write)(void *ctx, uint8_t mask);
 
-    /* Optional: an event was pushed to the FIFO (the simulator mirrors it on its side channel). */
-    void (*on_event)(void *ctx, uint16_t kind_arg, uint16_t step, uint64_t ts_us);
+    /* Optional: an event was stored in the FIFO (the simulator mirrors it on its side channel). */
+    void (*on_event)(void *ctx, const struct ds_event *e);
 } ds_hal_t;
 
 #endif /* DS_HAL_H */

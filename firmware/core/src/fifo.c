@@ -24,7 +24,7 @@ void ds_evt_push(ds_core_t *c, uint8_t kind, uint8_t arg, uint16_t step, uint64_
     e->ts_us = ts_us & 0xFFFFFFFFFFFFull;
     c->fifo_count++;
     if (c->hal && c->hal->on_event) {
-        c->hal->on_event(c->hal->ctx, e->kind_arg, e->step, e->ts_us);
+        c->hal->on_event(c->hal->ctx, e);
     }
 }
 
@@ -43,6 +43,11 @@ void ds_fifo_ack(ds_core_t *c, uint16_t seq)
     uint16_t n = (uint16_t)(off + 1u);
     c->fifo_head = (uint16_t)((c->fifo_head + n) % DS_FIFO_DEPTH);
     c->fifo_count = (uint16_t)(c->fifo_count - n);
+}
+
+uint16_t ds_core_events_pending(const ds_core_t *c)
+{
+    return c->fifo_count;
 }
 
 void ds_fifo_clear(ds_core_t *c)

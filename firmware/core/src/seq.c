@@ -58,6 +58,12 @@ uint16_t ds_seq_validate(ds_core_t *c, uint16_t len, uint8_t mode, uint32_t gap_
     }
     uint16_t angle = c->polarizer_now;
     uint64_t t = 0u;
+    /* Per trigger line: when it last fell (device-master), so every rise can be checked to come
+     * at least DS_TRIGGER_MIN_LOW_US later; UINT64_MAX = never raised yet. */
+    uint64_t fell[DS_N_TRIGGERS];
+    for (uint16_t i = 0; i < DS_N_TRIGGERS; i++) {
+        fell[i] = UINT64_MAX;
+    }
     for (uint16_t k = 0; k < len; k++) {
         step_view_t s = step_at(c, k);
         uint16_t src = DS_NO_SOURCE;
@@ -92,6 +98,22 @@ uint16_t ds_seq_validate(ds_core_t *c, uint16_t len, uint8_t mode, uint32_t gap_
         if ((s.triggers >> DS_N_TRIGGERS) != 0u ||
             (mode == DS_MODE_DEVICE_MASTER && lit && s.triggers == 0u)) {
             return DS_ERR_TRIGGER_MASK;
+        }
+        if (mode == DS_MODE_DEVICE_MASTER && s.triggers != 0u) {
+            uint64_t rise = t + s.settle;
+            for (uint8_t b = 0; b < s.count; b++) {
+                uint64_t e = bracket_us(&s, b);
+                uint64_t fall = rise + (s.pulse != 0u ? s.pulse : e);
+                for (uint16_t i = 0; i < DS_N_TRIGGERS; i++) {
+                    if ((s.triggers >> i) & 1u) {
+                        if (fell[i] != UINT64_MAX && rise < fell[i] + DS_TRIGGER_MIN_LOW_US) {
+                            return DS_ERR_TRIGGER_GAP;
+                        }
+                        fell[i] = fall;
+                    }
+                }
+                rise += e + gap_us;
+            }
         }
         if (s.polarizer != DS_POL_KEEP) {
             uint32_t delta = s.polarizer > angle ? (uint32_t)(s.polarizer - angle)

@@ -207,18 +207,16 @@ static void hal_triggers_write(void *ctx, uint8_t mask)
     }
 }
 
-static void hal_on_event(void *ctx, uint16_t kind_arg, uint16_t step, uint64_t ts_us)
+static void hal_on_event(void *ctx, const ds_event_t *e)
 {
     (void)ctx;
     if (!sidechan_enabled()) {
         return;
     }
-    /* The hook carries no SEQ; the core has just assigned next_seq - 1 to this event. */
-    uint16_t seq = (uint16_t)(core.next_seq - 1u);
     char line[160];
     int n = snprintf(line, sizeof line,
                      "{\"t_us\":%llu,\"ev\":\"event\",\"kind\":%u,\"arg\":%u,\"step\":%u,\"seq\":%u}",
-                     (unsigned long long)ts_us, kind_arg & 0xFFu, kind_arg >> 8, step, seq);
+                     (unsigned long long)e->ts_us, e->kind_arg & 0xFFu, e->kind_arg >> 8, e->step, e->seq);
     publish(-1, line, n);
 }
 
@@ -290,9 +288,9 @@ static void update_congestion(uint64_t real)
     if (L.clk.speed == 1.0) {
         return;
     }
-    if (!L.congested && core.fifo_count >= SIM_FIFO_HIGH) {
+    if (!L.congested && ds_core_events_pending(&core) >= SIM_FIFO_HIGH) {
         set_congested(1, real, device_now(real));
-    } else if (L.congested && core.fifo_count <= SIM_FIFO_LOW) {
+    } else if (L.congested && ds_core_events_pending(&core) <= SIM_FIFO_LOW) {
         set_congested(0, real, device_now(real));
     }
 }
@@ -310,7 +308,7 @@ static void run_due(uint64_t v)
         hw.now = t;
         ds_core_poll(&core, t);
         note_time(t);
-        if (L.clk.speed != 1.0 && !L.congested && core.fifo_count >= SIM_FIFO_HIGH) {
+        if (L.clk.speed != 1.0 && !L.congested && ds_core_events_pending(&core) >= SIM_FIFO_HIGH) {
             set_congested(1, sim_real_us(), L.last);
             return;
         }

@@ -136,6 +136,7 @@ class RunResult:
     error: rm.Error = rm.Error.NONE
     wall_s: float = 0.0
     reconnects: int = 0
+    dropped: int = 0  # events the FIFO could not hold during this run (EVT_DROPPED delta)
 
 
 class RigClient:
@@ -399,16 +400,22 @@ class RigClient:
 
     def run(self, steps: Sequence[Step] | None = None, mode: rm.TriggerMode = rm.TriggerMode.DEVICE_MASTER,
             on_event: Callable[[Event], None] | None = None, timeout_s: float = 600.0,
-            poll_s: float = 0.01) -> RunResult:
-        """Upload (if `steps`), START, and follow the FIFO until the sequence ends."""
+            poll_s: float = 0.01, state_check_s: float = 0.25) -> RunResult:
+        """Upload (if `steps`), START, and follow the FIFO until the sequence ends.
+
+        The end is the terminal event (SEQ_DONE, SEQ_ABORT, FAULT), or, should that event have
+        been dropped by a full FIFO, the device's STATE leaving ARMED/RUNNING with nothing
+        pending; `RunResult.dropped` then says how many events were lost.
+        """
         if steps is not None:
             self.upload(steps)
         self.sync_events()
         res = RunResult()
-        r0 = self.reconnects
-        t0 = time.monotonic()
+        r0, d0 = self.reconnects, self.status().evt_dropped
+        t0 = last_check = time.monotonic()
         self.start(mode)
         ended = {rm.Event.SEQ_DONE, rm.Event.SEQ_ABORT, rm.Event.FAULT}
+        active = {rm.State.ARMED, rm.State.RUNNING}
         while True:
             batch = self.poll_events()
             for e in batch:
@@ -416,17 +423,23 @@ class RigClient:
                 if on_event:
                     on_event(e)
             if any(e.kind in ended for e in batch):
-                batch = self.poll_events()  # drain what follows the terminal event, then ack it
-                res.events += batch
+                res.events += self.poll_events()  # what follows the terminal event, then ack it
                 self.poll_events()
                 break
-            if time.monotonic() - t0 > timeout_s:
+            now = time.monotonic()
+            if not batch and now - last_check > state_check_s:
+                last_check = now
+                st = self.status()
+                if st.state not in active and st.evt_count == 0:
+                    log.warning("sequence ended without its terminal event (%d events dropped)", st.evt_dropped)
+                    break
+            if now - t0 > timeout_s:
                 self.abort()
                 raise RigError(f"sequence did not finish within {timeout_s} s (aborted)")
             if not batch:
                 time.sleep(poll_s)
         st = self.status()
-        res.state, res.error = st.state, st.error
+        res.state, res.error, res.dropped = st.state, st.error, st.evt_dropped - d0
         res.wall_s = time.monotonic() - t0
         res.reconnects = self.reconnects - r0
         return res
