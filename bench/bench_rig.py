@@ -109,9 +109,6 @@ def main() -> int:
     rows.append(("sequencer overhead, full demo (264 steps), virtual time",
                  f"{statistics.median(x.overhead_pct for x in reps):.4f} %",
                  f"schedule {rep.scheduled_us / 1e6:.3f} s", f"worst event deviation {rep.max_step_dev_us} us"))
-    rt = run_demo("posix", speed=1, out=lambda s: None)
-    rows.append(("sequencer overhead, full demo, real time (Linux process)", f"{rt.overhead_pct:.4f} %",
-                 f"schedule {rt.scheduled_us / 1e6:.3f} s", f"worst event deviation {rt.max_step_dev_us} us"))
     size = subprocess.run(["arm-none-eabi-size", "-A", str(firmware_elf())], capture_output=True, text=True)
     sec = {ln.split()[0]: int(ln.split()[1]) for ln in size.stdout.splitlines()
            if ln.startswith(".") and len(ln.split()) >= 2}
