@@ -50,3 +50,13 @@ def test_python_and_c_agree_on_every_address():
     assert defines["DS_N_LEDS"] == rm.N_LEDS == sum(rm.DOME_COUNTS) == 127
     for e in rm.Error:
         assert defines[f"DS_ERR_{e.name}"] == e.value
+
+
+def test_vectors_toml_matches_its_generator():
+    """vectors.toml is derived from the spec by protocol/make_vectors.py; it must not drift."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("make_vectors", REPO / "protocol/make_vectors.py")
+    mv = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mv)
+    assert mv.render() == (REPO / "protocol/vectors.toml").read_text(), "run protocol/make_vectors.py"
