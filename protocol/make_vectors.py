@@ -166,11 +166,11 @@ def build() -> None:
     wr1_exc("fc06_duty_1001", HR_DUTY, 1001, 0x03)
     wr1_exc("fc06_camera_timeout_zero", HR_CAM_TO, 0, 0x03)
     wr1_exc("fc06_master_camera_4", HR_CAM, 4, 0x03)
-    wr1_exc("fc06_unmapped_15", 15, 0, 0x02)
+    wr1_exc("fc06_unmapped_16", 16, 0, 0x02)
     wr1_exc("fc06_unmapped_past_step_table", STEPS + 10 * 2048, 0, 0x02)
     exc("fc03_quantity_126", bytes([0x03]) + words(0, 126), 0x03)
     exc("fc03_quantity_zero", bytes([0x03]) + words(0, 0), 0x03)
-    exc("fc03_range_14_15", bytes([0x03]) + words(14, 2), 0x02)
+    exc("fc03_range_15_16", bytes([0x03]) + words(15, 2), 0x02)
     exc("fc03_gap_between_regions", bytes([0x03]) + words(0x0FFF, 2), 0x02)
     exc("fc04_unmapped_27", bytes([0x04]) + words(27, 1), 0x02)
     exc("fc04_window_past_end", bytes([0x04]) + words(256 + 119, 2), 0x02)
@@ -205,7 +205,7 @@ def build() -> None:
        bytes([0x17, 6]) + words(9000, 1000, 10000))
     exc("fc17_write_quantity_122",
         bytes([0x17]) + words(0, 1, STEPS, 122) + bytes([244]) + words(0, 0), 0x03)
-    exc("fc17_read_unmapped", bytes([0x17]) + words(15, 1, HR_MANUAL, 1) + b"\x02" + words(7), 0x02)
+    exc("fc17_read_unmapped", bytes([0x17]) + words(16, 1, HR_MANUAL, 1) + b"\x02" + words(7), 0x02)
     rd_hr("fc17_failed_writes_nothing", HR_MANUAL, [1000])
 
     # ---- framing and silence ------------------------------------------------------------

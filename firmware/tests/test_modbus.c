@@ -87,6 +87,28 @@ static void test_gap_of_t35_splits_the_frame(void **state)
     assert_int_equal(th_ir(&core, &th, DS_IR_FRAMES_BAD_CRC), 1); /* the other 5 */
 }
 
+static void test_frame_timeout_register_tolerates_byte_gaps(void **state)
+{
+    (void)state;
+    uint8_t req[16], pdu[5] = {0x04, 0, 0, 0, 1};
+    size_t n = th_adu(req, 1, pdu, 5);
+    feed(req, n, 3000); /* 3 ms between bytes: the standard t3.5 splits the frame */
+    settle_line();
+    assert_int_equal(th.uart_frames, 0);
+    assert_int_equal(th_write1(&core, &th, DS_HR_FRAME_TIMEOUT_US, 5000), 0);
+    unsigned before = th.uart_frames;
+    feed(req, n, 3000); /* now one frame, ended by 5 ms of silence, not by 3 ms */
+    assert_int_equal(th.uart_frames, before);
+    th.now += 5000;
+    ds_core_poll(&core, th.now);
+    assert_int_equal(th.uart_frames, before + 1u);
+    assert_int_equal(th.uart[1], 0x04);
+    /* below t3.5 acts as t3.5; above the range is refused */
+    assert_int_equal(th_write1(&core, &th, DS_HR_FRAME_TIMEOUT_US, 10), 0);
+    assert_int_equal(th_write1(&core, &th, DS_HR_FRAME_TIMEOUT_US, DS_HR_FRAME_TIMEOUT_US_MAX + 1u),
+                     DS_EX_ILLEGAL_VALUE);
+}
+
 static void test_back_to_back_frames_are_both_answered(void **state)
 {
     (void)state;
@@ -238,6 +260,7 @@ int main(void)
         cmocka_unit_test_setup(test_t35_by_baud_rate, setup),
         cmocka_unit_test_setup(test_gap_below_t35_continues_the_frame, setup),
         cmocka_unit_test_setup(test_gap_of_t35_splits_the_frame, setup),
+        cmocka_unit_test_setup(test_frame_timeout_register_tolerates_byte_gaps, setup),
         cmocka_unit_test_setup(test_back_to_back_frames_are_both_answered, setup),
         cmocka_unit_test_setup(test_oversize_frame_dropped_then_recovers, setup),
         cmocka_unit_test_setup(test_wrong_pdu_lengths_answer_03, setup),

@@ -11,18 +11,19 @@ from .rig.sim import SimError, SimulatedRig
 
 
 def cmd_sim(a: argparse.Namespace) -> int:
-    rig = SimulatedRig(a.target, link=a.link, speed=a.speed, hw_socket=a.hw_socket, icount=a.icount)
-    rig.start()
-    print(rig.port, flush=True)
-    if a.link:
-        print(f"linked {a.link} -> {rig.port}", file=sys.stderr)
     stop = {"now": False}
 
     def handler(signum, frame):
         stop["now"] = True
 
+    # before the device line goes out: a caller may signal as soon as it has read it
     signal.signal(signal.SIGINT, handler)
     signal.signal(signal.SIGTERM, handler)
+    rig = SimulatedRig(a.target, link=a.link, speed=a.speed, hw_socket=a.hw_socket, icount=a.icount)
+    rig.start()
+    print(rig.port, flush=True)
+    if a.link:
+        print(f"linked {a.link} -> {rig.port}", file=sys.stderr)
     try:
         while not stop["now"] and rig.alive():
             time.sleep(0.1)
@@ -93,6 +94,11 @@ def build_parser() -> argparse.ArgumentParser:
     from .cli_appearance import register as register_appearance
 
     register_appearance(sub)
+    from .cli_calib import register as register_calib
+
+    register_calib(sub)
+    from .cli_fit import register as register_fit
+    register_fit(sub)
     return p
 
 

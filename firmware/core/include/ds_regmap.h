@@ -193,6 +193,10 @@ static const unsigned char DS_DOME_ROW_COUNTS[DS_N_ROWS] = {1, 6, 12, 18, 24, 30
 #define DS_HR_FRAME_GAP_US_MIN 0u
 #define DS_HR_FRAME_GAP_US_MAX 60000000u
 #define DS_HR_FRAME_GAP_US_DEFAULT 0u
+#define DS_HR_FRAME_TIMEOUT_US 15u /* u16, 1 word(s) */
+#define DS_HR_FRAME_TIMEOUT_US_MIN 0u
+#define DS_HR_FRAME_TIMEOUT_US_MAX 50000u
+#define DS_HR_FRAME_TIMEOUT_US_DEFAULT 0u
 
 /* Step table: word offsets inside one step */
 #define DS_STEP_SOURCE 0u

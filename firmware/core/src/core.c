@@ -40,6 +40,7 @@ void ds_core_init(ds_core_t *c, const ds_hal_t *hal, uint8_t address, uint64_t n
     c->hr[DS_HR_MASTER_CAMERA] = DS_HR_MASTER_CAMERA_DEFAULT;
     c->hr[DS_HR_FRAME_GAP_US] = (uint16_t)(DS_HR_FRAME_GAP_US_DEFAULT >> 16);
     c->hr[DS_HR_FRAME_GAP_US + 1u] = (uint16_t)(DS_HR_FRAME_GAP_US_DEFAULT & 0xFFFFu);
+    c->hr[DS_HR_FRAME_TIMEOUT_US] = DS_HR_FRAME_TIMEOUT_US_DEFAULT;
 
     c->state = DS_STATE_IDLE;
     c->error = DS_ERR_NONE;

@@ -12,7 +12,7 @@
 #define DS_EX_DEVICE_FAILURE 4u
 #define DS_EX_BUSY 6u
 
-#define DS_HR_COUNT 15u                 /* mapped holding registers 0..14 */
+#define DS_HR_COUNT 16u                 /* mapped holding registers 0..15 */
 #define DS_IR_COUNT 27u                 /* mapped input registers 0..26 */
 #define DS_STEP_TABLE_WORDS (DS_MAX_STEPS * DS_STEP_WORDS)
 #define DS_STEP_NONE 0xFFFFu            /* event STEP / ERROR_STEP when not step-related */

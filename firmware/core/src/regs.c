@@ -172,6 +172,7 @@ static int holding_value_ok(const uint16_t *cand, uint16_t a, uint16_t cmd)
     case DS_HR_CAMERA_TIMEOUT_MS:
         return v >= DS_HR_CAMERA_TIMEOUT_MS_MIN && v <= DS_HR_CAMERA_TIMEOUT_MS_MAX;
     case DS_HR_MASTER_CAMERA: return v <= DS_HR_MASTER_CAMERA_MAX;
+    case DS_HR_FRAME_TIMEOUT_US: return v <= DS_HR_FRAME_TIMEOUT_US_MAX;
     case DS_HR_FRAME_GAP_US:
     case DS_HR_FRAME_GAP_US + 1u: {
         uint32_t gap = ((uint32_t)cand[DS_HR_FRAME_GAP_US] << 16) | cand[DS_HR_FRAME_GAP_US + 1u];

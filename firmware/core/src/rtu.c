@@ -17,7 +17,8 @@ void ds_core_set_baud(ds_core_t *c, uint32_t baud)
 
 static uint64_t frame_end_us(const ds_core_t *c)
 {
-    return c->rx_last_us + c->t35_us;
+    uint32_t t = c->hr[DS_HR_FRAME_TIMEOUT_US];
+    return c->rx_last_us + (t > c->t35_us ? t : c->t35_us);
 }
 
 /* Deadline of the frame being received, DS_NO_DEADLINE if none. */
