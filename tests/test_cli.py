@@ -1,6 +1,7 @@
 """The `dualscale` command line: sim, console, flash --dry-run."""
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -44,6 +45,32 @@ def test_console_script(sim_link):
     assert "dualscale fw=0.1.0" in r.stdout
     assert "led 3, diffuse 0" in r.stdout and "all lights off" in r.stdout
     assert "polarizer_cdeg   9000" in r.stdout
+
+
+def test_console_uploads_runs_and_follows_a_sequence(sim_link, tmp_path):
+    _, _, link = sim_link
+    seq = tmp_path / "seq.json"
+    seq.write_text(json.dumps([
+        {"source": "led", "index": i, "intensity": 900, "settle_us": 500, "exposure_us": 1000,
+         "pulse_us": 100, "brackets": 2, "ev_step": 1, "triggers": 1} for i in range(3)]))
+    r = subprocess.run([*DUALSCALE, "console", "--port", str(link), "-c",
+                        f"watchdog 2000; upload {seq}; run; events; start; abort; events; watchdog 0"],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "uploaded 3 steps" in r.stdout and "DONE: 14 events" in r.stdout
+    assert "SEQ_ABORT" in r.stdout
+
+
+def test_console_rejects_a_malformed_sequence_file(sim_link, tmp_path):
+    _, _, link = sim_link
+    bad = tmp_path / "bad.json"
+    bad.write_text('[{"source": "laser", "index": 1}]')
+    r = subprocess.run([*DUALSCALE, "console", "--port", str(link), "-c",
+                        f"upload {bad}; upload {tmp_path / 'missing.json'}; upload {tmp_path}"],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 1
+    assert "step 0 is malformed" in r.stdout and "no such sequence file" in r.stdout
+    assert "cannot read sequence file" in r.stdout
 
 
 def test_console_reports_errors_and_fails(sim_link):

@@ -230,6 +230,8 @@ REGISTERS: tuple[Register, ...] = (
              'Camera-master: which camera-edge input advances the sequence.'),
     Register('holding', 'FRAME_GAP_US', 13, 'u32', 2, 'rw', 'us', 0, 60000000, 0,
              "Gap after every bracket's exposure (camera readout) before the next bracket or step."),
+    Register('holding', 'FRAME_TIMEOUT_US', 15, 'u16', 1, 'rw', 'us', 0, 50000, 0,
+             "End-of-frame silence. 0 = the standard t3.5; a larger value serves links that deliver a frame's bytes with gaps (radio modems, emulators). Values below t3.5 act as t3.5."),
 )
 
 
@@ -279,6 +281,7 @@ class HR:
     CAMERA_TIMEOUT_MS = 11
     MASTER_CAMERA = 12
     FRAME_GAP_US = 13
+    FRAME_TIMEOUT_US = 15
 
 
 class Coil:

@@ -19,15 +19,19 @@ def load_steps(path: Path) -> list[Step]:
         raw = json.loads(path.read_text())
     except FileNotFoundError:
         raise RigError(f"no such sequence file: {path}") from None
+    except OSError as e:
+        raise RigError(f"cannot read sequence file {path}: {e.strerror}") from None
     except json.JSONDecodeError as e:
         raise RigError(f"{path} is not valid JSON: {e}") from None
+    if not isinstance(raw, list):
+        raise RigError(f"{path}: expected a JSON list of steps")
     steps = []
     for i, d in enumerate(raw):
         try:
             d = dict(d)
             d["source"] = rm.Source[str(d["source"]).upper()]
             steps.append(Step(**d))
-        except (KeyError, TypeError) as e:
+        except (KeyError, TypeError, ValueError) as e:
             raise RigError(f"{path}: step {i} is malformed ({e})") from None
     return steps
 
