@@ -1,0 +1,213 @@
+"""Calibration capture sets on disk: a JSON manifest and one float32 EXR per bracket.
+
+``captures.json``::
+
+    {"format": "dualscale-calib-captures", "version": 1, "date": ISO-8601,
+     "rig": {"id": str, "layout": str},          # who took them (checked against calib files)
+     "units": "dn_normalized",                    # 1.0 = full scale, linear
+     "cameras": {name: {kind, width, height, field_mm, position_mm, has_analyzer,
+                        "sensitivities": str}},   # colour space: camera_raw:<sensitivities>
+     "markers": {camera: [[row0, row1, col0, col1], ...]},   # white markers on the holder
+     "chart": {"layout": {rows, cols, pitch_mm, patch_mm}, "corners": {camera: [[x, y] x 4]}},
+     "groups": [{"id", "target", "patch", "camera", "light": {"kind", "id"},
+                 "analyzer_deg", "analyzer_relative", "exposures_s": [...], "files": [...],
+                 "date"}],
+     "extra": {...}}
+
+``target`` is one of ``dark``, ``white_sheet``, ``chart``, ``patch`` (one ColorChecker patch
+filling the micro field, index in ``patch``), ``dot_grid`` or ``polarization``.  A group is
+one scene under one light and analyser setting; its files are the exposure brackets.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import os
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dualscale.dome.cameras import Camera
+from dualscale.dome.exr import read_exr, write_exr
+
+from .errors import CalibrationError, ImageSizeError, MissingBracketsError
+
+FORMAT = "dualscale-calib-captures"
+VERSION = 1
+TARGETS = ("dark", "white_sheet", "chart", "patch", "dot_grid", "polarization")
+
+
+def light_key(kind: str, light_id: int | None) -> str:
+    """``led012``, ``backlight0``, ``diffuse``, ``off``."""
+    if kind == "led":
+        return f"led{int(light_id):03d}"
+    if kind == "backlight":
+        return f"backlight{int(light_id or 0)}"
+    if kind in ("diffuse", "off"):
+        return kind
+    raise ValueError(f"unknown light kind {kind!r}")
+
+
+@dataclass
+class Group:
+    id: str
+    target: str
+    camera: str
+    light_kind: str
+    light_id: int | None
+    exposures_s: list[float]
+    files: list[str]
+    patch: int | None = None
+    analyzer_deg: float | None = None
+    analyzer_relative: bool = False
+    date: str = ""
+
+    @property
+    def light(self) -> str:
+        return light_key(self.light_kind, self.light_id)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"id": self.id, "target": self.target, "patch": self.patch, "camera": self.camera,
+                "light": {"kind": self.light_kind, "id": self.light_id}, "analyzer_deg": self.analyzer_deg,
+                "analyzer_relative": self.analyzer_relative, "exposures_s": self.exposures_s,
+                "files": self.files, "date": self.date}
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> "Group":
+        try:
+            g = cls(id=str(d["id"]), target=str(d["target"]), camera=str(d["camera"]),
+                    light_kind=str(d["light"]["kind"]),
+                    light_id=None if d["light"].get("id") is None else int(d["light"]["id"]),
+                    exposures_s=[float(t) for t in d["exposures_s"]], files=[str(f) for f in d["files"]],
+                    patch=None if d.get("patch") is None else int(d["patch"]),
+                    analyzer_deg=None if d.get("analyzer_deg") is None else float(d["analyzer_deg"]),
+                    analyzer_relative=bool(d.get("analyzer_relative", False)), date=str(d.get("date", "")))
+        except (KeyError, TypeError, ValueError) as e:
+            raise CalibrationError(f"malformed capture group {d!r}: {e}") from e
+        if g.target not in TARGETS:
+            raise CalibrationError(f"group {g.id}: unknown target {g.target!r}")
+        if not g.files or len(g.files) != len(g.exposures_s):
+            raise MissingBracketsError(f"group {g.id}: {len(g.files)} files for {len(g.exposures_s)} exposures")
+        return g
+
+
+def _now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+
+@dataclass
+class CaptureWriter:
+    """Writes groups of brackets, then the manifest (``close``, atomic)."""
+
+    root: Path
+    rig: dict[str, str]
+    cameras: dict[str, dict[str, Any]] = field(default_factory=dict)
+    markers: dict[str, list[list[int]]] = field(default_factory=dict)
+    chart: dict[str, Any] = field(default_factory=dict)
+    extra: dict[str, Any] = field(default_factory=dict)
+    groups: list[Group] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self.root = Path(self.root)
+        (self.root / "images").mkdir(parents=True, exist_ok=True)
+
+    def add_camera(self, camera: Camera, sensitivities: str) -> None:
+        self.cameras[camera.name] = {**{k: v for k, v in asdict(camera).items() if k != "name"},
+                                     "sensitivities": sensitivities}
+
+    def add(self, target: str, camera: Camera, light_kind: str, light_id: int | None, exposures_s: list[float],
+            images: list[np.ndarray], patch: int | None = None, analyzer_deg: float | None = None,
+            analyzer_relative: bool = False) -> Group:
+        if target not in TARGETS:
+            raise ValueError(f"unknown target {target!r}")
+        if camera.name not in self.cameras:
+            raise ValueError(f"add_camera({camera.name!r}) first")
+        pol = "nopol" if analyzer_deg is None else f"{'rel' if analyzer_relative else 'abs'}{int(round(analyzer_deg * 100)):05d}"
+        gid = f"{camera.name}_{target}{'' if patch is None else f'{patch:02d}'}_{light_key(light_kind, light_id)}_{pol}"
+        if any(g.id == gid for g in self.groups):
+            raise ValueError(f"duplicate group {gid}")
+        files = []
+        for k, (t, img) in enumerate(zip(exposures_s, images)):
+            name = f"images/{gid}_b{k}.exr"
+            write_exr(self.root / name, np.asarray(img, np.float32), attributes={"dualscale:exposure_s": f"{t:.9g}"})
+            files.append(name)
+        g = Group(gid, target, camera.name, light_kind, light_id, [float(t) for t in exposures_s], files, patch,
+                  analyzer_deg, analyzer_relative, _now())
+        self.groups.append(g)
+        return g
+
+    def close(self) -> Path:
+        manifest = {"format": FORMAT, "version": VERSION, "date": _now(), "rig": self.rig, "units": "dn_normalized",
+                    "cameras": self.cameras, "markers": self.markers, "chart": self.chart,
+                    "groups": [g.to_json() for g in self.groups], "extra": self.extra}
+        path = self.root / "captures.json"
+        tmp = path.with_suffix(".json.tmp")
+        tmp.write_text(json.dumps(manifest, indent=1))
+        os.replace(tmp, path)
+        return path
+
+
+@dataclass
+class CaptureSet:
+    root: Path
+    manifest: dict[str, Any]
+    groups: list[Group]
+
+    @property
+    def rig(self) -> dict[str, str]:
+        return dict(self.manifest.get("rig", {}))
+
+    def camera(self, name: str) -> Camera:
+        try:
+            c = dict(self.manifest["cameras"][name])
+        except KeyError as e:
+            raise CalibrationError(f"camera {name!r} is not described in the capture manifest") from e
+        c.pop("sensitivities", None)
+        return Camera(name=name, kind=c["kind"], width=int(c["width"]), height=int(c["height"]),
+                      field_mm=tuple(c["field_mm"]), position_mm=tuple(c["position_mm"]),
+                      has_analyzer=bool(c["has_analyzer"]))
+
+    def select(self, **criteria: Any) -> list[Group]:
+        return [g for g in self.groups if all(getattr(g, k) == v for k, v in criteria.items())]
+
+    def load(self, group: Group) -> list[np.ndarray]:
+        """The group's brackets as float64 ``(H, W, 3)``, checked against its camera's size."""
+        cam = self.camera(group.camera)
+        out = []
+        for f in group.files:
+            p = self.root / f
+            if not p.is_file():
+                raise MissingBracketsError(f"group {group.id}: bracket {f} is missing")
+            img = read_exr(p, ("R", "G", "B")).astype(np.float64)
+            if img.shape[:2] != (cam.height, cam.width):
+                raise ImageSizeError(f"{f}: image is {img.shape[1]}x{img.shape[0]}, camera {cam.name!r} "
+                                     f"is {cam.width}x{cam.height}")
+            out.append(img)
+        return out
+
+
+def read_captures(root: str | Path) -> CaptureSet:
+    """Open and validate a capture set (every listed bracket must exist)."""
+    root = Path(root)
+    path = root / "captures.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"no captures.json in {root}")
+    try:
+        m = json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise CalibrationError(f"{path}: invalid JSON ({e})") from e
+    if m.get("format") != FORMAT or m.get("version") != VERSION:
+        raise CalibrationError(f"{path}: not a {FORMAT} v{VERSION} manifest")
+    if not m.get("rig", {}).get("id"):
+        raise CalibrationError(f"{path}: no rig identity")
+    groups = [Group.from_json(d) for d in m.get("groups", [])]
+    for g in groups:
+        if g.camera not in m.get("cameras", {}):
+            raise CalibrationError(f"group {g.id}: camera {g.camera!r} not described")
+        for f in g.files:
+            if not (root / f).is_file():
+                raise MissingBracketsError(f"group {g.id}: bracket {f} listed in the manifest is missing")
+    return CaptureSet(root, m, groups)

@@ -1,0 +1,110 @@
+"""`dualscale synth-targets`, `dualscale calibrate` and `dualscale evaluate-device`."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+
+def cmd_synth_targets(a: argparse.Namespace) -> int:
+    from .calib.targets import Defects, SynthConfig, write_session
+
+    cfg = SynthConfig(led_step=a.led_step, micro_px=a.micro_px, other_px=a.other_px, rig_id=a.rig_id)
+    d = Defects(led_gain_sigma=a.led_gain_sigma, collimation_max=a.collimation, analyzer_offset_deg=a.analyzer_offset,
+                blur_sigma_um=(a.blur_um[0], a.blur_um[1]), vignetting=a.vignetting, seed=a.seed)
+    parts = tuple(a.parts.split(","))
+    write_session(a.out, cfg, d, parts)
+    print(Path(a.out) / "captures.json")
+    return 0
+
+
+def cmd_calibrate(a: argparse.Namespace) -> int:
+    from .calib.calfile import read_calibration, write_calibration
+    from .calib.captures import read_captures
+    from .calib.pipeline import calibrate
+
+    cs = read_captures(a.captures)
+    out = Path(a.out)
+    if out.exists() and not a.force:  # never silently replace another rig's calibration
+        read_calibration(out, rig_id=cs.rig["id"])
+    data = calibrate(cs)
+    write_calibration(out, data)
+    for cam, kinds in data["ccm"].items():
+        for kind, f in kinds.items():
+            d = f["mean_delta_e2000"]
+            print(f"{cam:7s} {kind:8s} dE00 fit/held-out: before {d['before']['fit']:.2f}/{d['before']['held_out']:.2f}"
+                  f"  LS {d['least_squares']['fit']:.2f}/{d['least_squares']['held_out']:.2f}"
+                  f"  CIEDE2000 {d['ciede2000']['fit']:.2f}/{d['ciede2000']['held_out']:.2f}")
+    print(out)
+    return 0
+
+
+def cmd_evaluate(a: argparse.Namespace) -> int:
+    from .calib import evaluate as ev
+    from .calib.calfile import read_calibration
+    from .calib.captures import read_captures
+    from .calib.pipeline import session_with
+    from .calib.report import write_report
+
+    cs = read_captures(a.captures)
+    calib = read_calibration(a.calibration, rig_id=cs.rig["id"], layout=cs.rig.get("layout"))
+    s = session_with(cs, calib)
+    res: dict = {"colour": ev.colour_accuracy(s)}
+    summary: dict = {}
+    for cam, d in res["colour"].items():
+        summary[f"{cam}_mean_dE00"] = {k: float(np.mean([np.mean(v[k]) for v in d.values()])) for k in ("before", "after")}
+    dots = cs.select(target="dot_grid")
+    if dots:
+        xy, vals = ev.sharpness_map(s.merged(dots[0]).radiance)
+        res["sharpness"] = {"centres": xy.tolist(), "values": vals.tolist()}
+        summary["sharpness_mean"] = float(np.nanmean(vals)) if len(vals) else None
+    pol = ev.polarization(s)
+    if pol:
+        res["polarization"] = {"leds": [{"led": p.led, "angles_deg": p.angles_deg.tolist(), "intensity": p.intensity.tolist(),
+                                         "max_deg": p.max_deg, "min_deg": p.min_deg, "theory_max_deg": p.theory_max_deg,
+                                         "error_deg": p.error_deg, "contrast": p.contrast} for p in pol]}
+        e = np.array([p.error_deg for p in pol])
+        summary["polarization_error_deg"] = {"mean_abs": float(np.abs(e).mean()), "max_abs": float(np.abs(e).max()),
+                                             "analyzer_misalignment": float(-e.mean())}
+    res["collimation"] = ev.collimation(s)
+    if res["collimation"]:
+        summary["collimation_std_max"] = max(res["collimation"].values())
+    res["summary"] = summary
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "results.json").write_text(json.dumps(res, indent=1))
+    print(write_report(out, res, calib))
+    return 0
+
+
+def register(sub) -> None:
+    """Add the calibration subcommands to the `dualscale` parser."""
+    s = sub.add_parser("synth-targets", help="write synthetic calibration captures of the virtual dome")
+    s.add_argument("-o", "--out", required=True)
+    s.add_argument("--led-step", type=int, default=8, help="use every N-th LED")
+    s.add_argument("--micro-px", type=int, default=16)
+    s.add_argument("--other-px", type=int, default=48)
+    s.add_argument("--rig-id", default="virtual-dome-0")
+    s.add_argument("--parts", default="white_sheet,chart,dot_grid,polarization")
+    s.add_argument("--led-gain-sigma", type=float, default=0.05)
+    s.add_argument("--collimation", type=float, default=0.08, help="max per-LED irradiance ramp over the micro field")
+    s.add_argument("--analyzer-offset", type=float, default=0.0, help="injected analyser misalignment [deg]")
+    s.add_argument("--blur-um", type=float, nargs=2, default=(2.0, 8.0), help="PSF sigma at centre and corner [um]")
+    s.add_argument("--vignetting", type=float, default=0.25)
+    s.add_argument("--seed", type=int, default=0)
+    s.set_defaults(fn=cmd_synth_targets)
+
+    c = sub.add_parser("calibrate", help="compute the calibration file from a capture set")
+    c.add_argument("captures", help="directory with captures.json")
+    c.add_argument("-o", "--out", required=True, help="calibration file (JSON, written atomically)")
+    c.add_argument("--force", action="store_true", help="replace an existing file even from another rig")
+    c.set_defaults(fn=cmd_calibrate)
+
+    e = sub.add_parser("evaluate-device", help="colour, sharpness, polarisation and collimation report")
+    e.add_argument("captures", help="directory with captures.json")
+    e.add_argument("--calibration", required=True)
+    e.add_argument("-o", "--out", required=True, help="report directory (report.html, PNG/SVG, results.json)")
+    e.set_defaults(fn=cmd_evaluate)
