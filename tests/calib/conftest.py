@@ -1,11 +1,4 @@
-import sys
-from pathlib import Path
-
 import pytest
-
-_HOST = Path(__file__).resolve().parents[2] / "host"
-if str(_HOST) not in sys.path:
-    sys.path.insert(0, str(_HOST))
 
 
 @pytest.fixture(scope="session")
