@@ -22,7 +22,7 @@ import serial
 from dualscale.protocol import regmap as rm
 from dualscale.protocol.crc import rtu_frame
 from dualscale.rig.client import STEPS_PER_WRITE, RigClient
-from dualscale.rig.demo import run_demo
+from dualscale.rig.demo import measure_rtt as client_rtt, run_demo
 from dualscale.rig.sequence import Step, schedule
 from dualscale.rig.sim import SimulatedRig, firmware_elf
 
@@ -44,15 +44,6 @@ def raw_rtt(port: str, n: int) -> list[float]:
             out.append((time.perf_counter() - t0) * 1e3)
     finally:
         s.close()
-    return out
-
-
-def client_rtt(rig: RigClient, n: int) -> list[float]:
-    out = []
-    for _ in range(n):
-        t0 = time.perf_counter()
-        rig.read_input(rm.IR.STATE, 1)
-        out.append((time.perf_counter() - t0) * 1e3)
     return out
 
 

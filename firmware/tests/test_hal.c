@@ -212,3 +212,10 @@ size_t th_count_events(const test_hal_t *th, uint8_t kind)
     }
     return n;
 }
+
+void th_boot(ds_core_t *c, test_hal_t *th, int preload, uint64_t now)
+{
+    th_init(th, preload);
+    th->now = now;
+    ds_core_init(c, &th->hal, 1, th->now);
+}

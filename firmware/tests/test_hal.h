@@ -43,6 +43,9 @@ typedef struct {
 
 /* with_preload: provide light_preload/light_latch (a shift-register chain) or leave them NULL */
 void th_init(test_hal_t *th, int with_preload);
+
+/* th_init, then a fresh core at address 1 booted at `now` (µs). */
+void th_boot(ds_core_t *c, test_hal_t *th, int preload, uint64_t now);
 void th_clear_log(test_hal_t *th);
 uint16_t th_src(uint8_t kind, uint8_t index);
 int th_lights_on(const test_hal_t *th);

@@ -17,9 +17,7 @@ static test_hal_t th;
 static int setup(void **state)
 {
     (void)state;
-    th_init(&th, 0);
-    th.now = 1000u;
-    ds_core_init(&core, &th.hal, 1, th.now);
+    th_boot(&core, &th, 0, 1000u);
     return 0;
 }
 

@@ -17,18 +17,14 @@ static test_hal_t th;
 static int setup_preload(void **state)
 {
     (void)state;
-    th_init(&th, 1);
-    th.now = 5000000u;
-    ds_core_init(&core, &th.hal, 1, th.now);
+    th_boot(&core, &th, 1, 5000000u);
     return 0;
 }
 
 static int setup_plain(void **state)
 {
     (void)state;
-    th_init(&th, 0);
-    th.now = 5000000u;
-    ds_core_init(&core, &th.hal, 1, th.now);
+    th_boot(&core, &th, 0, 5000000u);
     return 0;
 }
 

@@ -240,21 +240,19 @@ class RigClient:
         raise RigError(f"no answer from the rig at {self.port} while {what}: {last}")
 
     # ---------------------------------------------------------------- raw access
-    def read_input(self, addr: int, count: int) -> list[int]:
+    def _read_registers(self, space: str, fn: Callable[..., ModbusPDU], addr: int, count: int) -> list[int]:
+        """Read `count` registers, in requests of at most 125."""
         out: list[int] = []
         for a in range(addr, addr + count, MAX_READ):
             n = min(MAX_READ, addr + count - a)
-            out += self._call(f"reading input registers {a}+{n}", self._mb.read_input_registers,
-                              a, count=n).registers
+            out += self._call(f"reading {space} registers {a}+{n}", fn, a, count=n).registers
         return out
 
+    def read_input(self, addr: int, count: int) -> list[int]:
+        return self._read_registers("input", self._mb.read_input_registers, addr, count)
+
     def read_holding(self, addr: int, count: int) -> list[int]:
-        out: list[int] = []
-        for a in range(addr, addr + count, MAX_READ):
-            n = min(MAX_READ, addr + count - a)
-            out += self._call(f"reading holding registers {a}+{n}", self._mb.read_holding_registers,
-                              a, count=n).registers
-        return out
+        return self._read_registers("holding", self._mb.read_holding_registers, addr, count)
 
     @staticmethod
     def _check_words(values: Sequence[int]) -> None:
