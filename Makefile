@@ -67,10 +67,10 @@ demo: deps
 	$(MAKE) -C firmware posix
 	$(VENV)/bin/dualscale demo
 
+# Every benchmark prints a markdown table for the doc it belongs to (see each script's docstring).
 bench: deps
 	$(MAKE) -C firmware all
-	$(PY) bench/bench_rig.py
-	@if [ -f bench/bench_bsdf.py ]; then $(PY) bench/bench_bsdf.py; fi
+	@set -e; for b in bench/bench_*.py; do echo "== $$b"; $(PY) $$b; done
 
 fuzz-long: apt
 	$(MAKE) -C firmware fuzz FUZZ_SECONDS=600
