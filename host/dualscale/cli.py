@@ -97,6 +97,9 @@ def build_parser() -> argparse.ArgumentParser:
     from .cli_calib import register as register_calib
 
     register_calib(sub)
+    from .cli_fit import register as register_fit
+
+    register_fit(sub)
     return p
 
 

@@ -1,0 +1,66 @@
+"""``fit_dataset``: the whole micro fit of a dataset directory, as run by ``dualscale fit``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+
+from dualscale.bsdf import Components
+
+from .core import FitResult, fit_observations, split_holdout
+from .io import save_fit
+from .metrics import map_errors
+from .observations import ground_truth_dir, load_observations
+from .presets import Preset, get_preset
+from .select import select_components
+
+
+def fit_dataset(dataset: str | Path, out: str | Path, preset: str | Preset = "standard",
+                overrides: dict[str, bool | None] | None = None, holdout_every: int = 8, progress: bool = False,
+                checkpoint_every: int = 50, restart: bool = False, stop_after: int | None = None,
+                seed: int = 0, previews: bool = True, comps: Components | None = None) -> tuple[FitResult, dict]:
+    """Fit a photometric dataset and write the maps to ``out``.
+
+    Held-out LEDs (every ``holdout_every``-th, 0 = none) are kept out of the fit and used to
+    report re-render SSIM.  Components are chosen from the data unless ``comps`` is given or
+    ``overrides`` fixes them.  The checkpoint lives at ``out/checkpoint.pt`` and is removed
+    after a successful fit; ``restart`` discards an existing one.
+    """
+    p = get_preset(preset) if isinstance(preset, str) else preset
+    obs = load_observations(dataset)
+    train, held = split_holdout(obs, holdout_every)
+    out = Path(out)
+    ck = out / "checkpoint.pt"
+    if restart and ck.is_file():
+        ck.unlink()
+    sel_path = out / "selection.json"
+    if comps is None:
+        import json
+
+        if ck.is_file() and sel_path.is_file():  # resuming: keep the decision already made
+            sel = json.loads(sel_path.read_text())
+            comps = Components(**sel["components"])
+        else:
+            comps, sel = select_components(train, overrides, seed=seed)
+            out.mkdir(parents=True, exist_ok=True)
+            sel_path.write_text(json.dumps(sel, indent=1))
+    else:
+        sel = {"method": "given by caller", "components": comps.__dict__}
+    res = fit_observations(train, p, comps, held_out=held, checkpoint=ck, checkpoint_every=checkpoint_every,
+                           progress=progress, stop_after=stop_after, seed=seed)
+    extra: dict[str, Any] = {"dataset": str(dataset), "lights": {"train_images": train.n,
+                                                                  "heldout_images": 0 if held is None else held.n}}
+    gt_dir = ground_truth_dir(dataset)
+    if gt_dir is not None:
+        from dualscale.materials.io import load_maps
+
+        gt, _ = load_maps(gt_dir)
+        if gt.shape == res.maps.shape:
+            extra["ground_truth"] = {"dir": str(gt_dir), "errors": map_errors(res.maps, gt, comps.ior)}
+    save_fit(out, res, sel, extra, previews)
+    if ck.is_file():
+        ck.unlink()
+    if sel_path.is_file():
+        sel_path.unlink()
+    return res, extra

@@ -1,0 +1,107 @@
+"""Fit driver: one preset, one set of components, one set of observations -> maps."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from dualscale.bsdf import Components, MaterialMaps
+
+from .checkpoint import Checkpointer, fingerprint
+from .init import initial_params
+from .lm import run_lm
+from .loop import Loop
+from .metrics import image_losses, rerender_ssim
+from .observations import Observations
+from .optimize import run_adam
+from .params import to_maps
+from .presets import Preset
+
+
+@dataclass
+class FitResult:
+    """Fitted maps plus what produced them (all JSON-able except the tensors)."""
+
+    maps: MaterialMaps
+    comps: Components
+    preset: Preset
+    iterations: int
+    seconds: float
+    losses: dict[str, float]
+    history: list = field(default_factory=list)
+    resumed_from: int = 0
+
+
+def split_holdout(obs: Observations, every: int = 8, offset: int = 3) -> tuple[Observations, Observations | None]:
+    """``(train, held_out)``: every ``every``-th distinct LED (from ``offset``) is held out, with
+    all its analyser images.  LED ids run ring by ring, so the held-out LEDs span all rings."""
+    if every <= 0:
+        return obs, None
+    ids = sorted(set(obs.led_ids.tolist()))
+    held = {i for k, i in enumerate(ids) if k % every == offset % every}
+    if not held or len(held) == len(ids):
+        return obs, None
+    return obs.select_leds(held, keep=False), obs.select_leds(held, keep=True)
+
+
+def stride_leds(obs: Observations, stride: int) -> Observations:
+    """Every ``stride``-th distinct LED (all its analyser images)."""
+    if stride <= 1:
+        return obs
+    ids = sorted(set(obs.led_ids.tolist()))
+    return obs.select_leds({i for k, i in enumerate(ids) if k % stride == 0})
+
+
+def _fingerprint(obs: Observations, preset: Preset, comps: Components, seed: int) -> str:
+    sample = obs.images.flatten()[:: max(1, obs.images.numel() // 4096)]
+    return fingerprint(preset=asdict(preset), comps=asdict(comps), seed=seed, ids=obs.led_ids, ws=obs.w_s,
+                       sample=sample, sums=obs.images.sum(dim=(1, 2, 3)),
+                       back=obs.backlight if obs.backlight is not None else torch.zeros(1))
+
+
+def fit_observations(obs: Observations, preset: Preset, comps: Components, *, held_out: Observations | None = None,
+                     checkpoint: str | Path | None = None, checkpoint_every: int = 50, progress: bool = False,
+                     stop_after: int | None = None, seed: int = 0,
+                     init: dict[str, Tensor] | None = None) -> FitResult:
+    """Fit ``comps`` to ``obs`` with ``preset``; resumes from ``checkpoint`` when it exists.
+
+    ``stop_after`` (testing/interruption) stops after that many global iterations, with the
+    checkpoint saved, by raising :class:`~dualscale.fit.checkpoint.FitInterrupted`.
+    """
+    t0 = time.perf_counter()
+    obs = stride_leds(obs, preset.led_stride)
+    ck = Checkpointer(None if checkpoint is None else Path(checkpoint), _fingerprint(obs, preset, comps, seed),
+                      checkpoint_every)
+    resume = ck.load()
+    params = {k: v.clone() for k, v in (init if init is not None else initial_params(obs, comps)).items()}
+    loop = Loop(preset, comps, ck, progress=progress, stop_after=stop_after)
+    done0 = 0
+    if resume is not None:
+        loop.history = list(resume.get("history", []))
+        done0 = loop.global_index(resume["step"], resume["iteration"])
+        loop.bar.update(done0)
+    try:
+        with torch.no_grad() if preset.optimizer == "lm" else torch.enable_grad():
+            if preset.optimizer == "adam":
+                run_adam(params, comps, obs, loop, resume, seed)
+            elif preset.optimizer == "lm":
+                run_lm(params, comps, obs, loop, resume)
+            else:
+                raise ValueError(f"unknown optimizer {preset.optimizer!r}")
+    except KeyboardInterrupt:
+        loop.close()
+        raise
+    loop.close()
+    maps = to_maps({k: v.detach() for k, v in params.items()})
+    losses = {f"train_{k}": v for k, v in image_losses(maps, comps, obs).items()}
+    if held_out is not None and held_out.n:
+        losses.update({f"heldout_{k}": v for k, v in image_losses(maps, comps, held_out).items()})
+        losses["heldout_ssim"] = rerender_ssim(maps, comps, held_out)
+    for name, t in maps.items():
+        if not bool(torch.isfinite(t).all()):
+            raise RuntimeError(f"fit produced non-finite values in {name}")  # guarded above; must never happen
+    return FitResult(maps, comps, preset, preset.total, time.perf_counter() - t0, losses, loop.history, done0)

@@ -1,0 +1,238 @@
+"""Fly-out fibre detection (supplementary Sec. 4.1), on the micro camera's LED images.
+
+1. Confidence ``C = max over the most grazing ring (grazing capture) - most orthogonal
+   capture``, luminance, clipped at 0, in the analyser mode that passes the specular (our P0:
+   analyser aligned with the LED polariser; the paper's labels call that mode P90).  The max
+   over the grazing ring lights fibres of every azimuth.
+2. Probabilities ``p = C / sum(C)``.
+3. ``seeds`` positions drawn from ``p``; ``seeds`` is given for a 1-Mpx image and scaled with the
+   pixel count (10,000 by default; at least 50).
+4. From each seed, trace both ways along the path of minimum gradient: start along the ridge
+   (minor eigenvector of the structure tensor of the smoothed map), then repeatedly step to
+   the forward 8-neighbour (within 60 deg of the current heading) with the smallest gradient
+   magnitude, while the smoothed confidence stays above both ``stop_fraction`` of the seed's
+   and the map's mean plus one standard deviation (seeds in the background stop at once).
+5. Drop paths shorter than ``min_length_mm`` (0.27 mm) / pixel pitch.
+6. With a tangent map, drop paths whose mean axis is within ``yarn_angle_deg`` of the yarn
+   axis under them (the axial mean of the tangent in a band 2-5 px around the path).
+7. Longest first, drop a path when half of its pixels are already covered (dilated by 1 px).
+   (A seed that lands on a long path already traced is skipped: it could only yield a
+   duplicate.  This keeps the cost proportional to the number of fibres, not of seeds.)
+
+Scoring against a ground-truth mask uses a tolerance of ``tol_px``: precision is the share of
+detected fibre pixels within it of a true fibre, recall the share of true fibre pixels within
+it of a detection.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy import ndimage
+from skimage.draw import line
+
+_DIRS = [(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)]  # (drow, dcol)
+
+
+def confidence_map(obs) -> np.ndarray:
+    """Step 1 from :class:`~dualscale.fit.observations.Observations` ``(H, W)``."""
+    import torch
+
+    spec = obs.select(torch.nonzero(obs.w_s > 0.5).flatten()) if bool((obs.w_s > 0.5).any()) else obs
+    z = spec.dirs[:, 2]
+    y = spec.images.mean(-1)
+    grazing = y[z <= z.min() + 1e-3].max(0).values
+    ortho = y[int(torch.argmax(z))]
+    return (grazing - ortho).clamp(min=0).to(torch.float64).numpy()
+
+
+def _raster(path: list[tuple[float, float]], shape: tuple[int, int]) -> np.ndarray:
+    m = np.zeros(shape, bool)
+    for (r0, c0), (r1, c1) in zip(path[:-1], path[1:]):
+        rr, cc = line(int(round(r0)), int(round(c0)), int(round(r1)), int(round(c1)))
+        ok = (rr >= 0) & (rr < shape[0]) & (cc >= 0) & (cc < shape[1])
+        m[rr[ok], cc[ok]] = True
+    if len(path) == 1:
+        m[int(path[0][0]), int(path[0][1])] = True
+    return m
+
+
+def _length(path: list[tuple[float, float]]) -> float:
+    p = np.asarray(path, float)
+    return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum()) if len(p) > 1 else 0.0
+
+
+def _trace(start: tuple[int, int], heading: np.ndarray, conf: np.ndarray, grad: np.ndarray, floor: float,
+           max_steps: int) -> list[tuple[int, int]]:
+    h, w = conf.shape
+    r, c = start
+    d = heading / max(np.linalg.norm(heading), 1e-12)
+    out, seen = [], {start}
+    for _ in range(max_steps):
+        best, best_g = None, math.inf
+        for dr, dc in _DIRS:
+            v = np.array([dr, dc], float) / math.hypot(dr, dc)
+            if v @ d < 0.5:  # within 60 deg of the heading
+                continue
+            q = (r + dr, c + dc)
+            if not (0 <= q[0] < h and 0 <= q[1] < w) or q in seen or conf[q] < floor:
+                continue
+            if grad[q] < best_g:
+                best, best_g = q, grad[q]
+        if best is None:
+            break
+        step = np.array([best[0] - r, best[1] - c], float)
+        d = 0.7 * d + 0.3 * step / np.linalg.norm(step)  # smoothed heading
+        d /= np.linalg.norm(d)
+        r, c = best
+        seen.add(best)
+        out.append(best)
+    return out
+
+
+def _axis_deg(path: list[tuple[float, float]]) -> float:
+    """Axial mean direction of a path [deg in image x/y-up frame, 0..180)."""
+    p = np.asarray(path, float)
+    d = np.diff(p, axis=0)
+    ang = np.arctan2(-d[:, 0], d[:, 1])  # rows grow downwards: y-up azimuth
+    wgt = np.linalg.norm(d, axis=1)
+    s, c = (wgt * np.sin(2 * ang)).sum(), (wgt * np.cos(2 * ang)).sum()
+    return float(np.degrees(0.5 * math.atan2(s, c)) % 180.0)
+
+
+def _yarn_axis_deg(tangent: np.ndarray, mask: np.ndarray) -> float | None:
+    band = ndimage.binary_dilation(mask, iterations=5) & ~ndimage.binary_dilation(mask, iterations=2)
+    if not band.any():
+        return None
+    ang = 2 * np.pi * tangent[band]  # tangent value v is azimuth pi v; double it for an axial mean
+    return float(np.degrees(0.5 * math.atan2(np.sin(ang).sum(), np.cos(ang).sum())) % 180.0)
+
+
+def detect(conf: np.ndarray, pixel_mm: float, seeds: int = 10000, min_length_mm: float = 0.27,
+           tangent: np.ndarray | None = None, yarn_angle_deg: float = 15.0, stop_fraction: float = 0.35,
+           seed: int = 0) -> dict[str, Any]:
+    """Steps 2-7 on a confidence map ``(H, W)``: polylines ``[(row, col), ...]``, mask, counts."""
+    h, w = conf.shape
+    conf = np.clip(np.nan_to_num(conf), 0, None)
+    min_len = min_length_mm / pixel_mm
+    n_seeds = max(50, int(round(seeds * h * w / 1e6)))
+    out: dict[str, Any] = {"seeds": n_seeds, "min_length_px": min_len, "paths": [], "mask": np.zeros((h, w), bool),
+                           "dropped": {"short": 0, "along_yarn": 0, "duplicate": 0}}
+    total = conf.sum()
+    if total <= 0:
+        return out
+    rng = np.random.default_rng(seed)
+    picks = rng.choice(h * w, size=n_seeds, p=(conf / total).ravel())
+    sm = ndimage.gaussian_filter(conf, 1.0)
+    global_floor = float(sm.mean() + sm.std())
+    gr, gc = ndimage.sobel(sm, 0), ndimage.sobel(sm, 1)
+    grad = np.hypot(gr, gc)
+    jrr, jrc, jcc = (ndimage.gaussian_filter(a, 2.0) for a in (gr * gr, gr * gc, gc * gc))
+    paths = []
+    traced = np.zeros((h, w), bool)  # pixels of long paths already traced
+    for k in picks:
+        r, c = divmod(int(k), w)
+        if traced[r, c]:  # would only retrace a fibre already found (a duplicate, step 7)
+            continue
+        t = np.array([[jrr[r, c], jrc[r, c]], [jrc[r, c], jcc[r, c]]])
+        _, vec = np.linalg.eigh(t)
+        along = vec[:, 0]  # least change: along the ridge
+        floor = max(stop_fraction * sm[r, c], global_floor)
+        fwd = _trace((r, c), along, sm, grad, floor, int(4 * min_len) + 8)
+        bwd = _trace((r, c), -along, sm, grad, floor, int(4 * min_len) + 8)
+        path = [*reversed(bwd), (r, c), *fwd]
+        paths.append(path)
+        if _length(path) >= min_len:
+            traced |= ndimage.binary_dilation(_raster(path, (h, w)))
+    kept = []
+    for p in paths:
+        if _length(p) < min_len:
+            out["dropped"]["short"] += 1
+            continue
+        kept.append(p)
+    if tangent is not None:
+        keep2 = []
+        for p in kept:
+            yarn = _yarn_axis_deg(tangent, _raster(p, (h, w)))
+            diff = None if yarn is None else abs((_axis_deg(p) - yarn + 90.0) % 180.0 - 90.0)
+            if diff is not None and diff < yarn_angle_deg:
+                out["dropped"]["along_yarn"] += 1
+            else:
+                keep2.append(p)
+        kept = keep2
+    covered = np.zeros((h, w), bool)
+    final = []
+    for p in sorted(kept, key=_length, reverse=True):
+        m = _raster(p, (h, w))
+        if (covered & m).sum() >= 0.5 * m.sum():
+            out["dropped"]["duplicate"] += 1
+            continue
+        covered |= ndimage.binary_dilation(m)
+        out["mask"] |= m
+        final.append(p)
+    out["paths"] = final
+    return out
+
+
+def score(mask: np.ndarray, gt: np.ndarray, tol_px: int = 2) -> dict[str, float]:
+    """Pixel precision and recall with a ``tol_px`` tolerance."""
+    gt_d = ndimage.binary_dilation(gt, iterations=tol_px) if tol_px > 0 else gt
+    det_d = ndimage.binary_dilation(mask, iterations=tol_px) if tol_px > 0 else mask
+    precision = float((mask & gt_d).sum() / mask.sum()) if mask.any() else 0.0
+    recall = float((gt & det_d).sum() / gt.sum()) if gt.any() else 1.0
+    return {"precision": precision, "recall": recall, "tolerance_px": tol_px}
+
+
+def _svg(paths: list[list[tuple[int, int]]], h: int, w: int) -> str:
+    body = "\n".join('<polyline fill="none" stroke="red" stroke-width="1" points="'
+                     + " ".join(f"{c + 0.5:.1f},{r + 0.5:.1f}" for r, c in p) + '"/>' for p in paths)
+    return (f'<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{h}" viewBox="0 0 {w} {h}">\n'
+            f'<rect width="{w}" height="{h}" fill="black"/>\n{body}\n</svg>\n')
+
+
+def detect_dataset(dataset: str | Path, out: str | Path, tangent_maps: str | Path | None = None, seeds: int = 10000,
+                   min_length_mm: float = 0.27, gt_dir: str | Path | None = None, seed: int = 0) -> dict[str, Any]:
+    """Run :func:`detect` on a dataset; write ``flyouts.json``, ``flyouts.svg``,
+    ``flyout_mask.exr``/``.png`` and ``confidence.exr`` to ``out``; score against ground truth
+    (``flyout_mask.exr`` in ``gt_dir`` or next to the dataset) when available."""
+    from dualscale.dome.exr import read_exr, write_exr, write_png_preview
+
+    from .observations import ground_truth_dir, load_observations
+
+    obs = load_observations(dataset)
+    conf = confidence_map(obs)
+    tan = None
+    if tangent_maps is not None:
+        tpath = Path(tangent_maps) / "tangent.exr"
+        if not tpath.is_file():
+            raise FileNotFoundError(f"no tangent.exr in {tangent_maps}")
+        tan = read_exr(tpath, ("Y",))[..., 0].astype(np.float64)
+        if tan.shape != conf.shape:
+            raise ValueError(f"tangent map is {tan.shape}, images are {conf.shape}")
+    res = detect(conf, obs.pixel_mm, seeds, min_length_mm, tan, seed=seed)
+    h, w = conf.shape
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+
+    def mm(r: float, c: float) -> list[float]:
+        return [(c + 0.5 - w / 2) * obs.pixel_mm, (h / 2 - r - 0.5) * obs.pixel_mm]
+
+    rep: dict[str, Any] = {"count": len(res["paths"]), "seeds": res["seeds"], "min_length_px": res["min_length_px"],
+                           "pixel_mm": obs.pixel_mm, "dropped": res["dropped"], "tangent_filter": tan is not None,
+                           "coordinates": "pixel [col, row] (row 0 at top); mm [x, y] macro frame",
+                           "polylines_px": [[[c, r] for r, c in p] for p in res["paths"]],
+                           "polylines_mm": [[mm(r, c) for r, c in p] for p in res["paths"]]}
+    gdir = Path(gt_dir) if gt_dir else ground_truth_dir(dataset)
+    if gdir is not None and (gdir / "flyout_mask.exr").is_file():
+        gt = read_exr(gdir / "flyout_mask.exr", ("Y",))[..., 0] > 0.5
+        rep["score"] = score(res["mask"], gt)
+    (out / "flyouts.json").write_text(json.dumps(rep, indent=1))
+    (out / "flyouts.svg").write_text(_svg(res["paths"], h, w))
+    write_exr(out / "flyout_mask.exr", res["mask"].astype(np.float32), ("Y",))
+    write_png_preview(out / "flyout_mask.png", res["mask"].astype(np.float32), srgb=False)
+    write_exr(out / "confidence.exr", conf.astype(np.float32), ("Y",))
+    return rep

@@ -1,0 +1,73 @@
+"""Data-driven starting point shared by every preset.
+
+Albedo and normal come from Lambertian photometric stereo on the diffuse-only images (P90 when
+the dataset is polarised, else all LED images): per pixel, the luminance ``Y_k`` under light
+``l_k`` is fitted as ``Y_k = g . l_k`` over lights that are well above the horizon and neither
+black nor clipped, ``n = g / |g|``; then each channel's albedo is
+``b_c = (pi / w_d) sum_k I_kc (n.l_k) / sum_k (n.l_k)^2``.  Pixels without enough usable lights
+keep ``n = +z``.  Other maps start at mid-range values; the transmittance starts from the
+back-lit image.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from dualscale.bsdf import Components, square_from_normal
+
+from .observations import Observations
+from .params import PARAM_CHANNELS, param_names
+
+DEFAULTS = {"roughness": 0.5, "anisotropy": 0.5, "tangent": 0.25, "ior": 0.25, "specular_tint": 0.5,
+            "transmittance": 0.5, "opacity": 1.0}
+
+
+def diffuse_images(obs: Observations) -> Observations:
+    """The images without specular (P90) when available, else all."""
+    if obs.has_polarisation:
+        return obs.select(torch.nonzero(obs.w_s < 1e-6).flatten())
+    return obs
+
+
+def photometric_stereo(obs: Observations, min_z: float = 0.3, clip: float = 1.9) -> tuple[Tensor, Tensor]:
+    """``(albedo (H, W, 3), normal (H, W, 3))`` from the diffuse-only images (see module doc)."""
+    d = diffuse_images(obs)
+    img = d.images.to(torch.float64)
+    dirs = d.dirs.to(torch.float64)
+    wd = d.w_d.to(torch.float64).reshape(-1, 1, 1, 1)
+    y = (img / wd).mean(-1)  # (K, H, W) luminance per unit diffuse weight
+    use = ((dirs[:, 2] >= min_z).reshape(-1, 1, 1) & (y > 1e-6) & ((img < clip).all(-1))).to(torch.float64)
+    a = torch.einsum("khw,ki,kj->hwij", use, dirs, dirs) + 1e-6 * torch.eye(3, dtype=torch.float64)
+    b = torch.einsum("khw,khw,ki->hwi", use, y, dirs)
+    g = torch.linalg.solve(a, b.unsqueeze(-1)).squeeze(-1)
+    enough = use.sum(0) >= 3
+    g = torch.where(enough.unsqueeze(-1) & (g[..., 2:3] > 1e-9), g, torch.tensor([0.0, 0.0, 1.0], dtype=g.dtype))
+    n = g / g.norm(dim=-1, keepdim=True)
+    n = torch.where(n[..., 2:3] < 0.05, torch.tensor([0.0, 0.0, 1.0], dtype=n.dtype), n)
+    n = n / n.norm(dim=-1, keepdim=True)
+    cos = torch.clamp((dirs.reshape(-1, 1, 1, 3) * n.unsqueeze(0)).sum(-1), min=0.0) * use  # (K, H, W)
+    num = torch.einsum("khwc,khw->hwc", img / wd, cos)
+    den = (cos * cos).sum(0).unsqueeze(-1)
+    albedo = torch.where(den > 1e-9, math.pi * num / den.clamp(min=1e-9), torch.full_like(num, 0.5))
+    return albedo.clamp(0.0, 1.0).to(obs.images.dtype), n.to(obs.images.dtype)
+
+
+def initial_params(obs: Observations, comps: Components) -> dict[str, Tensor]:
+    """Starting parameters for ``comps`` (normalised units, normal as a square point)."""
+    h, w = obs.shape
+    dt = obs.images.dtype
+    albedo, normal = photometric_stereo(obs)
+    out: dict[str, Tensor] = {}
+    for name in param_names(comps):
+        if name == "albedo":
+            out[name] = albedo.clone()
+        elif name == "normal":
+            out[name] = square_from_normal(normal).clone()
+        elif name == "transmittance" and obs.backlight is not None:
+            out[name] = (obs.backlight / obs.back_wd).clamp(0.0, 1.0).to(dt).clone()
+        else:
+            out[name] = torch.full((h, w, PARAM_CHANNELS[name]), DEFAULTS[name], dtype=dt)
+    return out

@@ -1,0 +1,178 @@
+"""Per-pixel Levenberg-Marquardt: the fast optimiser.
+
+The model has no spatial coupling, so every pixel is an independent least-squares problem in
+at most 14 unknowns over ``3 N`` residuals (``render - image``, both clamped at 2).  Each
+iteration builds every pixel's Jacobian by forward differences (one render per parameter
+channel, all pixels at once, in row chunks to bound memory), solves the damped normal equations
+``(J^T J + lambda diag(J^T J)) d = -J^T r`` per pixel, projects onto the bounds in force, and
+accepts the step per pixel only where the cost drops (``lambda`` shrinks 3x on success, grows 4x
+on failure).  A pixel whose solve fails keeps its value.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from dualscale.bsdf import Components
+
+from .loop import Loop, StepData, free_names, step_data
+from .observations import Observations
+from .params import BOX, PARAM_CHANNELS, bounds_at, pack, project, to_maps, unpack
+from .render import render_back, render_leds
+
+FD_STEP = 3e-4
+ROW_PIXELS = 4096  # pixels per Jacobian chunk
+
+
+def _lohi(names: tuple[str, ...], bounds: dict[str, tuple[float, float]], like: Tensor) -> tuple[Tensor, Tensor]:
+    lo, hi = [], []
+    for n in names:
+        a, b = BOX.get(n, (0.0, 1.0))
+        if n == "tangent":
+            a, b = -1e9, 1e9
+        else:
+            a, b = max(a, bounds.get(n, (a, b))[0]), min(b, bounds.get(n, (a, b))[1])
+        lo += [a] * PARAM_CHANNELS[n]
+        hi += [b] * PARAM_CHANNELS[n]
+    return torch.tensor(lo, dtype=like.dtype), torch.tensor(hi, dtype=like.dtype)
+
+
+def _residual(x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor], comps: Components, d: StepData,
+              back_weight: float) -> Tensor:
+    """Stacked residuals ``(h, w, K)`` of a pixel block."""
+    maps = to_maps(unpack(x, names), fixed)
+    r = (render_leds(maps, comps, d.obs) - d.images).permute(1, 2, 0, 3).reshape(*x.shape[:2], -1)
+    if d.back is not None:
+        rb = (render_back(maps, comps, d.obs) - d.back) * back_weight ** 0.5
+        r = torch.cat([r, rb], -1)
+    return r
+
+
+def _block(d: StepData, y0: int, y1: int) -> StepData:
+    o = d.obs.crop(y0, y1, 0, d.obs.shape[1])
+    return StepData(o, d.images[:, y0:y1], None if d.back is None else d.back[y0:y1])
+
+
+def _chunks(h: int, w: int) -> list[tuple[int, int]]:
+    rows = max(1, ROW_PIXELS // max(1, w))
+    return [(y, min(h, y + rows)) for y in range(0, h, rows)]
+
+
+def cost(x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor], comps: Components, d: StepData,
+         back_weight: float) -> Tensor:
+    """Per-pixel sum of squared residuals ``(H, W)``."""
+    out = []
+    for y0, y1 in _chunks(*x.shape[:2]):
+        fx = {k: v[y0:y1] for k, v in fixed.items()}
+        r = _residual(x[y0:y1], names, fx, comps, _block(d, y0, y1), back_weight)
+        out.append((r * r).sum(-1))
+    return torch.cat(out, 0)
+
+
+def _normal_equations(x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor], comps: Components, d: StepData,
+                      back_weight: float, hi: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """``(J^T J (H, W, P, P), J^T r (H, W, P), cost (H, W))`` by forward differences."""
+    jtj, jtr, c = [], [], []
+    p = x.shape[-1]
+    for y0, y1 in _chunks(*x.shape[:2]):
+        xb = x[y0:y1]
+        fx = {k: v[y0:y1] for k, v in fixed.items()}
+        db = _block(d, y0, y1)
+        r0 = _residual(xb, names, fx, comps, db, back_weight)
+        cols = []
+        for j in range(p):
+            step = torch.where(xb[..., j] + FD_STEP > hi[j], -FD_STEP, FD_STEP)
+            xp = xb.clone()
+            xp[..., j] = xp[..., j] + step
+            cols.append((_residual(xp, names, fx, comps, db, back_weight) - r0) / step.unsqueeze(-1))
+        jac = torch.stack(cols, -1)  # (h, w, K, P)
+        jtj.append(torch.einsum("hwkp,hwkq->hwpq", jac, jac))
+        jtr.append(torch.einsum("hwkp,hwk->hwp", jac, r0))
+        c.append((r0 * r0).sum(-1))
+    return torch.cat(jtj, 0), torch.cat(jtr, 0), torch.cat(c, 0)
+
+
+def lm_iteration(x: Tensor, lam: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor], comps: Components,
+                 d: StepData, back_weight: float, bounds: dict[str, tuple[float, float]]) -> tuple[Tensor, Tensor, Tensor]:
+    """One damped Gauss-Newton step for every pixel: ``(x, lambda, cost)`` after it."""
+    lo, hi = _lohi(names, bounds, x)
+    jtj, jtr, c0 = _normal_equations(x, names, fixed, comps, d, back_weight, hi)
+    diag = torch.diagonal(jtj, dim1=-2, dim2=-1)
+    a = jtj + torch.diag_embed(lam.unsqueeze(-1) * (diag + 1e-9))
+    a64, b64 = a.to(torch.float64), (-jtr).to(torch.float64).unsqueeze(-1)
+    sol, info = torch.linalg.solve_ex(a64, b64)
+    delta = sol.squeeze(-1).to(x.dtype)
+    ok = (info == 0) & torch.isfinite(delta).all(-1)
+    delta = torch.where(ok.unsqueeze(-1), delta, torch.zeros_like(delta))
+    trial = torch.maximum(torch.minimum(x + delta, hi), lo)
+    c1 = cost(trial, names, fixed, comps, d, back_weight)
+    better = ok & torch.isfinite(c1) & (c1 < c0)
+    x = torch.where(better.unsqueeze(-1), trial, x)
+    lam = torch.where(better, lam / 3.0, lam * 4.0).clamp(1e-7, 1e7)
+    return x, lam, torch.where(better, c1, c0)
+
+
+def grid_init(params: dict[str, Tensor], comps: Components, d: StepData, back_weight: float) -> None:
+    """Per pixel, start roughness (and tangent, when anisotropic) at the best of a small grid:
+    roughness {0.3, 0.5, 0.7} x tangent {0, 1/4, 1/2, 3/4} (anisotropy 0.5 while searching)."""
+    names = tuple(params)
+    x = pack(params, names)
+    sl = {n: i for i, n in enumerate(names)}
+    off = {n: sum(PARAM_CHANNELS[m] for m in names[:sl[n]]) for n in names}
+    tangents = [0.0, 0.25, 0.5, 0.75] if "tangent" in params else [None]
+    best_x, best_c = x.clone(), None
+    for rough in (0.3, 0.5, 0.7):
+        for tan in tangents:
+            xt = x.clone()
+            xt[..., off["roughness"]] = rough
+            if tan is not None:
+                xt[..., off["tangent"]] = tan
+                xt[..., off["anisotropy"]] = 0.5
+            c = cost(xt, names, {}, comps, d, back_weight)
+            if best_c is None:
+                best_x, best_c = xt, c
+            else:
+                take = c < best_c
+                best_x = torch.where(take.unsqueeze(-1), xt, best_x)
+                best_c = torch.where(take, c, best_c)
+    for n, t in unpack(best_x, names).items():
+        params[n].copy_(t)
+
+
+def run_lm(params: dict[str, Tensor], comps: Components, obs: Observations, loop: Loop,
+           resume: dict | None = None) -> dict[str, Tensor]:
+    """Optimise ``params`` in place through the preset's three steps; returns them."""
+    preset = loop.preset
+    start_step, start_it, lam_resume = 0, 0, None
+    if resume is not None:
+        start_step, start_it, lam_resume = resume["step"], resume["iteration"], resume.get("lambda")
+        for k, v in resume["params"].items():
+            params[k].copy_(v)
+    project(params, bounds_at(loop.fraction(start_step, start_it), preset.bounds))
+    for s, step in loop.steps():
+        if s < start_step or preset.iterations[s] == 0:
+            continue
+        data = step_data(obs, step)
+        free = free_names(step, params)
+        if not free:
+            continue
+        it0 = start_it if s == start_step else 0
+        if step == "specular" and preset.grid_init and it0 == 0:
+            grid_init(params, comps, data, preset.back_weight)
+        fixed = {k: v for k, v in params.items() if k not in free}
+        x = pack(params, free)
+        h, w = obs.shape
+        lam = lam_resume if (s == start_step and lam_resume is not None) else torch.full((h, w), 1e-2, dtype=x.dtype)
+        for it in range(it0, preset.iterations[s]):
+            bounds = bounds_at(loop.fraction(s, it), preset.bounds)
+            x, lam, c = lm_iteration(x, lam, free, fixed, comps, data, preset.back_weight, bounds)
+            for k, v in unpack(x, free).items():
+                params[k].copy_(v)
+            project(params, bounds_at(loop.fraction(s, it + 1), preset.bounds))
+            x = pack(params, free)
+            nxt = (s, it + 1) if it + 1 < preset.iterations[s] else (s + 1, 0)
+            loop.after_iteration(s, it, float(c.mean()), lambda: {
+                "step": nxt[0], "iteration": nxt[1], "params": {k: v.clone() for k, v in params.items()},
+                "lambda": lam.clone() if nxt[0] == s else None})
+    return params

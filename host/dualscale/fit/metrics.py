@@ -1,0 +1,88 @@
+"""Accuracy of a fit: map errors against ground truth and re-render SSIM on held-out lights.
+
+Map errors are computed over the pixels where the ground truth has material (opacity > 0.5,
+or every pixel for opaque materials); a map the fit left inactive counts as its neutral value
+(anisotropy 0, IOR of ``comps.ior``, tint 0).  Units: albedo RMSE in linear reflectance;
+normal errors in degrees; roughness, anisotropy and IOR MAE in normalised map units (IOR:
+``eta = 1 + 2 v``, so 0.01 is 0.02 in eta).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from dualscale.bsdf import Components, MaterialMaps, map_from_ior
+
+from .observations import Observations
+from .render import clamp_images, render_leds
+
+
+def normal_angle_deg(a: Tensor, b: Tensor) -> Tensor:
+    """Angle between unit normals ``(..., 3)`` in degrees (atan2 form, exact near 0)."""
+    cross = torch.linalg.cross(a, b, dim=-1).norm(dim=-1)
+    dot = (a * b).sum(-1)
+    return torch.rad2deg(torch.atan2(cross, dot))
+
+
+def _scalar(maps: MaterialMaps, name: str, neutral: float) -> Tensor:
+    t = getattr(maps, name)
+    return t if t is not None else torch.full((*maps.shape, 1), neutral, dtype=maps.albedo.dtype)
+
+
+def map_errors(fit: MaterialMaps, gt: MaterialMaps, fit_ior: float = 1.5) -> dict[str, float]:
+    """``albedo_rmse``, ``normal_mean_deg``, ``normal_p95_deg``, ``roughness_mae``,
+    ``anisotropy_mae``, ``ior_mae`` (and ``transmittance_rmse`` for translucent ground truth)."""
+    if fit.shape != gt.shape:
+        raise ValueError(f"fit is {fit.shape}, ground truth {gt.shape}")
+    f = fit.to(torch.float64)
+    g = gt.to(torch.float64)
+    mask = (g.opacity[..., 0] > 0.5) if g.opacity is not None else torch.ones(g.shape, dtype=torch.bool)
+    out = {"albedo_rmse": float(((f.albedo - g.albedo)[mask] ** 2).mean().sqrt())}
+    up = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    nf = f.normal if f.normal is not None else up.expand(*f.shape, 3)
+    ng = g.normal if g.normal is not None else up.expand(*g.shape, 3)
+    ang = normal_angle_deg(nf, ng)[mask]
+    out["normal_mean_deg"] = float(ang.mean())
+    out["normal_p95_deg"] = float(torch.quantile(ang, 0.95))
+    out["roughness_mae"] = float((f.roughness - g.roughness)[mask].abs().mean())
+    out["anisotropy_mae"] = float((_scalar(f, "anisotropy", 0.0) - _scalar(g, "anisotropy", 0.0))[mask].abs().mean())
+    ior_f = _scalar(f, "ior", float(map_from_ior(fit_ior)))
+    ior_g = _scalar(g, "ior", float(map_from_ior(1.5)))
+    out["ior_mae"] = float((ior_f - ior_g)[mask].abs().mean())
+    if g.transmittance is not None:
+        tf = f.transmittance if f.transmittance is not None else torch.zeros_like(g.transmittance)
+        out["transmittance_rmse"] = float(((tf - g.transmittance)[mask] ** 2).mean().sqrt())
+    return out
+
+
+def ssim_images(pred: Tensor, ref: Tensor) -> np.ndarray:
+    """SSIM per image of ``(N, H, W, 3)`` stacks (``skimage``, colour, Gaussian 7 px window
+    or smaller for tiny images); the data range of each image is that of the reference, floored
+    at 1e-3."""
+    from skimage.metrics import structural_similarity
+
+    p = pred.detach().to(torch.float64).cpu().numpy()
+    r = ref.detach().to(torch.float64).cpu().numpy()
+    win = min(7, p.shape[1], p.shape[2])
+    win = win if win % 2 == 1 else win - 1
+    out = []
+    for a, b in zip(p, r):
+        rng = max(float(b.max() - b.min()), 1e-3)
+        out.append(structural_similarity(a, b, data_range=rng, channel_axis=-1, win_size=win))
+    return np.asarray(out)
+
+
+def rerender_ssim(maps: MaterialMaps, comps: Components, obs: Observations) -> float:
+    """Mean SSIM between re-renders and the (clamped) images of ``obs`` (held-out lights)."""
+    with torch.no_grad():
+        pred = render_leds(maps.to(obs.images.dtype), comps, obs)
+    return float(ssim_images(pred, clamp_images(obs.images)).mean())
+
+
+def image_losses(maps: MaterialMaps, comps: Components, obs: Observations) -> dict[str, float]:
+    """Mean absolute and RMS error of the clamped re-renders of ``obs``."""
+    with torch.no_grad():
+        r = render_leds(maps.to(obs.images.dtype), comps, obs) - clamp_images(obs.images)
+    return {"l1": float(r.abs().mean()), "rmse": float((r * r).mean().sqrt())}

@@ -1,0 +1,77 @@
+"""The paper's optimiser: Adam on whole maps through the differentiable renderer.
+
+Loss: mean absolute error between renders and images, both clamped at 2, over the step's LED
+images, plus the back-lit image weighted as ``preset.back_weight`` LED images.  After every
+update the parameters are projected onto their box and the bounds in force (``params``).
+``light_batch`` draws that many LED images per iteration (seeded, resumable).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from dualscale.bsdf import Components
+
+from .loop import Loop, free_names, step_data
+from .observations import Observations
+from .params import bounds_at, project, to_maps
+from .render import render_back, render_leds
+
+
+def l1_loss(params: dict[str, Tensor], fixed: dict[str, Tensor], comps: Components, obs: Observations,
+            images: Tensor, back: Tensor | None, back_weight: float) -> Tensor:
+    maps = to_maps(params, fixed)
+    err = (render_leds(maps, comps, obs) - images).abs().sum()
+    if back is not None:
+        err = err + back_weight * (render_back(maps, comps, obs) - back).abs().sum()
+    h, w = obs.shape
+    return err / (h * w * 3 * (obs.n + (back_weight if back is not None else 0.0)))
+
+
+def run_adam(params: dict[str, Tensor], comps: Components, obs: Observations, loop: Loop,
+             resume: dict | None = None, seed: int = 0) -> dict[str, Tensor]:
+    """Optimise ``params`` in place through the preset's three steps; returns them."""
+    preset = loop.preset
+    gen = torch.Generator().manual_seed(seed)
+    start_step, start_it = 0, 0
+    if resume is not None:
+        start_step, start_it = resume["step"], resume["iteration"]
+        for k, v in resume["params"].items():
+            params[k].data.copy_(v)
+        gen.set_state(resume["generator"])
+    project(params, bounds_at(loop.fraction(start_step, start_it), preset.bounds))
+    for s, step in loop.steps():
+        if s < start_step or preset.iterations[s] == 0:
+            continue
+        data = step_data(obs, step)
+        free = free_names(step, params)
+        if not free:
+            continue
+        fixed = {k: v.detach() for k, v in params.items() if k not in free}
+        leaves = [params[k].requires_grad_(True) for k in free]
+        opt = torch.optim.Adam(leaves, lr=preset.lr)
+        it0 = start_it if s == start_step else 0
+        if resume is not None and s == start_step and resume.get("adam") is not None:
+            opt.load_state_dict(resume["adam"])
+        for it in range(it0, preset.iterations[s]):
+            bounds = bounds_at(loop.fraction(s, it), preset.bounds)
+            o, imgs = data.obs, data.images
+            if preset.light_batch is not None and preset.light_batch < o.n:
+                idx = torch.randperm(o.n, generator=gen)[:preset.light_batch]
+                o, imgs = o.select(idx), imgs[idx]
+            opt.zero_grad(set_to_none=True)
+            loss = l1_loss({k: params[k] for k in free}, fixed, comps, o, imgs, data.back, preset.back_weight)
+            loss.backward()
+            for p in leaves:  # a non-finite gradient (never expected) must not poison the maps
+                if p.grad is not None:
+                    torch.nan_to_num_(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
+            opt.step()
+            project(params, bounds_at(loop.fraction(s, it + 1), preset.bounds))
+            nxt = (s, it + 1) if it + 1 < preset.iterations[s] else (s + 1, 0)
+            loop.after_iteration(s, it, float(loss.detach()), lambda: {
+                "step": nxt[0], "iteration": nxt[1], "params": {k: v.detach().clone() for k, v in params.items()},
+                "adam": opt.state_dict() if nxt[0] == s else None, "generator": gen.get_state()})
+        for p in leaves:
+            p.requires_grad_(False)
+    return params

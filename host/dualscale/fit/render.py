@@ -1,0 +1,40 @@
+"""Renders of the fit: the observations' images predicted from maps, clamped at 2.
+
+The paper limits images and renders to a maximum of 2 (supplementary Sec. 4) so that
+under-exposed specular peaks cannot dominate the fit; :func:`clamp_images` and
+:func:`render_leds` apply that limit.  The specular Fresnel factor of LED images is ``R_s``
+(S-polarised LEDs, weights from :mod:`.observations`).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from dualscale.bsdf import Components, MaterialMaps, evaluate
+
+from .observations import Observations
+
+CLAMP = 2.0
+
+
+def clamp_images(x: Tensor) -> Tensor:
+    """The paper's limit: values above 2 become 2 (applied to images and renders alike)."""
+    return torch.clamp(x, max=CLAMP)
+
+
+def render_leds(maps: MaterialMaps, comps: Components, obs: Observations, light_chunk: int | None = 32) -> Tensor:
+    """Predicted LED images ``(N, H, W, 3)``, clamped at 2."""
+    f = evaluate(maps, obs.dirs, obs.view, comps, w_s=obs.w_s, w_p=obs.w_p, diffuse_weight=obs.w_d,
+                 light_chunk=light_chunk, validate=False)
+    return clamp_images(f)
+
+
+def render_back(maps: MaterialMaps, comps: Components, obs: Observations) -> Tensor | None:
+    """Predicted back-lit image ``(H, W, 3)`` (``None`` without a back-lit capture); an opaque
+    model predicts black."""
+    if obs.backlight is None:
+        return None
+    if comps.opaque:
+        return torch.zeros_like(obs.backlight)
+    return clamp_images(obs.back_wd * (maps.transmittance * maps.opacity + 1.0 - maps.opacity))

@@ -1,0 +1,115 @@
+"""Light-subset study and fly-out detection."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy import ndimage
+from skimage.draw import line
+
+from dualscale.cli import main
+from dualscale.fit.flyouts import confidence_map, detect, score
+from dualscale.fit.observations import Observations
+from dualscale.fit.study import SUBSETS, parse_subset, recommend
+
+
+def test_subset_definitions_on_our_dome():
+    sizes = {k: len(f()) for k, f in SUBSETS.items()}
+    assert sizes == {"ALL": 127, "MOD2": 64, "MOD3": 43, "ROW2+4": 19, "ROW2+5": 22, "MINIMAL": 8}
+    from dualscale.dome.geometry import ring_layout
+
+    rows = {i: r for i, (r, _, _) in enumerate(ring_layout())}
+    assert {rows[i] for i in SUBSETS["ROW2+4"]()} == {0, 2, 4}
+    assert {rows[i] for i in SUBSETS["MINIMAL"]()} == {4}
+    assert parse_subset("mine=0,3,10-12") == ("mine", {0, 3, 10, 11, 12})
+    for bad in ("nolist", "x=", "x=a-b"):
+        with pytest.raises(ValueError):
+            parse_subset(bad)
+
+
+def test_recommendation_prefers_fewest_lights_within_tolerance():
+    rows = [{"subset": "ALL", "leds": 127, "heldout_ssim": 0.990}, {"subset": "MOD2", "leds": 64, "heldout_ssim": 0.987},
+            {"subset": "MINIMAL", "leds": 8, "heldout_ssim": 0.95}]
+    assert recommend(rows)["subset"] == "MOD2"
+    rows[1]["heldout_ssim"] = 0.98
+    assert recommend(rows)["subset"] == "ALL"
+
+
+def test_cli_study_lights(datasets, tmp_path, capsys):
+    out = tmp_path / "study"
+    rc = main(["study", "lights", str(datasets("leather", 12)), "-o", str(out), "--preset", "draft",
+               "--only", "ALL", "MINIMAL", "mine", "--subset", "mine=1-20"])
+    assert rc == 0
+    rep = json.loads((out / "study.json").read_text())
+    assert [r["subset"] for r in rep["rows"]] == ["ALL", "MINIMAL", "mine"]
+    assert rep["rows"][0]["leds"] == 127 - len(rep["heldout_leds"])
+    assert rep["rows"][0]["images"] == 2 * rep["rows"][0]["leds"]  # both analyser modes of each LED
+    assert rep["rows"][2]["leds"] == len(set(range(1, 21)) - set(rep["heldout_leds"]))  # held-out LEDs never fitted
+    for r in rep["rows"]:
+        assert 0 < r["heldout_ssim"] <= 1 and math.isfinite(r["normal_mean_deg"]) and r["seconds"] > 0
+    assert rep["material_class"] == "leather" and rep["recommendation"]["subset"] in ("ALL", "MINIMAL", "mine")
+    assert (out / "study.png").stat().st_size > 1000
+    assert "| ALL |" in capsys.readouterr().out
+
+
+def _lines_map(h=96, w=96):
+    """Confidence of three fibres (one short) on a weak noisy background, and their mask."""
+    mask = np.zeros((h, w), bool)
+    segs = [((10, 5), (20, 90)), ((80, 10), (40, 60)), ((60, 80), (66, 86))]
+    for (r0, c0), (r1, c1) in segs:
+        rr, cc = line(r0, c0, r1, c1)
+        mask[rr, cc] = True
+    rng = np.random.default_rng(0)
+    conf = ndimage.gaussian_filter(mask.astype(float), 0.7) + 0.01 * rng.random((h, w))
+    return conf, mask
+
+
+def test_detect_traces_fibres_and_filters():
+    conf, mask = _lines_map()
+    res = detect(conf, pixel_mm=0.0018, seeds=300_000, min_length_mm=20 * 0.0018)
+    s = score(res["mask"], mask)
+    assert s["precision"] > 0.8 and s["recall"] > 0.8, s
+    assert len(res["paths"]) == 2  # the 8-px fibre is too short; duplicates merged
+    assert res["dropped"]["short"] > 0
+    # a tangent map along each fibre (yarn underneath running the same way) removes them
+    ang = np.full(conf.shape, 0.0)
+    rr, cc = np.nonzero(ndimage.binary_dilation(mask, iterations=8))
+    for (r0, c0), (r1, c1) in [((10, 5), (20, 90)), ((80, 10), (40, 60))]:
+        a = math.atan2(-(r1 - r0), c1 - c0) % math.pi / math.pi
+        near = np.zeros_like(mask)
+        lr, lc = line(r0, c0, r1, c1)
+        near[lr, lc] = True
+        ang[ndimage.binary_dilation(near, iterations=8)] = a
+    res2 = detect(conf, pixel_mm=0.0018, seeds=300_000, min_length_mm=20 * 0.0018, tangent=ang)
+    assert len(res2["paths"]) == 0 and res2["dropped"]["along_yarn"] > 0
+
+
+def test_detect_on_empty_map_is_empty():
+    res = detect(np.zeros((20, 20)), 0.0018)
+    assert res["paths"] == [] and not res["mask"].any()
+
+
+def test_confidence_is_grazing_minus_orthogonal_in_specular_mode():
+    h = w = 8
+    dirs = torch.tensor([[0.0, 0.0, 1.0], [0.95, 0.0, 0.3122], [0.0, 0.95, 0.3122], [0.95, 0.0, 0.3122]])
+    dirs = dirs / dirs.norm(dim=-1, keepdim=True)
+    imgs = torch.zeros(4, h, w, 3)
+    imgs[0] += 0.2
+    imgs[1, 2, :] = 1.0  # lit fibre under a grazing light, P0
+    imgs[3, 5, :] = 1.0  # same light, P90: must be ignored
+    obs = Observations(imgs, dirs, torch.tensor([1.0, 1.0, 1.0, 0.0]), torch.zeros(4), torch.full((4,), 0.5),
+                       torch.tensor([0, 1, 2, 1]))
+    c = confidence_map(obs)
+    assert c[2].min() == pytest.approx(0.8) and c[5].max() == 0.0 and c[0].max() == 0.0
+
+
+def test_cli_flyouts_end_to_end(datasets, tmp_path):
+    root = datasets("twill", 48)
+    out = tmp_path / "fo"
+    assert main(["flyouts", str(root), "-o", str(out), "--tangent", str(root / "maps")]) == 0
+    rep = json.loads((out / "flyouts.json").read_text())
+    assert {"precision", "recall"} <= set(rep["score"]) and rep["min_length_px"] == pytest.approx(30.0)
+    assert (out / "flyouts.svg").read_text().startswith("<svg") and (out / "flyout_mask.exr").is_file()
+    assert main(["flyouts", str(root), "-o", str(out), "--tangent", str(tmp_path)]) == 2
