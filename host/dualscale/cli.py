@@ -100,6 +100,9 @@ def build_parser() -> argparse.ArgumentParser:
     from .cli_fit import register as register_fit
 
     register_fit(sub)
+    from .cli_propagate import register as register_propagate
+
+    register_propagate(sub)
     return p
 
 

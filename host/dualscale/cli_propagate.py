@@ -1,0 +1,142 @@
+"""``dualscale propagate train|export|run``: mesoscale propagation (docs/PROPAGATION.md)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    from dualscale.propagate.data import load_source
+    from dualscale.propagate.train import TrainOptions, preset_with, train
+
+    maps = args.maps or []
+    if maps and len(maps) != len(args.datasets):
+        raise ValueError(f"--maps given {len(maps)} times for {len(args.datasets)} datasets; pair them one to one")
+    if args.threads:
+        import torch
+
+        torch.set_num_threads(args.threads)
+    sources = [load_source(d, maps[i] if maps else None) for i, d in enumerate(args.datasets)]
+    preset = preset_with(args.preset, iterations=args.iterations, batch=args.batch, lr=args.lr, crop=args.crop)
+    sigma = (0.1, args.blur_sigma_max)
+    opts = TrainOptions(width=args.width, perceptual=args.perceptual, amp=not args.no_amp, blur_sigma=sigma,
+                        seed=args.seed, checkpoint_every=args.checkpoint_every, resume=args.resume, init=args.init,
+                        progress=not args.no_progress, device=args.device)
+    res = train(sources, preset, args.output, opts)
+    print(f"wrote {args.output} ({res.iterations} iterations, {res.seconds:.1f} s this run, "
+          f"final loss {res.history[-1]['loss']:.4f})")
+    return 0
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    from dualscale.propagate.export import export_model
+
+    out = export_model(args.model, check=not args.no_check)
+    print(json.dumps(out, indent=1))
+    if "parity_fp32" in out and max(out["parity_fp32"].values()) >= 1e-4:
+        print("error: fp32 ONNX parity is worse than 1e-4")
+        return 1
+    return 0
+
+
+def _onnx_for(model: Path, precision: str) -> Path:
+    """The ONNX file to run: ``model`` itself, or the one exported next to a model file."""
+    from dualscale.propagate.export import export_model, onnx_paths
+
+    if model.suffix == ".onnx":
+        return model
+    p32, p16 = onnx_paths(model)
+    if not p32.is_file() or not p16.is_file() or p32.stat().st_mtime < model.stat().st_mtime:
+        export_model(model, check=False)
+    if precision == "auto":
+        import onnxruntime as ort
+
+        precision = "fp16" if "CUDAExecutionProvider" in ort.get_available_providers() else "fp32"
+    return p16 if precision == "fp16" else p32
+
+
+def _guidance_file(path: Path) -> Path:
+    """An image file, or the diffuse (else only) image of a photometric dataset folder."""
+    if path.is_dir():
+        from dualscale.dome.dataset import read_dataset
+
+        ds = read_dataset(path)
+        pick = ds.select(light_kind="diffuse") or (list(range(len(ds.records))) if len(ds.records) == 1 else [])
+        if not pick:
+            raise ValueError(f"{path}: no diffuse image to use as guidance")
+        return path / ds.records[pick[0]].file
+    return path
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from dualscale.propagate.infer import OnnxModel, run_tiled
+    from dualscale.propagate.io import read_model_file
+
+    model = Path(args.model)
+    guidance = _guidance_file(Path(args.guidance))
+    if not guidance.is_file():
+        raise FileNotFoundError(f"guidance image not found: {guidance}")
+    if model.suffix != ".onnx":
+        read_model_file(model)  # clear error for foreign/incompatible files before exporting
+    onnx = _onnx_for(model, args.precision)
+    exposure = args.exposure if args.exposure == "auto" else float(args.exposure)
+    summary = run_tiled(OnnxModel.open(onnx, args.threads), guidance, args.output,
+                        args.tile, args.overlap, exposure, args.batch, not args.no_progress)
+    print(f"wrote {', '.join(summary['maps'])} ({summary['width']}x{summary['height']}, {summary['tiles']} tiles, "
+          f"{summary['precision']}) to {args.output}")
+    return 0
+
+
+def register(subparsers) -> None:
+    """Add ``propagate`` (train / export / run) to an ``argparse`` subparsers object."""
+    from dualscale.propagate.losses import PERCEPTUAL
+    from dualscale.propagate.train import PRESETS
+
+    p = subparsers.add_parser("propagate", help="mesoscale propagation: U-Net from micro capture to guidance image")
+    sub = p.add_subparsers(dest="propagate_cmd", required=True)
+
+    t = sub.add_parser("train", help="train on micro datasets with fitted maps")
+    t.add_argument("datasets", nargs="+", metavar="DATASET",
+                   help="folder with micro/ and maps/ (as 'dualscale synth --dataset' writes), or a micro dataset")
+    t.add_argument("-o", "--output", required=True, help="model file to write (checkpoints go to OUTPUT.ckpt)")
+    t.add_argument("--maps", action="append", help="maps folder for each DATASET, in order (repeat)")
+    t.add_argument("--preset", choices=sorted(PRESETS), default="fast")
+    t.add_argument("--iterations", type=int, help="override the preset's iteration count")
+    t.add_argument("--batch", type=int, help="override the preset's batch size")
+    t.add_argument("--lr", type=float, help="override the preset's learning rate")
+    t.add_argument("--crop", type=int, help="override the 128 px crop (multiple of 16)")
+    t.add_argument("--width", type=int, help="width factor W (default 16 for one dataset, 32 for several)")
+    t.add_argument("--perceptual", choices=sorted(PERCEPTUAL), default="gram",
+                   help="perceptual loss of the style term (lpips_alex needs local weights)")
+    t.add_argument("--blur-sigma-max", type=float, default=3.0, help="blur sigma ~ U(0.1, MAX) px (paper: 11)")
+    t.add_argument("--init", help="warm-start model file (e.g. models/warmstart_w16.dsp)")
+    t.add_argument("--resume", action="store_true", help="continue from OUTPUT.ckpt")
+    t.add_argument("--checkpoint-every", type=int, default=50)
+    t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--no-amp", action="store_true", help="train in float32")
+    t.add_argument("--device", default="cpu")
+    t.add_argument("--threads", type=int, help="torch intra-op threads (on busy shared cores, set "
+                   "OMP_WAIT_POLICY=PASSIVE or use 1)")
+    t.add_argument("--no-progress", action="store_true")
+    t.set_defaults(fn=cmd_train)
+
+    e = sub.add_parser("export", help="export a model to ONNX fp32 and fp16 and check parity")
+    e.add_argument("model")
+    e.add_argument("--no-check", action="store_true")
+    e.set_defaults(fn=cmd_export)
+
+    r = sub.add_parser("run", help="propagate maps over a guidance image (tiled, onnxruntime) to EXR")
+    r.add_argument("model", help="model file or exported .onnx")
+    r.add_argument("guidance", help="RGB image (EXR) or a photometric dataset folder with a diffuse image")
+    r.add_argument("-o", "--output", required=True, help="output maps folder")
+    r.add_argument("--tile", type=int, default=512)
+    r.add_argument("--overlap", type=int, default=64)
+    r.add_argument("--batch", type=int, default=1, help="tiles per onnxruntime call")
+    r.add_argument("--precision", choices=("auto", "fp32", "fp16"), default="auto",
+                   help="auto: fp16 on CUDA, fp32 on CPU")
+    r.add_argument("--exposure", default="auto", help="'auto' (match the training diffuse mean) or a gain")
+    r.add_argument("--threads", type=int, help="onnxruntime intra-op threads")
+    r.add_argument("--no-progress", action="store_true")
+    r.set_defaults(fn=cmd_run)

@@ -1,0 +1,96 @@
+"""ONNX export (fp32 and fp16) and the parity check against PyTorch.
+
+The graph takes ``image`` ``(N, 3, H, W)`` linear RGB (``H``, ``W`` multiples of 16, dynamic)
+and returns ``maps`` ``(N, C, H, W)``, the maps concatenated in the order stored in the ONNX
+metadata (``dualscale:maps``, JSON).  The fp16 graph has float16 input and output.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .io import VERSION, load_model
+from .unet import MULTIPLE, PropagationUNet, map_slices
+
+OPSET = 17
+
+
+def export_onnx(model: PropagationUNet, path: str | Path, half: bool = False, meta: dict | None = None) -> Path:
+    """Write ``model`` as ONNX (legacy TorchScript exporter, opset 17; no onnxscript needed)."""
+    import onnx
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    m = copy.deepcopy(model).eval().cpu()  # never round the caller's weights
+    m = m.half() if half else m.float()
+    dtype = torch.float16 if half else torch.float32
+    dummy = torch.rand(1, m.config.in_channels, 4 * MULTIPLE, 4 * MULTIPLE, dtype=dtype)
+    with warnings.catch_warnings():  # GroupNorm's batch-size check is a harmless trace constant
+        warnings.simplefilter("ignore")
+        torch.onnx.export(m, (dummy,), str(path), input_names=["image"], output_names=["maps"],
+                          opset_version=OPSET, dynamo=False,
+                          dynamic_axes={"image": {0: "n", 2: "h", 3: "w"}, "maps": {0: "n", 2: "h", 3: "w"}})
+    proto = onnx.load(str(path))
+    info = {"dualscale:maps": json.dumps(list(m.config.maps)),
+            "dualscale:channels": json.dumps({k: [s.start, s.stop] for k, s in map_slices(m.config.maps).items()}),
+            "dualscale:precision": "fp16" if half else "fp32", "dualscale:multiple": str(MULTIPLE),
+            "dualscale:version": str(VERSION)}
+    for k, v in {**info, **(meta or {})}.items():
+        e = proto.metadata_props.add()
+        e.key, e.value = k, str(v)
+    onnx.checker.check_model(proto)
+    onnx.save(proto, str(path))
+    return path
+
+
+def session(path: str | Path, threads: int | None = None):
+    """An onnxruntime CPU session (CUDA first when available)."""
+    import onnxruntime as ort
+
+    so = ort.SessionOptions()
+    if threads:
+        so.intra_op_num_threads = threads
+    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    # no busy-waiting: on shared cores spinning threads starve each other
+    so.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    prov = [p for p in ("CUDAExecutionProvider", "CPUExecutionProvider") if p in ort.get_available_providers()]
+    return ort.InferenceSession(str(path), so, providers=prov)
+
+
+def parity(model: PropagationUNet, onnx_path: str | Path, size: int = 64, batch: int = 2,
+           seed: int = 0) -> dict[str, float]:
+    """Max absolute difference ONNX vs PyTorch fp32, per map, on random radiance in [0, 2)."""
+    sess = session(onnx_path)
+    inp = sess.get_inputs()[0]
+    half = inp.type == "tensor(float16)"
+    x = 2 * torch.rand(batch, model.config.in_channels, size, size, generator=torch.Generator().manual_seed(seed))
+    with torch.no_grad():
+        ref = model.eval().float()(x).numpy()
+    got = sess.run(None, {inp.name: x.numpy().astype(np.float16 if half else np.float32)})[0].astype(np.float32)
+    return {k: float(np.abs(got[:, s] - ref[:, s]).max()) for k, s in map_slices(model.config.maps).items()}
+
+
+def onnx_paths(model_path: str | Path) -> tuple[Path, Path]:
+    """``(fp32, fp16)`` ONNX files written next to a model file by :func:`export_model`."""
+    p = Path(model_path)
+    return p.with_suffix(".onnx"), p.with_suffix(".fp16.onnx")
+
+
+def export_model(model_path: str | Path, check: bool = True) -> dict:
+    """Export a model file to fp32 and fp16 ONNX next to it; returns paths and parity per map."""
+    model, doc = load_model(model_path)
+    meta = {"dualscale:input_reference": json.dumps(doc.get("input_reference"))}
+    p32, p16 = onnx_paths(model_path)
+    export_onnx(model, p32, half=False, meta=meta)
+    export_onnx(model, p16, half=True, meta=meta)
+    out: dict = {"fp32": str(p32), "fp16": str(p16)}
+    if check:
+        out["parity_fp32"] = parity(model, p32)
+        out["parity_fp16"] = parity(model, p16)
+    return out

@@ -1,0 +1,182 @@
+"""Training loop: presets, mixed precision, progress bar, resumable checkpoints, warm start.
+
+Presets (``PRESETS``): ``paper`` is Section 7.4 (Adam, lr 0.002, batch 40, 5,000 iterations,
+no weight decay; ~15 min on a 1080Ti, ~8 h on one busy CPU core).  ``balanced``, ``fast`` and
+``quick`` cut the samples seen for CPU use; docs/PROPAGATION.md has their measured trade.
+
+Mixed precision: bfloat16 autocast on the CPU, float16 autocast with gradient scaling on CUDA.
+
+Checkpoints: ``<model>.ckpt`` every ``checkpoint_every`` iterations (model, optimiser, scaler,
+sampler RNG, iteration); ``resume=True`` continues from it when it matches the run.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from .augment import BLUR_SIGMA, augment
+from .data import Source, check_sources, sample_batch
+from .io import load_model, save_model
+from .losses import PropagationLoss
+from .unet import PropagationUNet, UNetConfig
+
+
+@dataclass(frozen=True)
+class Preset:
+    """Optimisation settings; ``crop`` in pixels."""
+
+    name: str
+    iterations: int
+    batch: int
+    lr: float = 0.002
+    weight_decay: float = 0.0
+    crop: int = 128
+
+
+PRESETS: dict[str, Preset] = {
+    "paper": Preset("paper", 5000, 40),
+    "balanced": Preset("balanced", 1000, 8),
+    "fast": Preset("fast", 300, 8),
+    "quick": Preset("quick", 100, 4),
+}
+
+
+@dataclass
+class TrainOptions:
+    """Everything besides the preset; ``width=None`` picks 16 for one dataset, 32 for several."""
+
+    width: int | None = None
+    decoder_ratio: float = 0.5
+    perceptual: str = "gram"
+    amp: bool = True
+    blur_sigma: tuple[float, float] = BLUR_SIGMA
+    seed: int = 0
+    checkpoint_every: int = 50
+    resume: bool = False
+    init: str | None = None
+    progress: bool = True
+    device: str = "cpu"
+
+
+@dataclass
+class TrainResult:
+    model: PropagationUNet
+    iterations: int
+    seconds: float
+    resumed_from: int
+    history: list[dict[str, float]]
+
+
+def checkpoint_path(model_path: str | Path) -> Path:
+    return Path(str(model_path) + ".ckpt")
+
+
+def warm_start(model: PropagationUNet, path: str | Path) -> list[str]:
+    """Copy every parameter of the model file at ``path`` whose name and shape match; returns them."""
+    src, _ = load_model(path)
+    if src.config.width != model.config.width or src.config.decoder_ratio != model.config.decoder_ratio:
+        raise ValueError(f"warm-start model {path} has width {src.config.width}/decoder ratio "
+                         f"{src.config.decoder_ratio}, this run needs {model.config.width}/"
+                         f"{model.config.decoder_ratio}")
+    own = model.state_dict()
+    copied = [k for k, v in src.state_dict().items() if k in own and own[k].shape == v.shape]
+    model.load_state_dict({**own, **{k: src.state_dict()[k] for k in copied}})
+    return copied
+
+
+def input_reference(sources: list[Source]) -> list[float]:
+    """Mean RGB of the training diffuse images (mean of all images when there is none)."""
+    refs = []
+    for s in sources:
+        refs.append(s.diffuse_mean() if "diffuse" in s.light_names else s.pairs.float().mean((0, 1, 3, 4)).tolist())
+    return [sum(r[c] for r in refs) / len(refs) for c in range(3)]
+
+
+def _autocast(device: str, enabled: bool):
+    dtype = torch.float16 if device.startswith("cuda") else torch.bfloat16
+    return torch.autocast(device.split(":")[0], dtype=dtype, enabled=enabled)
+
+
+def train(sources: list[Source], preset: Preset, out: str | Path, opts: TrainOptions = TrainOptions(),
+          half_file: bool = False) -> TrainResult:
+    """Train on ``sources`` and write the model file ``out`` (+ ``out.ckpt`` checkpoints)."""
+    from tqdm import tqdm
+
+    maps = check_sources(sources)
+    width = opts.width or (16 if len(sources) == 1 else 32)
+    config = UNetConfig(tuple(maps), width, opts.decoder_ratio)
+    torch.manual_seed(opts.seed)
+    model = PropagationUNet(config).to(opts.device)
+    if opts.init:
+        warm_start(model, opts.init)
+    optim = torch.optim.Adam(model.parameters(), lr=preset.lr, weight_decay=preset.weight_decay)
+    cuda = opts.device.startswith("cuda")
+    scaler = torch.amp.GradScaler("cuda", enabled=cuda and opts.amp)
+    loss_fn = PropagationLoss(maps, opts.perceptual).to(opts.device)
+    gen = torch.Generator().manual_seed(opts.seed)
+    start, history = 0, []
+    ckpt = checkpoint_path(out)
+    # the run's identity; the iteration count may grow between resumes
+    run_id = {"preset": {k: v for k, v in asdict(preset).items() if k != "iterations"},
+              "config": config.to_json(), "sources": [s.name for s in sources]}
+    if opts.resume and ckpt.is_file():
+        st = torch.load(ckpt, map_location=opts.device, weights_only=True)
+        if st.get("run") != run_id:
+            raise ValueError(f"checkpoint {ckpt} belongs to a different run (preset, maps or datasets differ); "
+                             "delete it or drop --resume")
+        model.load_state_dict(st["model"])
+        optim.load_state_dict(st["optim"])
+        scaler.load_state_dict(st["scaler"])
+        gen.set_state(st["gen"])
+        start, history = int(st["iteration"]), list(st["history"])
+        if start >= preset.iterations:
+            raise ValueError(f"checkpoint {ckpt} is already at iteration {start} >= {preset.iterations}")
+    t0 = time.perf_counter()
+    model.train()
+    bar = tqdm(range(start, preset.iterations), initial=start, total=preset.iterations, disable=not opts.progress,
+               desc=f"propagate train ({preset.name})", unit="it")
+    for it in bar:
+        x, y = sample_batch(sources, preset.batch, preset.crop, gen)
+        x = augment(x, gen, len(sources), opts.blur_sigma).to(opts.device)
+        y = {k: v.to(opts.device) for k, v in y.items()}
+        with _autocast(opts.device, opts.amp):
+            pred = model.split(model(x))
+        loss, parts = loss_fn(pred, y, gen)
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"loss became {float(loss.detach())} at iteration {it + 1}")
+        optim.zero_grad(set_to_none=True)
+        scaler.scale(loss).backward()
+        scaler.step(optim)
+        scaler.update()
+        history.append({"it": it + 1, "loss": float(loss.detach()), **parts})
+        bar.set_postfix(loss=f"{history[-1]['loss']:.4f}")
+        done = it + 1
+        if done % opts.checkpoint_every == 0 or done == preset.iterations:
+            _save_checkpoint(ckpt, model, optim, scaler, gen, done, history, run_id)
+    seconds = time.perf_counter() - t0
+    model.eval().cpu()
+    info: dict[str, Any] = {"preset": asdict(preset), "iterations": preset.iterations, "seconds_this_run": seconds,
+                            "resumed_from": start, "datasets": [s.name for s in sources],
+                            "perceptual": opts.perceptual, "amp": opts.amp, "init": opts.init,
+                            "blur_sigma": list(opts.blur_sigma), "final": history[-1] if history else {}}
+    save_model(out, model, input_reference(sources), info, half=half_file)
+    return TrainResult(model, preset.iterations, seconds, start, history)
+
+
+def _save_checkpoint(path: Path, model, optim, scaler, gen, iteration: int, history, run_id) -> None:
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    torch.save({"model": model.state_dict(), "optim": optim.state_dict(), "scaler": scaler.state_dict(),
+                "gen": gen.get_state(), "iteration": iteration, "history": history, "run": run_id}, tmp)
+    tmp.replace(path)
+
+
+def preset_with(name: str, **overrides: Any) -> Preset:
+    """A named preset with some fields replaced (``None`` values are ignored)."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}; choose from {sorted(PRESETS)}")
+    return replace(PRESETS[name], **{k: v for k, v in overrides.items() if v is not None})

@@ -1,0 +1,81 @@
+import pytest
+import torch
+
+from dualscale.propagate.data import load_source, sample_batch
+from dualscale.propagate.io import load_model, read_model_file, save_model
+from dualscale.propagate.train import TrainOptions, checkpoint_path, preset_with, train, warm_start
+from dualscale.propagate.unet import PropagationUNet, UNetConfig
+
+
+def test_presets():
+    p = preset_with("paper")
+    assert (p.lr, p.batch, p.iterations, p.weight_decay, p.crop) == (0.002, 40, 5000, 0.0, 128)
+    with pytest.raises(ValueError):
+        preset_with("slowest")
+
+
+def _opts(**kw):
+    return TrainOptions(width=8, progress=False, checkpoint_every=2, **kw)
+
+
+def test_resume_equals_uninterrupted(twill, tmp_path):
+    src = [load_source(twill)]
+    pre = lambda n: preset_with("quick", iterations=n, batch=2, crop=16)  # noqa: E731
+    full = train(src, pre(6), tmp_path / "full.dsp", _opts(amp=False)).model
+    train(src, pre(4), tmp_path / "part.dsp", _opts(amp=False))
+    res = train(src, pre(6), tmp_path / "part.dsp", _opts(amp=False, resume=True))
+    assert res.resumed_from == 4 and len(res.history) == 6
+    for (k, a), b in zip(full.state_dict().items(), res.model.state_dict().values()):
+        assert torch.allclose(a, b, atol=1e-6), k
+    with pytest.raises(ValueError, match="different run"):
+        train(src, preset_with("quick", iterations=8, batch=3, crop=16), tmp_path / "part.dsp",
+              _opts(resume=True))
+    assert checkpoint_path(tmp_path / "part.dsp").is_file()
+
+
+def test_training_reduces_loss(twill, tmp_path):
+    res = train([load_source(twill)], preset_with("quick", iterations=40, batch=4, crop=32), tmp_path / "m.dsp",
+                _opts(seed=1))
+    first = sum(h["loss"] for h in res.history[:5]) / 5
+    last = sum(h["loss"] for h in res.history[-5:]) / 5
+    assert last < 0.8 * first
+
+
+def test_model_file_roundtrip_and_versions(tmp_path, tiny_model):
+    m, doc = load_model(tiny_model)
+    assert doc["version"] == 2 and len(doc["input_reference"]) == 3
+    x = torch.rand(1, 3, 32, 32)
+    save_model(tmp_path / "half.dsp", m, doc["input_reference"], {}, half=True)
+    h, _ = load_model(tmp_path / "half.dsp")
+    with torch.no_grad():
+        assert float((m(x) - h(x)).abs().max()) < 1e-2
+    doc["version"] = 1
+    torch.save(doc, tmp_path / "old.dsp")
+    with pytest.raises(ValueError, match="version 1 is incompatible"):
+        read_model_file(tmp_path / "old.dsp")
+    (tmp_path / "junk.dsp").write_bytes(b"not a model")
+    with pytest.raises(ValueError, match="not a dualscale propagation model"):
+        load_model(tmp_path / "junk.dsp")
+
+
+def test_warm_start_copies_matching(tiny_model):
+    src, _ = load_model(tiny_model)
+    dst = PropagationUNet(UNetConfig(("albedo", "roughness", "opacity"), 8))
+    copied = warm_start(dst, tiny_model)
+    assert any(k.startswith("enc.") for k in copied) and any(k.startswith("decoders.albedo") for k in copied)
+    assert not any(k.startswith("decoders.opacity") for k in copied)
+    assert torch.equal(dst.enc[0].conv1.weight, src.enc[0].conv1.weight)
+    with pytest.raises(ValueError, match="width"):
+        warm_start(PropagationUNet(UNetConfig(("albedo",), 16)), tiny_model)
+
+
+def test_sources_must_agree(twill, tmp_path):
+    from dualscale.propagate.data import check_sources
+
+    a = load_source(twill)
+    b = load_source(twill)
+    b.maps.pop("ior")
+    with pytest.raises(ValueError, match="different maps"):
+        check_sources([a, b])
+    x, _ = sample_batch([a, a], 2, 16, torch.Generator())
+    assert x.shape[0] == 2
