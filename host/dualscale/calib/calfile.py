@@ -15,6 +15,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+from ..manifest import read_versioned_json
 from .errors import CalibrationError, RigMismatchError
 
 FORMAT = "dualscale-calibration"
@@ -52,16 +53,7 @@ def read_calibration(path: str | Path, rig_id: str | None = None, layout: str | 
     """Load a calibration file; refuse another format/version, or another rig than
     ``rig_id`` (and dome ``layout``) when given."""
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"calibration file not found: {path}")
-    try:
-        data = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise CalibrationError(f"{path}: invalid JSON ({e})") from e
-    if data.get("format") != FORMAT:
-        raise CalibrationError(f"{path}: not a {FORMAT} file")
-    if data.get("version") != VERSION:
-        raise CalibrationError(f"{path}: calibration version {data.get('version')} is not supported (need {VERSION})")
+    data = read_versioned_json(path, FORMAT, VERSION, CalibrationError)
     rig = data.get("rig", {})
     if rig_id is not None and rig.get("id") != rig_id:
         raise RigMismatchError(f"{path}: calibration is from rig {rig.get('id')!r}, the captures are from rig {rig_id!r}")

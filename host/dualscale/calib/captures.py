@@ -32,6 +32,7 @@ import numpy as np
 
 from dualscale.dome.cameras import Camera
 from dualscale.dome.exr import read_exr, write_exr
+from dualscale.manifest import read_versioned_json
 
 from .errors import CalibrationError, ImageSizeError, MissingBracketsError
 
@@ -193,14 +194,7 @@ def read_captures(root: str | Path) -> CaptureSet:
     """Open and validate a capture set (every listed bracket must exist)."""
     root = Path(root)
     path = root / "captures.json"
-    if not path.is_file():
-        raise FileNotFoundError(f"no captures.json in {root}")
-    try:
-        m = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise CalibrationError(f"{path}: invalid JSON ({e})") from e
-    if m.get("format") != FORMAT or m.get("version") != VERSION:
-        raise CalibrationError(f"{path}: not a {FORMAT} v{VERSION} manifest")
+    m = read_versioned_json(path, FORMAT, VERSION, CalibrationError)
     if not m.get("rig", {}).get("id"):
         raise CalibrationError(f"{path}: no rig identity")
     groups = [Group.from_json(d) for d in m.get("groups", [])]

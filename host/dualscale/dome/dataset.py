@@ -36,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from ..manifest import read_versioned_json
 from .cameras import Camera
 from .exr import read_exr, write_exr
 
@@ -169,15 +170,7 @@ class Dataset:
 def read_dataset(root: str | Path) -> Dataset:
     """Open a dataset directory and validate its manifest (not the pixels; see ``Dataset.load``)."""
     root = Path(root)
-    path = root / "manifest.json"
-    if not path.is_file():
-        raise FileNotFoundError(f"no manifest.json in {root}")
-    try:
-        manifest = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise ValueError(f"{path}: invalid JSON ({e})") from e
-    if manifest.get("format") != FORMAT or manifest.get("version") != VERSION:
-        raise ValueError(f"{path}: not a {FORMAT} v{VERSION} manifest")
+    manifest = read_versioned_json(root / "manifest.json", FORMAT, VERSION)
     records = [ImageRecord.from_json(d) for d in manifest.get("images", [])]
     for r in records:
         if r.units not in UNITS:
