@@ -31,10 +31,11 @@ def _write_capture(writer, img: torch.Tensor, cam, png_dir: Path | None, kind: s
 
 
 def _capture_set(maps, cam, out: Path, lights: list[tuple[str, int | None]], analyzers: list[float | None],
-                 relative: bool, texel_mm: float | None, sensor, previews: bool, extra: dict) -> Path:
+                 relative: bool, texel_mm: float | None, sensor, previews: bool, extra: dict,
+                 geometry=None) -> Path:
     from dualscale.dome.dataset import DatasetWriter
     from dualscale.dome.geometry import DomeGeometry
-    from dualscale.dome.render import Analyzer, LightState, render
+    from dualscale.dome.render import Analyzer, LightRealism, LightState, render
     from dualscale.dome.sensor import capture
 
     dome = DomeGeometry.from_regmap()
@@ -49,7 +50,8 @@ def _capture_set(maps, cam, out: Path, lights: list[tuple[str, int | None]], ana
             direction = [float(x) for x in dome.led_dirs[lid]] if kind == "led" else None
             for a in analyzers:
                 an = None if a is None or not cam.has_analyzer else Analyzer(a, relative)
-                img = render(maps, cam, state, dome, an, texel_mm=texel_mm)
+                img = render(maps, cam, state, dome, an, texel_mm=texel_mm, geometry=geometry,
+                             realism=LightRealism(shadows=geometry is not None))
                 if sensor is not None:
                     img = capture(img, cam, sensor, seed=(lid or 0) * 1000 + int((a or 0) * 10))
                 _write_capture(w, img, cam, png_dir, kind, lid, direction, None if an is None else a,
@@ -71,12 +73,12 @@ def cmd_synth(args: argparse.Namespace) -> int:
     sensor = SensorModel.realistic() if args.realistic else None
     if args.dataset:
         leds = range(regmap.N_LEDS) if args.lights == "all" else range(0, regmap.N_LEDS, int(args.lights[3:]))
-        lights: list[tuple[str, int | None]] = [("led", i) for i in leds]
-        if not mat.maps.components().opaque:
-            lights.append(("backlight", 0))
+        # the rig always takes the back-lit image: it is how an opaque sample shows it is opaque
+        lights: list[tuple[str, int | None]] = [("led", i) for i in leds] + [("backlight", 0)]
         path = _capture_set(mat.maps, micro_camera(args.size, args.texel_um), out / "micro", lights,
                             _analyzers(args.analyzers), True, None, sensor, not args.no_previews,
-                            {"material": mat.meta})
+                            {"material": mat.meta, "shadows": bool(args.shadows)},
+                            mat.geometry if args.shadows else None)
         print(f"wrote micro photometric dataset {path}")
     if args.mid:
         mid_texel = 100.0 / args.mid_size
@@ -136,6 +138,8 @@ def register(subparsers) -> None:
     p.add_argument("--mid", action="store_true", help="also render a mid-range guidance image (diffuse group)")
     p.add_argument("--mid-size", type=int, default=256)
     p.add_argument("--realistic", action="store_true", help="apply the full sensor model (noise, 12 bit, ...)")
+    p.add_argument("--shadows", action="store_true",
+                   help="cast shadows of the relief and of the raised fly-out fibres in the dataset")
     p.add_argument("--no-previews", action="store_true")
     p.set_defaults(fn=cmd_synth)
 

@@ -30,6 +30,7 @@ from dualscale.bsdf.maps import Components
 
 from .cameras import Camera
 from .geometry import DomeGeometry, polarizer_axis
+from .shadow import SurfaceGeometry, visibility
 
 
 @dataclass(frozen=True)
@@ -68,13 +69,16 @@ class LightRealism:
 
     ``near_field``: per-pixel LED direction and inverse-square falloff from LEDs at
     ``radius_mm``; ``beam_exponent``: LED beam profile ``cos^k`` about its axis (0 = flat);
-    ``led_gain_sigma``: relative std of a fixed per-LED irradiance error, drawn from ``seed``.
+    ``led_gain_sigma``: relative std of a fixed per-LED irradiance error, drawn from ``seed``;
+    ``shadows``: cast shadows of the sample's relief (needs ``render(..., geometry=...)``, see
+    :mod:`.shadow`).
     """
 
     near_field: bool = False
     beam_exponent: float = 0.0
     led_gain_sigma: float = 0.0
     seed: int = 0
+    shadows: bool = False
 
     def led_gains(self, n: int) -> Tensor:
         if self.led_gain_sigma <= 0:
@@ -103,11 +107,12 @@ def _malus(axis: Tensor, analyzer: Tensor, view: Tensor) -> Tensor:
 def render(maps: MaterialMaps, camera: Camera, light: LightState, dome: DomeGeometry | None = None,
            analyzer: Analyzer | float | None = None, texel_mm: float | None = None,
            realism: LightRealism = LightRealism(), comps: Components | None = None,
-           light_chunk: int | None = 16) -> Tensor:
+           light_chunk: int | None = 16, geometry: SurfaceGeometry | None = None) -> Tensor:
     """Radiance image ``(H, W, 3)`` seen by ``camera`` (dtype/device of the maps).
 
     ``texel_mm=None`` requires the camera to be the micro camera at map resolution (texel =
-    pixel); otherwise the maps are looked up with :func:`sample_maps`.
+    pixel); otherwise the maps are looked up with :func:`sample_maps`.  ``geometry`` is the
+    sample's relief on the map grid, used when ``realism.shadows`` (map resolution only).
     """
     dome = DomeGeometry.from_regmap() if dome is None else dome
     if isinstance(analyzer, (int, float)):
@@ -122,6 +127,12 @@ def render(maps: MaterialMaps, camera: Camera, light: LightState, dome: DomeGeom
                              "pass texel_mm to resample")
     else:
         maps = sample_maps(maps, pts.to(dev), texel_mm)
+    if realism.shadows:
+        if geometry is None:
+            raise ValueError("realism.shadows needs the sample's geometry (render(..., geometry=...))")
+        if texel_mm is not None or geometry.shape != maps.shape:
+            raise ValueError(f"cast shadows are computed on the map grid {geometry.shape}: render with the micro "
+                             "camera at map resolution (texel_mm=None)")
     comps = maps.components() if comps is None else comps
     _, _, fwd = camera.basis()
     axis_view = -fwd
@@ -131,6 +142,7 @@ def render(maps: MaterialMaps, camera: Camera, light: LightState, dome: DomeGeom
 
     def shade(dirs: Tensor, scale: Tensor, w_s: Tensor, w_p: Tensor, w_d: float) -> Tensor:
         conv = dict(dtype=dtype, device=dev)
+        vis = visibility(geometry, dirs).to(**conv).unsqueeze(-1) if realism.shadows else None
         if realism.near_field:
             pos = dirs * dome.radius_mm
             p3 = torch.cat([pts, torch.zeros_like(pts[..., :1])], -1)
@@ -142,9 +154,11 @@ def render(maps: MaterialMaps, camera: Camera, light: LightState, dome: DomeGeom
                 fall = fall * ((l * dirs[:, None, None, :]).sum(-1, keepdim=True).clamp(min=0) ** realism.beam_exponent)
             f = evaluate(maps, l.to(**conv), view_t, comps, w_s=w_s.to(**conv), w_p=w_p.to(**conv),
                          diffuse_weight=w_d, light_chunk=light_chunk, validate=False)
+            f = f if vis is None else f * vis
             return (f * fall.to(**conv) * scale.to(**conv).reshape(-1, 1, 1, 1)).sum(0)
         f = evaluate(maps, dirs.to(**conv), view_t, comps, w_s=w_s.to(**conv), w_p=w_p.to(**conv),
                      diffuse_weight=w_d, light_chunk=light_chunk, validate=False)
+        f = f if vis is None else f * vis
         return torch.einsum("lhwc,l->hwc", f, scale.to(**conv))
 
     w_d = 0.5 if analyzer is not None else 1.0

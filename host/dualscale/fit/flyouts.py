@@ -67,30 +67,46 @@ def _length(path: list[tuple[float, float]]) -> float:
 
 
 def _trace(start: tuple[int, int], heading: np.ndarray, conf: np.ndarray, grad: np.ndarray, floor: float,
-           max_steps: int) -> list[tuple[int, int]]:
+           max_steps: int, max_gap: int = 0) -> list[tuple[int, int]]:
+    """Follow the path of minimum gradient from ``start``: step to the forward 8-neighbour
+    (within 60 deg of the smoothed heading) with the smallest gradient magnitude among those
+    whose confidence is at least ``floor``.  Where none is, cross a gap of up to ``max_gap``
+    pixels straight ahead (a fibre's highlight is dashed where its normal turns away); the
+    gap is kept only when the fibre resumes after it."""
     h, w = conf.shape
     r, c = start
     d = heading / max(np.linalg.norm(heading), 1e-12)
-    out, seen = [], {start}
+    out: list[tuple[int, int]] = []
+    seen = {start}
+    gap: list[tuple[int, int]] = []
     for _ in range(max_steps):
-        best, best_g = None, math.inf
+        best, best_g, ahead, ahead_dot = None, math.inf, None, -2.0
         for dr, dc in _DIRS:
             v = np.array([dr, dc], float) / math.hypot(dr, dc)
-            if v @ d < 0.5:  # within 60 deg of the heading
+            dot = float(v @ d)
+            if dot < 0.5:  # within 60 deg of the heading
                 continue
             q = (r + dr, c + dc)
-            if not (0 <= q[0] < h and 0 <= q[1] < w) or q in seen or conf[q] < floor:
+            if not (0 <= q[0] < h and 0 <= q[1] < w) or q in seen:
                 continue
-            if grad[q] < best_g:
+            if dot > ahead_dot:
+                ahead, ahead_dot = q, dot
+            if conf[q] >= floor and grad[q] < best_g:
                 best, best_g = q, grad[q]
         if best is None:
-            break
+            if ahead is None or len(gap) >= max_gap:
+                break
+            gap.append(ahead)
+            best = ahead
+        else:
+            out.extend(gap)
+            gap = []
+            out.append(best)
         step = np.array([best[0] - r, best[1] - c], float)
         d = 0.7 * d + 0.3 * step / np.linalg.norm(step)  # smoothed heading
         d /= np.linalg.norm(d)
         r, c = best
         seen.add(best)
-        out.append(best)
     return out
 
 
@@ -104,21 +120,74 @@ def _axis_deg(path: list[tuple[float, float]]) -> float:
     return float(np.degrees(0.5 * math.atan2(s, c)) % 180.0)
 
 
-def _yarn_axis_deg(tangent: np.ndarray, mask: np.ndarray) -> float | None:
-    band = ndimage.binary_dilation(mask, iterations=5) & ~ndimage.binary_dilation(mask, iterations=2)
-    if not band.any():
+def yarn_field(tangent: np.ndarray, sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """Local yarn axis as a doubled-angle vector field ``(sin 2a, cos 2a)`` smoothed over
+    ``sigma_px``: the fibres' twist about the yarn axis averages out inside a yarn, and where
+    warp meets weft the two cancel (a short vector: no clear yarn direction)."""
+    a = 2 * np.pi * np.asarray(tangent, float)  # tangent value v is azimuth pi v; doubled for an axial mean
+    return (ndimage.gaussian_filter(np.sin(a), sigma_px, mode="wrap"),
+            ndimage.gaussian_filter(np.cos(a), sigma_px, mode="wrap"))
+
+
+def along_yarn(path: list[tuple[int, int]], field: tuple[np.ndarray, np.ndarray], yarn_angle_deg: float,
+               reach_px: float) -> np.ndarray:
+    """Which points of a path run within ``yarn_angle_deg`` of the yarn beside them (bool).
+
+    The yarn under a fly-out is read beside it, not on it (a fitted tangent map follows the
+    fibre's own texels): ``field`` (:func:`yarn_field`) is sampled across the path from just
+    outside its footprint out to ``reach_px`` on either side.  A point runs along the yarn
+    when either side does: a path on the boundary between warp and weft runs along one."""
+    fs, fc = field
+    h, w = fs.shape
+    own = ndimage.binary_dilation(_raster(path, (h, w)), iterations=2)
+    p = np.asarray(path, float)
+    if len(p) < 3:
+        return np.zeros(len(p), bool)
+    d = np.gradient(ndimage.uniform_filter1d(p, 5, axis=0, mode="nearest"), axis=0)
+    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    path_ang = np.arctan2(-d[:, 0], d[:, 1])  # y-up azimuth [rad]
+    perp = np.stack([d[:, 1], -d[:, 0]], -1)  # (drow, dcol) across the path
+    along = np.zeros(len(p), bool)
+    for side in (1.0, -1.0):
+        s2 = np.zeros(len(p))
+        c2 = np.zeros(len(p))
+        for k in np.linspace(3.0, max(3.0, reach_px), 4):
+            q = np.rint(p + side * k * perp).astype(int)
+            ok = (q[:, 0] >= 0) & (q[:, 0] < h) & (q[:, 1] >= 0) & (q[:, 1] < w)
+            qr, qc = np.clip(q[:, 0], 0, h - 1), np.clip(q[:, 1], 0, w - 1)
+            ok &= ~own[qr, qc]
+            s2 += np.where(ok, fs[qr, qc], 0.0)
+            c2 += np.where(ok, fc[qr, qc], 0.0)
+        clear = np.hypot(s2, c2) > 0.5 * 4  # a clear yarn direction on this side
+        yarn = 0.5 * np.arctan2(s2, c2)
+        diff = np.abs((np.degrees(path_ang - yarn) + 90.0) % 180.0 - 90.0)
+        along |= clear & (diff < yarn_angle_deg)
+    return along
+
+
+def _off_yarn(path: list[tuple[int, int]], along: np.ndarray, min_len: float) -> list[tuple[int, int]] | None:
+    """``path`` without the stretches at its ends that run along the yarn (a trace that slid
+    off a fly-out onto a yarn edge), or ``None`` when what is left is shorter than
+    ``min_len`` or still runs along the yarn for half its points."""
+    off = ~ndimage.binary_opening(along, structure=np.ones(5, bool))  # ignore isolated points
+    idx = np.nonzero(off)[0]
+    if len(idx) == 0:
         return None
-    ang = 2 * np.pi * tangent[band]  # tangent value v is azimuth pi v; double it for an axial mean
-    return float(np.degrees(0.5 * math.atan2(np.sin(ang).sum(), np.cos(ang).sum())) % 180.0)
+    a, b = int(idx[0]), int(idx[-1]) + 1
+    if _length(path[a:b]) < min_len or along[a:b].mean() >= 0.5:
+        return None
+    return path[a:b]
 
 
 def detect(conf: np.ndarray, pixel_mm: float, seeds: int = 10000, min_length_mm: float = 0.27,
            tangent: np.ndarray | None = None, yarn_angle_deg: float = 15.0, stop_fraction: float = 0.35,
-           seed: int = 0) -> dict[str, Any]:
+           seed: int = 0, max_gap_mm: float = 0.01, yarn_mm: float = 0.1, smooth_px: float = 1.0,
+           orient_px: float = 2.0) -> dict[str, Any]:
     """Steps 2-7 on a confidence map ``(H, W)``: polylines ``[(row, col), ...]``, mask, counts."""
     h, w = conf.shape
     conf = np.clip(np.nan_to_num(conf), 0, None)
     min_len = min_length_mm / pixel_mm
+    max_gap = int(round(max_gap_mm / pixel_mm))
     n_seeds = max(50, int(round(seeds * h * w / 1e6)))
     out: dict[str, Any] = {"seeds": n_seeds, "min_length_px": min_len, "paths": [], "mask": np.zeros((h, w), bool),
                            "dropped": {"short": 0, "along_yarn": 0, "duplicate": 0}}
@@ -127,11 +196,11 @@ def detect(conf: np.ndarray, pixel_mm: float, seeds: int = 10000, min_length_mm:
         return out
     rng = np.random.default_rng(seed)
     picks = rng.choice(h * w, size=n_seeds, p=(conf / total).ravel())
-    sm = ndimage.gaussian_filter(conf, 1.0)
+    sm = ndimage.gaussian_filter(conf, smooth_px)
     global_floor = float(sm.mean() + sm.std())
     gr, gc = ndimage.sobel(sm, 0), ndimage.sobel(sm, 1)
     grad = np.hypot(gr, gc)
-    jrr, jrc, jcc = (ndimage.gaussian_filter(a, 2.0) for a in (gr * gr, gr * gc, gc * gc))
+    jrr, jrc, jcc = (ndimage.gaussian_filter(a, orient_px) for a in (gr * gr, gr * gc, gc * gc))
     paths = []
     traced = np.zeros((h, w), bool)  # pixels of long paths already traced
     for k in picks:
@@ -142,8 +211,8 @@ def detect(conf: np.ndarray, pixel_mm: float, seeds: int = 10000, min_length_mm:
         _, vec = np.linalg.eigh(t)
         along = vec[:, 0]  # least change: along the ridge
         floor = max(stop_fraction * sm[r, c], global_floor)
-        fwd = _trace((r, c), along, sm, grad, floor, int(4 * min_len) + 8)
-        bwd = _trace((r, c), -along, sm, grad, floor, int(4 * min_len) + 8)
+        fwd = _trace((r, c), along, sm, grad, floor, int(4 * min_len) + 8, max_gap)
+        bwd = _trace((r, c), -along, sm, grad, floor, int(4 * min_len) + 8, max_gap)
         path = [*reversed(bwd), (r, c), *fwd]
         paths.append(path)
         if _length(path) >= min_len:
@@ -156,13 +225,14 @@ def detect(conf: np.ndarray, pixel_mm: float, seeds: int = 10000, min_length_mm:
         kept.append(p)
     if tangent is not None:
         keep2 = []
+        reach = yarn_mm / pixel_mm
+        field = yarn_field(tangent, reach / 2)
         for p in kept:
-            yarn = _yarn_axis_deg(tangent, _raster(p, (h, w)))
-            diff = None if yarn is None else abs((_axis_deg(p) - yarn + 90.0) % 180.0 - 90.0)
-            if diff is not None and diff < yarn_angle_deg:
+            q = _off_yarn(p, along_yarn(p, field, yarn_angle_deg, reach), min_len)
+            if q is None:
                 out["dropped"]["along_yarn"] += 1
             else:
-                keep2.append(p)
+                keep2.append(q)
         kept = keep2
     covered = np.zeros((h, w), bool)
     final = []
@@ -179,11 +249,21 @@ def detect(conf: np.ndarray, pixel_mm: float, seeds: int = 10000, min_length_mm:
 
 
 def score(mask: np.ndarray, gt: np.ndarray, tol_px: int = 2) -> dict[str, float]:
-    """Pixel precision and recall with a ``tol_px`` tolerance."""
+    """Precision and recall of detected fibre pixels with a ``tol_px`` buffer.
+
+    Detections are 1-px polylines, true fibres have a footprint a few pixels wide, so (as for
+    the completeness and correctness of extracted road networks) precision is the share of
+    detected pixels within ``tol_px`` of a true fibre's footprint, and recall the share of
+    the true fibres' centre lines (skeleton of the footprint) within ``tol_px`` of a
+    detection."""
+    from skimage.morphology import skeletonize
+
+    gt = np.asarray(gt, bool)
+    centre = skeletonize(gt) if gt.any() else gt
     gt_d = ndimage.binary_dilation(gt, iterations=tol_px) if tol_px > 0 else gt
     det_d = ndimage.binary_dilation(mask, iterations=tol_px) if tol_px > 0 else mask
     precision = float((mask & gt_d).sum() / mask.sum()) if mask.any() else 0.0
-    recall = float((gt & det_d).sum() / gt.sum()) if gt.any() else 1.0
+    recall = float((centre & det_d).sum() / centre.sum()) if centre.any() else 1.0
     return {"precision": precision, "recall": recall, "tolerance_px": tol_px}
 
 

@@ -19,7 +19,7 @@ MATERIALS: dict[str, Callable[..., SyntheticMaterial]] = {
     "denim": partial(woven, "denim"),
     "rib_knit": rib_knit,
     "leather": leather,
-    "sheer": partial(woven, "plain", sheer=True, n_flyouts=4),
+    "sheer": partial(woven, "plain", sheer=True, flyouts_per_mm2=4.0),
     "brick": partial(from_photo, "brick"),
     "grass": partial(from_photo, "grass"),
     "gravel": partial(from_photo, "gravel"),

@@ -9,18 +9,21 @@ import torch
 from scipy import ndimage
 
 from dualscale.bsdf import MaterialMaps
+from dualscale.dome.shadow import SurfaceGeometry
 
 
 @dataclass
 class SyntheticMaterial:
     """Ground truth of a synthetic material.  ``maps`` in the canonical layout (float32);
     ``flyouts``: fibre polylines in pixel coordinates ``[(col, row), ...]``; ``flyout_mask``
-    (H, W) bool; ``meta``: generator parameters (name, seed, texel_mm, ...)."""
+    (H, W) bool; ``meta``: generator parameters (name, seed, texel_mm, ...); ``geometry``: the
+    relief (height field and fly-out fibre layer) that casts shadows."""
 
     maps: MaterialMaps
     meta: dict
     flyouts: list[list[tuple[float, float]]] = field(default_factory=list)
     flyout_mask: np.ndarray | None = None
+    geometry: SurfaceGeometry | None = None
 
 
 def smooth_noise(rng: np.random.Generator, shape: tuple[int, int], sigma_px: float) -> np.ndarray:

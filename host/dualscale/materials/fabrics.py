@@ -10,8 +10,11 @@ import math
 from typing import Callable
 
 import numpy as np
+import torch
 from scipy import ndimage
 from skimage.draw import line
+
+from dualscale.dome.shadow import SurfaceGeometry
 
 from .common import SyntheticMaterial, normals_from_height, pixel_grid_mm, smooth_noise, to_maps
 
@@ -36,7 +39,7 @@ def _yarn_profile(u: np.ndarray, width: float) -> np.ndarray:
 
 
 def woven(kind: str, size: int = 512, texel_mm: float = 0.0018, seed: int = 0, pitch_mm: float = 0.3,
-          yarn_width: float = 0.85, twist_deg: float = 20.0, n_flyouts: int = 12, sheer: bool = False) -> SyntheticMaterial:
+          yarn_width: float = 0.85, twist_deg: float = 20.0, flyouts_per_mm2: float = 10.0, sheer: bool = False) -> SyntheticMaterial:
     """Woven fabric ``kind`` in :data:`WEAVES` (``sheer=True``: thin yarns with open gaps)."""
     if kind not in WEAVES:
         raise ValueError(f"unknown weave {kind!r}; choose from {sorted(WEAVES)}")
@@ -80,12 +83,12 @@ def woven(kind: str, size: int = 512, texel_mm: float = 0.0018, seed: int = 0, p
         maps["normal"] = np.where(covered[..., None], normal, np.array([0.0, 0.0, 1.0]))
     mat = SyntheticMaterial(to_maps(**maps), dict(material=("sheer" if sheer else kind), seed=seed, size=size,
                                                   texel_mm=texel_mm, pitch_mm=pitch_mm))
-    add_flyouts(mat, rng, n_flyouts, c_weft if kind == "denim" else c_warp)
+    add_flyouts(mat, rng, flyouts_per_mm2, c_weft if kind == "denim" else c_warp, height)
     return mat
 
 
 def rib_knit(size: int = 512, texel_mm: float = 0.0018, seed: int = 0, wale_mm: float = 0.6,
-             course_mm: float = 0.4, n_flyouts: int = 8) -> SyntheticMaterial:
+             course_mm: float = 0.4, flyouts_per_mm2: float = 8.0) -> SyntheticMaterial:
     """1x1 rib knit: wales of V-shaped loops along y; alternate wales are knit/purl ridges."""
     rng = np.random.default_rng(seed)
     x, y = pixel_grid_mm(size, texel_mm)
@@ -107,56 +110,109 @@ def rib_knit(size: int = 512, texel_mm: float = 0.0018, seed: int = 0, wale_mm: 
                 specular_tint=np.full((size, size), 0.2))
     mat = SyntheticMaterial(to_maps(**maps), dict(material="rib_knit", seed=seed, size=size, texel_mm=texel_mm,
                                                   wale_mm=wale_mm, course_mm=course_mm))
-    add_flyouts(mat, rng, n_flyouts, colour)
+    add_flyouts(mat, rng, flyouts_per_mm2, colour, height)
     return mat
 
 
-def add_flyouts(mat: SyntheticMaterial, rng: np.random.Generator, count: int, colour: np.ndarray,
-                min_len_px: int = 60) -> None:
-    """Trace ``count`` fly-out fibres as smooth random walks on top of the maps, record their
-    polylines ``[(col, row), ...]`` and mask, and paint them into the maps (bright, glossy,
-    strongly anisotropic along the fibre, normal facing up)."""
+def add_flyouts(mat: SyntheticMaterial, rng: np.random.Generator, per_mm2: float, colour: np.ndarray,
+                height_mm: np.ndarray, length_mm: tuple[float, float] = (0.3, 0.6), radius_mm: float = 0.006,
+                rise_mm: tuple[float, float] = (0.04, 0.15), incline_deg: tuple[float, float] = (10.0, 35.0)) -> None:
+    """Add fly-out fibres, ``per_mm2`` of them per mm^2 of sample (at least 2), above the
+    fabric of relief ``height_mm`` (mm).
+
+    Each fibre is a cylinder of ``radius_mm`` (cotton: 6 um) along a smooth random walk of
+    ``length_mm`` (at most 0.8 of the field), drawn so that the whole fibre is in view.  It is anchored in the fabric at its first end, lifts over its first
+    third to ``rise_mm`` above the highest yarn, and climbs at ``incline_deg`` from there: a
+    free end standing out of the fabric.  Its texels get the cylinder's normal (across the
+    fibre, tilted by its slope), a glossy anisotropic BSDF along the fibre and full opacity.
+    Records the polylines ``[(col, row), ...]``, the footprint mask, and the fibre layer of
+    ``mat.geometry`` that casts and receives shadows."""
+    from scipy.spatial import cKDTree
+
     h, w = mat.maps.shape
+    texel = float(mat.meta["texel_mm"])
     mask = np.zeros((h, w), bool)
+    axis_h = np.full((h, w), -np.inf)
+    top_h = np.zeros((h, w))
     tangent = np.zeros((h, w))
+    normal = np.zeros((h, w, 3))
     lines = []
+    rad_px = max(radius_mm / texel, 0.5)
+    rows, cols = np.mgrid[0:h, 0:w]
+    pix = np.stack([cols.ravel() + 0.5, rows.ravel() + 0.5], -1)  # (col, row) pixel centres
+    top = float(height_mm.max())
+    count = max(2, int(round(per_mm2 * h * w * texel * texel)))
     for _ in range(count):
-        p = rng.uniform([0, 0], [w, h])
-        ang = rng.uniform(0, 2 * np.pi)
         n_seg = int(rng.integers(8, 20))
-        seg = max(min_len_px, min(h, w) // 3) / n_seg
-        pts = [tuple(p)]
-        for _ in range(n_seg):
-            ang += rng.normal(0, 0.15)
-            p = p + seg * np.array([np.cos(ang), np.sin(ang)])
-            if not (0 <= p[0] < w and 0 <= p[1] < h):
+        seg = min(rng.uniform(*length_mm) / texel, 0.8 * min(h, w)) / n_seg
+        for _attempt in range(100):  # redraw until the whole fibre is in view
+            p = rng.uniform([0, 0], [w, h])
+            ang = rng.uniform(0, 2 * np.pi)
+            pts = [p]
+            for _ in range(n_seg):
+                ang += rng.normal(0, 0.15)
+                p = p + seg * np.array([np.cos(ang), -np.sin(ang)])  # y up, rows down
+                pts.append(p)
+            arr = np.asarray(pts)
+            if (arr >= 2).all() and (arr[:, 0] < w - 2).all() and (arr[:, 1] < h - 2).all():
                 break
-            pts.append(tuple(p))
-        if len(pts) < 3:
+        else:
             continue
         lines.append([(float(a), float(b)) for a, b in pts])
-        for (c0, r0), (c1, r1) in zip(pts[:-1], pts[1:]):
-            rr, cc = line(int(r0), int(c0), int(r1), int(c1))
-            ok = (rr >= 0) & (rr < h) & (cc >= 0) & (cc < w)
-            rr, cc = rr[ok], cc[ok]
-            mask[rr, cc] = True
-            # image rows grow downwards, so the fibre azimuth (y up) is atan2(-d_row, d_col)
-            tangent[rr, cc] = np.remainder(math.atan2(-(r1 - r0), c1 - c0), np.pi) / np.pi
+        # dense samples along the polyline (0.25 px), with arclength and unit direction
+        dense, dirs = [], []
+        for a, b in zip(pts[:-1], pts[1:]):
+            k = max(2, int(np.ceil(np.linalg.norm(b - a) / 0.25)))
+            t = np.linspace(0, 1, k, endpoint=False)[:, None]
+            dense.append(a + t * (b - a))
+            dirs.append(np.repeat(((b - a) / np.linalg.norm(b - a))[None], k, 0))
+        dense.append(pts[-1][None])
+        dirs.append(dirs[-1][-1:])
+        ps, ds = np.concatenate(dense), np.concatenate(dirs)
+        arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(ps, axis=0), axis=1))])
+        frac = arc / arc[-1]
+        ground = ndimage.map_coordinates(height_mm, [ps[:, 1] - 0.5, ps[:, 0] - 0.5], order=1, mode="wrap")
+        rise = np.sin(0.5 * np.pi * np.minimum(1.0, frac / (1 / 3)))
+        ax_h = (1 - rise) * ground + rise * (top + rng.uniform(*rise_mm))
+        ax_h = ax_h + arc * texel * np.tan(np.radians(rng.uniform(*incline_deg)))
+        slope = np.gradient(ax_h, arc * texel)  # mm per mm along the fibre
+        dist, idx = cKDTree(ps).query(pix, distance_upper_bound=rad_px + 1.0)
+        near = np.isfinite(dist) & (dist <= rad_px)
+        near_pix, near_idx = np.nonzero(near)[0], idx[near]
+        d_img = ds[near_idx]  # (dcol, drow)
+        a_world = np.stack([d_img[:, 0], -d_img[:, 1], slope[near_idx]], -1)
+        a_world /= np.linalg.norm(a_world, axis=1, keepdims=True)
+        side = np.stack([d_img[:, 1], d_img[:, 0], np.zeros(len(d_img))], -1)  # in-plane, left of the fibre
+        rel = pix[near_pix] - ps[near_idx]  # (dcol, drow); in world (x, y) = (dcol, -drow)
+        q = np.clip((rel[:, 0] * d_img[:, 1] - rel[:, 1] * d_img[:, 0]) / rad_px, -0.95, 0.95)  # along `side`
+        up = np.array([0.0, 0.0, 1.0]) - a_world[:, 2:3] * a_world
+        up /= np.linalg.norm(up, axis=1, keepdims=True)
+        side -= (side * a_world).sum(-1, keepdims=True) * a_world
+        side /= np.linalg.norm(side, axis=1, keepdims=True)
+        n = q[:, None] * side + np.sqrt(1 - q * q)[:, None] * up
+        r_, c_ = np.divmod(near_pix, w)
+        higher = ax_h[near_idx] > axis_h[r_, c_]  # where fibres cross, the upper one is seen
+        r_, c_, near_idx, n, q = r_[higher], c_[higher], near_idx[higher], n[higher], q[higher]
+        mask[r_, c_] = True
+        axis_h[r_, c_] = ax_h[near_idx]
+        top_h[r_, c_] = ax_h[near_idx] + radius_mm * np.sqrt(1 - q * q)
+        normal[r_, c_] = n
+        tangent[r_, c_] = np.remainder(np.arctan2(-ds[near_idx, 1], ds[near_idx, 0]), np.pi) / np.pi
     m = mat.maps
-    mt = mask[..., None]
-    import torch
+    mt = torch.from_numpy(mask[..., None])
 
     def put(name, value):
         t = getattr(m, name)
         if t is not None:
-            setattr(m, name, torch.where(torch.from_numpy(mt), torch.as_tensor(np.asarray(value, np.float32)).expand_as(t), t))
+            v = torch.as_tensor(np.asarray(value, np.float32))
+            setattr(m, name, torch.where(mt, v if v.ndim == 3 else v.expand_as(t), t))
 
     put("albedo", np.clip(np.asarray(colour) * 1.3, 0, 1))
     put("roughness", 0.35)
     put("anisotropy", 0.9)
-    if m.tangent is not None:
-        m.tangent = torch.where(torch.from_numpy(mt), torch.from_numpy(tangent[..., None].astype(np.float32)), m.tangent)
-    put("normal", np.array([0.0, 0.0, 1.0]))
+    put("tangent", tangent[..., None])
+    put("normal", normal)
     put("opacity", 1.0)
     mat.flyouts = lines
     mat.flyout_mask = mask
+    mat.geometry = SurfaceGeometry(height_mm, texel, mask, np.where(mask, axis_h, 0.0), top_h, radius_mm)

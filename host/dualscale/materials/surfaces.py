@@ -6,6 +6,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
+from dualscale.dome.shadow import SurfaceGeometry
+
 from .common import SyntheticMaterial, normals_from_height, smooth_noise, to_maps
 
 PHOTO_TINTS = {"brick": (0.55, 0.25, 0.18), "grass": (0.20, 0.40, 0.12), "gravel": (0.45, 0.43, 0.40)}
@@ -25,7 +27,8 @@ def leather(size: int = 512, texel_mm: float = 0.0018, seed: int = 0, bump_mm: f
     rough = np.clip(0.45 - 0.1 * pebble, 0.05, 1)
     maps = dict(albedo=np.clip(albedo, 0, 1), roughness=rough, normal=normals_from_height(height, texel_mm),
                 specular_tint=np.full((size, size), 0.1))
-    return SyntheticMaterial(to_maps(**maps), dict(material="leather", seed=seed, size=size, texel_mm=texel_mm))
+    return SyntheticMaterial(to_maps(**maps), dict(material="leather", seed=seed, size=size, texel_mm=texel_mm),
+                             geometry=SurfaceGeometry(height - height.min(), texel_mm))
 
 
 def from_photo(name: str, size: int = 512, texel_mm: float = 0.0018, seed: int = 0,
@@ -47,4 +50,7 @@ def from_photo(name: str, size: int = 512, texel_mm: float = 0.0018, seed: int =
     height = relief_mm * ndimage.gaussian_filter(g, 1.0, mode="wrap")
     maps = dict(albedo=np.clip(tint * (0.3 + 0.9 * g)[..., None], 0, 1), roughness=np.clip(0.9 - 0.5 * g, 0, 1),
                 normal=normals_from_height(height, texel_mm * 512 / size))
-    return SyntheticMaterial(to_maps(**maps), dict(material=name, seed=seed, size=size, texel_mm=texel_mm))
+    # the normals treat the photo's 512 px as 512 texels; the consistent relief at this size:
+    geom = SurfaceGeometry(height * size / 512, texel_mm)
+    return SyntheticMaterial(to_maps(**maps), dict(material=name, seed=seed, size=size, texel_mm=texel_mm),
+                             geometry=geom)
