@@ -25,7 +25,8 @@ def _finite(res):
 
 def test_observation_weights(datasets):
     obs = load_observations(datasets("twill"))  # the synth output dir: micro/ is found
-    assert obs.n == 254 and obs.shape == (16, 16) and obs.backlight is None
+    assert obs.n == 254 and obs.shape == (16, 16)
+    assert obs.backlight is not None and float(obs.backlight.abs().max()) == 0.0  # opaque: a black back-lit image
     p0 = obs.w_s > 0.5
     assert int(p0.sum()) == 127
     assert torch.all(obs.w_s[~p0] < 1e-9) and torch.all(obs.w_p == 0) and torch.all(obs.w_d == 0.5)
