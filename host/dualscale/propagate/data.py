@@ -14,7 +14,8 @@ Which maps to propagate: when ``material.json`` carries fit metadata (``meta.fit
 written by ``dualscale fit``), the maps those components require; otherwise every map found.
 
 Images per light (LEDs and back lights): P0 (relative analyser 0), P90 (relative 90) and their
-mean; a light captured without analyser contributes its single image.  The diffuse light is
+mean; a light captured without analyser contributes its single image.  A black back-lit image
+(an opaque sample) is left out.  The diffuse light is
 the dataset's ``diffuse`` capture when there is one; otherwise it is synthesised as
 ``sum_i w_i (P0_i + P90_i) / 2`` over all dome LEDs with the dome's solid-angle weights
 ``w_i`` (what the renderer does for the diffuse group, except that the specular part is
@@ -149,6 +150,11 @@ def load_source(path: str | Path, maps: str | Path | None = None) -> Source:
     for k, n in enumerate(light_names):
         for j, i in enumerate(groups[n]):
             pairs[k, j] = ds.load(i).transpose(2, 0, 1)
+    # the rig takes a back-lit image of every sample; an opaque one's is black, with nothing to learn
+    black = [k for k, n in enumerate(light_names) if n.startswith("backlight") and not np.any(pairs[k])]
+    if black:
+        keep = [k for k in range(len(light_names)) if k not in black]
+        pairs, light_names = pairs[keep], [light_names[k] for k in keep]
     if "diffuse" not in groups:
         d = _synth_diffuse(ds, light_names, pairs)
         if d is not None:
