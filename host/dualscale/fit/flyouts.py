@@ -110,16 +110,6 @@ def _trace(start: tuple[int, int], heading: np.ndarray, conf: np.ndarray, grad: 
     return out
 
 
-def _axis_deg(path: list[tuple[float, float]]) -> float:
-    """Axial mean direction of a path [deg in image x/y-up frame, 0..180)."""
-    p = np.asarray(path, float)
-    d = np.diff(p, axis=0)
-    ang = np.arctan2(-d[:, 0], d[:, 1])  # rows grow downwards: y-up azimuth
-    wgt = np.linalg.norm(d, axis=1)
-    s, c = (wgt * np.sin(2 * ang)).sum(), (wgt * np.cos(2 * ang)).sum()
-    return float(np.degrees(0.5 * math.atan2(s, c)) % 180.0)
-
-
 def yarn_field(tangent: np.ndarray, sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
     """Local yarn axis as a doubled-angle vector field ``(sin 2a, cos 2a)`` smoothed over
     ``sigma_px``: the fibres' twist about the yarn axis averages out inside a yarn, and where
