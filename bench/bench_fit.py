@@ -2,7 +2,10 @@
 paper preset in the same run on the same machine.
 
     PYTHONPATH=host python bench/bench_fit.py [--size 48] [--materials twill,leather,...]
-        [--presets draft,standard,adam-fast,paper] [--json out.json]
+        [--presets draft,standard,adam-fast,coarse-to-fine,paper] [--json out.json]
+
+A preset may name its loss and scale its iterations, ``NAME[@l1|@l2][*FACTOR]``: ``standard@l2``
+is the least-squares variant of ``standard``, ``standard*0.5`` runs half its iterations.
 
 Each material is generated at ``size`` x ``size`` texels of ``texel_um`` (9 um by default so a
 small map still covers yarn structure), rendered by the virtual dome (127 LEDs x P0/P90, plus
@@ -18,6 +21,7 @@ import platform
 import statistics
 import tempfile
 import time
+from dataclasses import replace
 from datetime import date
 from pathlib import Path
 
@@ -29,7 +33,7 @@ from dualscale.dome.render import Analyzer, LightState, render
 from dualscale.fit.core import fit_observations, split_holdout
 from dualscale.fit.metrics import map_errors
 from dualscale.fit.observations import load_observations
-from dualscale.fit.presets import PRESETS
+from dualscale.fit.presets import PRESETS, Preset
 from dualscale.fit.select import select_components
 from dualscale.materials.io import load_maps
 
@@ -40,13 +44,19 @@ EXTREME = {"sheer"}  # open gaps (opacity 0): albedo and normal are undefined ov
 BOUNDS = {"normal_mean_deg": 3.0, "albedo_rmse": 0.02, "heldout_ssim": 0.95}
 
 
+def preset(spec: str) -> Preset:
+    """``NAME[@LOSS][*FACTOR]`` (see the module docstring)."""
+    head, _, factor = spec.partition("*")
+    name, _, loss = head.partition("@")
+    p = replace(PRESETS[name], loss=loss) if loss else PRESETS[name]
+    return p.scaled(float(factor)) if factor else p
+
+
 def add_noise(obs, size: int, texel_um: float, headroom: float = 0.9):
     """Sensor capture in place, HDR-style as on the rig ("dynamically computed exposure"):
     each image gets the exposure that puts its brightest pixel at ``headroom`` of full well,
     then shot and read noise, saturation and 12-bit quantisation (no spectral response or
     vignetting, so the ground truth stays in the same colour space); back to relative radiance."""
-    from dataclasses import replace
-
     from dualscale.dome.sensor import SensorModel, capture, radiance_per_dn
 
     base = SensorModel(shot_noise=True, read_noise=True, saturate=True, quantize=True)
@@ -81,7 +91,7 @@ def run(materials: list[str], presets: list[str], size: int, texel_um: float, no
     with tempfile.TemporaryDirectory() as tmp:
         warm_obs, _ = dataset(Path(tmp) / "warm", "leather", 8, texel_um)
         for p in presets:  # warm-up (allocator, thread pools)
-            fit_observations(warm_obs, PRESETS[p].scaled(0.01), select_components(warm_obs)[0])
+            fit_observations(warm_obs, preset(p).scaled(0.01), select_components(warm_obs)[0])
         for m in materials:
             obs, gt = dataset(Path(tmp) / m, m, size, texel_um, noise)
             train, held = split_holdout(obs, 8)
@@ -89,14 +99,14 @@ def run(materials: list[str], presets: list[str], size: int, texel_um: float, no
             comps, sel = select_components(train)
             t_sel = time.perf_counter() - t0
             for p in presets:
-                res = fit_observations(train, PRESETS[p], comps, held_out=held)
+                res = fit_observations(train, preset(p), comps, held_out=held)
                 err = map_errors(res.maps, gt, comps.ior)
                 rows.append({"material": m, "class": CLASSES[m], "preset": p, "seconds": res.seconds,
                              "selection_seconds": t_sel, "heldout_ssim": res.losses["heldout_ssim"],
                              "heldout_rmse": res.losses["heldout_rmse"], **err,
                              "components": {"opaque": comps.opaque, "isotropic": comps.isotropic,
                                             "tinted": comps.tinted}})
-                print(f"  {m:9s} {p:9s} {res.seconds:7.1f} s  ssim {res.losses['heldout_ssim']:.4f}  "
+                print(f"  {m:9s} {p:14s} {res.seconds:7.1f} s  ssim {res.losses['heldout_ssim']:.4f}  "
                       f"normal {err['normal_mean_deg']:.2f} deg  albedo {err['albedo_rmse']:.4f}", flush=True)
     return {"machine": f"{platform.node()} {platform.machine()} {torch.get_num_threads()} torch threads",
             "date": date.today().isoformat(), "size": size, "texel_um": texel_um, "lights": "127 LEDs x P0/P90 "
@@ -126,6 +136,15 @@ def tables(rep: dict) -> str:
         sr = f"{m['heldout_ssim'] / ref['heldout_ssim']:.4f}" if ref else "-"
         out.append(f"| {p} | {m['seconds']:.1f} | {tr} | {m['albedo_rmse']:.4f} | {m['normal_mean_deg']:.2f} | "
                    f"{m['heldout_ssim']:.4f} | {sr} |")
+    if ref:
+        out += ["", "Ratios to `paper` per material (preset / paper, same run; < 1 is better, SSIM: > 1):", "",
+                "| material | preset | " + " | ".join(keys) + " |", "|---|---|" + "---:|" * len(keys)]
+        paper = {r["material"]: r for r in rows if r["preset"] == "paper"}
+        for r in (r for r in rows if r["preset"] != "paper" and r["material"] in paper):
+            q = paper[r["material"]]
+            out.append(f"| {r['material']} | {r['preset']} | " + " | ".join(
+                (f"{r[k] / q[k]:.4f}" if k == "heldout_ssim" else f"{r[k] / q[k]:.2f}") if q[k] > 0 else "-"
+                for k in keys) + " |")
     if ref:
         out += ["", "Paper preset against the acceptance bounds (mean normal < 3 deg, albedo RMSE < 0.02, "
                 "held-out SSIM > 0.95):", "", "| material | normal [deg] | albedo RMSE | SSIM | verdict |",
@@ -160,7 +179,7 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=32)
     ap.add_argument("--texel-um", type=float, default=9.0)
     ap.add_argument("--materials", default="twill,denim,rib_knit,leather,sheer,brick")
-    ap.add_argument("--presets", default="draft,standard,adam-fast,paper")
+    ap.add_argument("--presets", default="draft,standard,adam-fast,coarse-to-fine,paper")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--clean", action="store_true", help="no sensor noise")
     ap.add_argument("--json", default=None)

@@ -20,6 +20,7 @@ from .observations import Observations
 from .optimize import run_adam
 from .params import to_maps
 from .presets import Preset
+from .pyramid import coarse_start, fine_preset
 
 
 @dataclass
@@ -68,6 +69,7 @@ def fit_observations(obs: Observations, preset: Preset, comps: Components, *, he
                      stop_after: int | None = None, seed: int = 0,
                      init: dict[str, Tensor] | None = None) -> FitResult:
     """Fit ``comps`` to ``obs`` with ``preset``; resumes from ``checkpoint`` when it exists.
+    A preset with a coarse level starts from its upsampled coarse fit unless ``init`` is given.
 
     ``stop_after`` (testing/interruption) stops after that many global iterations, with the
     checkpoint saved, by raising :class:`~dualscale.fit.checkpoint.FitInterrupted`.
@@ -77,8 +79,10 @@ def fit_observations(obs: Observations, preset: Preset, comps: Components, *, he
     ck = Checkpointer(None if checkpoint is None else Path(checkpoint), _fingerprint(obs, preset, comps, seed),
                       checkpoint_every)
     resume = ck.load()
+    if init is None and resume is None and preset.coarse_factor > 1:  # a resumed fit is past the coarse level
+        init = coarse_start(obs, preset, comps, seed)
     params = {k: v.clone() for k, v in (init if init is not None else initial_params(obs, comps)).items()}
-    loop = Loop(preset, comps, ck, progress=progress, stop_after=stop_after)
+    loop = Loop(fine_preset(preset), comps, ck, progress=progress, stop_after=stop_after)
     done0 = 0
     if resume is not None:
         loop.history = list(resume.get("history", []))

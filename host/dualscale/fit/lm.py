@@ -1,15 +1,26 @@
 """Per-pixel Levenberg-Marquardt: the fast optimiser.
 
-The model has no spatial coupling, so every pixel is an independent least-squares problem in
-at most 14 unknowns over ``3 N`` residuals (``render - image``, both clamped at 2).  Each
-iteration builds every pixel's Jacobian by forward differences (one render per parameter
-channel, all pixels at once, in row chunks to bound memory), solves the damped normal equations
-``(J^T J + lambda diag(J^T J)) d = -J^T r`` per pixel, projects onto the bounds in force, and
-accepts the step per pixel only where the cost drops (``lambda`` shrinks 3x on success, grows 4x
-on failure).  A pixel whose solve fails keeps its value.
+The model has no spatial coupling, so every pixel is an independent problem in at most 14
+unknowns over ``3 N`` residuals ``r = render - image`` (both clamped at 2), plus the back-lit
+residuals weighted as ``back_weight`` LED images.  Per pixel, the cost is
+
+* ``loss='l2'``: ``sum c r^2``;
+* ``loss='l1'``: ``sum c |r|``, the paper's loss, minimised by iteratively reweighted least
+  squares: every iteration weights each residual row by ``1 / max(|r|, eps)`` at the current
+  residuals, so the weighted squared cost equals ``sum c |r|`` there (``c`` = 1 for LED
+  residuals, ``back_weight`` for back-lit ones, as in the Adam loss).
+
+Each iteration builds every pixel's Jacobian by forward differences (one render per parameter
+channel, all pixels at once, in row chunks to bound memory), solves the damped weighted normal
+equations ``(J^T W J + lambda diag(J^T W J)) d = -J^T W r`` per pixel, projects onto the bounds
+in force, and accepts the step per pixel only where the true cost (L1 or L2) drops (``lambda``
+shrinks 3x on success, grows 4x on failure), so the cost never rises.  A pixel whose solve fails
+keeps its value.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
@@ -19,10 +30,50 @@ from dualscale.bsdf import Components
 from .loop import Loop, StepData, free_names, step_data
 from .observations import Observations
 from .params import BOX, PARAM_CHANNELS, bounds_at, pack, project, to_maps, unpack
+from .presets import Preset
 from .render import render_back, render_leds
 
 FD_STEP = 3e-4
 ROW_PIXELS = 4096  # pixels per Jacobian chunk
+LOSSES = ("l1", "l2")
+
+
+@dataclass(frozen=True)
+class Loss:
+    """Per-pixel cost of the residuals: ``kind`` 'l1' or 'l2'; ``eps`` (normalised image units)
+    floors ``|r|`` in the L1 reweighting so that zero residuals get a finite weight; the
+    back-lit residuals count ``back_weight`` times."""
+
+    kind: str = "l2"
+    eps: float = 1e-4
+    back_weight: float = 16.0
+
+    def __post_init__(self) -> None:
+        if self.kind not in LOSSES:
+            raise ValueError(f"unknown loss {self.kind!r}; choose from {LOSSES}")
+
+    def row_weights(self, k_led: int, has_back: bool, like: Tensor) -> Tensor:
+        """``c``: 1 per LED residual, ``back_weight`` per back-lit residual ``(K,)``."""
+        c = torch.ones(k_led + (3 if has_back else 0), dtype=like.dtype)
+        if has_back:
+            c[k_led:] = self.back_weight
+        return c
+
+    def cost(self, r: Tensor, c: Tensor) -> Tensor:
+        """Per-pixel ``sum c |r|`` or ``sum c r^2`` over the last axis."""
+        return (c * (r.abs() if self.kind == "l1" else r * r)).sum(-1)
+
+    def sqrt_weights(self, r: Tensor, c: Tensor) -> Tensor:
+        """Row multipliers ``sqrt(W)`` for the normal equations at residuals ``r``: the weighted
+        squared residuals ``W r^2`` sum to :meth:`cost` (exactly for L1 where ``|r| >= eps``)."""
+        if self.kind == "l2":
+            return c.sqrt().expand_as(r)
+        return (c / r.abs().clamp(min=self.eps)).sqrt()
+
+
+def preset_loss(preset: Preset) -> Loss:
+    """The :class:`Loss` a :class:`~.presets.Preset` asks for."""
+    return Loss(preset.loss, preset.l1_eps, preset.back_weight)
 
 
 def _lohi(names: tuple[str, ...], bounds: dict[str, tuple[float, float]], like: Tensor) -> tuple[Tensor, Tensor]:
@@ -38,15 +89,18 @@ def _lohi(names: tuple[str, ...], bounds: dict[str, tuple[float, float]], like: 
     return torch.tensor(lo, dtype=like.dtype), torch.tensor(hi, dtype=like.dtype)
 
 
-def _residual(x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor], comps: Components, d: StepData,
-              back_weight: float) -> Tensor:
-    """Stacked residuals ``(h, w, K)`` of a pixel block."""
+def _residual(x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor], comps: Components,
+              d: StepData) -> Tensor:
+    """Unweighted residuals ``(h, w, K)`` of a pixel block: LED images, then the back-lit image."""
     maps = to_maps(unpack(x, names), fixed)
     r = (render_leds(maps, comps, d.obs) - d.images).permute(1, 2, 0, 3).reshape(*x.shape[:2], -1)
     if d.back is not None:
-        rb = (render_back(maps, comps, d.obs) - d.back) * back_weight ** 0.5
-        r = torch.cat([r, rb], -1)
+        r = torch.cat([r, render_back(maps, comps, d.obs) - d.back], -1)
     return r
+
+
+def _row_weights(d: StepData, loss: Loss, like: Tensor) -> Tensor:
+    return loss.row_weights(3 * d.obs.n, d.back is not None, like)
 
 
 def _block(d: StepData, y0: int, y1: int) -> StepData:
@@ -60,44 +114,48 @@ def _chunks(h: int, w: int) -> list[tuple[int, int]]:
 
 
 def cost(x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor], comps: Components, d: StepData,
-         back_weight: float) -> Tensor:
-    """Per-pixel sum of squared residuals ``(H, W)``."""
+         loss: Loss) -> Tensor:
+    """Per-pixel cost ``(H, W)`` (see :class:`Loss`)."""
     out = []
     for y0, y1 in _chunks(*x.shape[:2]):
         fx = {k: v[y0:y1] for k, v in fixed.items()}
-        r = _residual(x[y0:y1], names, fx, comps, _block(d, y0, y1), back_weight)
-        out.append((r * r).sum(-1))
+        r = _residual(x[y0:y1], names, fx, comps, _block(d, y0, y1))
+        out.append(loss.cost(r, _row_weights(d, loss, r)))
     return torch.cat(out, 0)
 
 
 def _normal_equations(x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor], comps: Components, d: StepData,
-                      back_weight: float, hi: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """``(J^T J (H, W, P, P), J^T r (H, W, P), cost (H, W))`` by forward differences."""
+                      loss: Loss, hi: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """``(J^T W J (H, W, P, P), J^T W r (H, W, P), cost (H, W))`` by forward differences, with
+    the weights ``W`` taken at the current residuals (IRLS for L1)."""
     jtj, jtr, c = [], [], []
     p = x.shape[-1]
     for y0, y1 in _chunks(*x.shape[:2]):
         xb = x[y0:y1]
         fx = {k: v[y0:y1] for k, v in fixed.items()}
         db = _block(d, y0, y1)
-        r0 = _residual(xb, names, fx, comps, db, back_weight)
+        r0 = _residual(xb, names, fx, comps, db)
+        cw = _row_weights(d, loss, r0)
+        sw = loss.sqrt_weights(r0, cw)  # (h, w, K)
         cols = []
         for j in range(p):
             step = torch.where(xb[..., j] + FD_STEP > hi[j], -FD_STEP, FD_STEP)
             xp = xb.clone()
             xp[..., j] = xp[..., j] + step
-            cols.append((_residual(xp, names, fx, comps, db, back_weight) - r0) / step.unsqueeze(-1))
-        jac = torch.stack(cols, -1)  # (h, w, K, P)
+            cols.append((_residual(xp, names, fx, comps, db) - r0) * (sw / step.unsqueeze(-1)))
+        jac = torch.stack(cols, -1)  # weighted rows sqrt(W) J: (h, w, K, P)
         jtj.append(torch.einsum("hwkp,hwkq->hwpq", jac, jac))
-        jtr.append(torch.einsum("hwkp,hwk->hwp", jac, r0))
-        c.append((r0 * r0).sum(-1))
+        jtr.append(torch.einsum("hwkp,hwk->hwp", jac, r0 * sw))
+        c.append(loss.cost(r0, cw))
     return torch.cat(jtj, 0), torch.cat(jtr, 0), torch.cat(c, 0)
 
 
 def lm_iteration(x: Tensor, lam: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor], comps: Components,
-                 d: StepData, back_weight: float, bounds: dict[str, tuple[float, float]]) -> tuple[Tensor, Tensor, Tensor]:
-    """One damped Gauss-Newton step for every pixel: ``(x, lambda, cost)`` after it."""
+                 d: StepData, loss: Loss, bounds: dict[str, tuple[float, float]]) -> tuple[Tensor, Tensor, Tensor]:
+    """One damped (reweighted) Gauss-Newton step for every pixel: ``(x, lambda, cost)`` after it;
+    a pixel's step is kept only where its true cost drops."""
     lo, hi = _lohi(names, bounds, x)
-    jtj, jtr, c0 = _normal_equations(x, names, fixed, comps, d, back_weight, hi)
+    jtj, jtr, c0 = _normal_equations(x, names, fixed, comps, d, loss, hi)
     diag = torch.diagonal(jtj, dim1=-2, dim2=-1)
     a = jtj + torch.diag_embed(lam.unsqueeze(-1) * (diag + 1e-9))
     a64, b64 = a.to(torch.float64), (-jtr).to(torch.float64).unsqueeze(-1)
@@ -106,14 +164,14 @@ def lm_iteration(x: Tensor, lam: Tensor, names: tuple[str, ...], fixed: dict[str
     ok = (info == 0) & torch.isfinite(delta).all(-1)
     delta = torch.where(ok.unsqueeze(-1), delta, torch.zeros_like(delta))
     trial = torch.maximum(torch.minimum(x + delta, hi), lo)
-    c1 = cost(trial, names, fixed, comps, d, back_weight)
+    c1 = cost(trial, names, fixed, comps, d, loss)
     better = ok & torch.isfinite(c1) & (c1 < c0)
     x = torch.where(better.unsqueeze(-1), trial, x)
     lam = torch.where(better, lam / 3.0, lam * 4.0).clamp(1e-7, 1e7)
     return x, lam, torch.where(better, c1, c0)
 
 
-def grid_init(params: dict[str, Tensor], comps: Components, d: StepData, back_weight: float) -> None:
+def grid_init(params: dict[str, Tensor], comps: Components, d: StepData, loss: Loss) -> None:
     """Per pixel, start roughness (and tangent, when anisotropic) at the best of a small grid:
     roughness {0.3, 0.5, 0.7} x tangent {0, 1/4, 1/2, 3/4} (anisotropy 0.5 while searching)."""
     names = tuple(params)
@@ -129,7 +187,7 @@ def grid_init(params: dict[str, Tensor], comps: Components, d: StepData, back_we
             if tan is not None:
                 xt[..., off["tangent"]] = tan
                 xt[..., off["anisotropy"]] = 0.5
-            c = cost(xt, names, {}, comps, d, back_weight)
+            c = cost(xt, names, {}, comps, d, loss)
             if best_c is None:
                 best_x, best_c = xt, c
             else:
@@ -144,6 +202,7 @@ def run_lm(params: dict[str, Tensor], comps: Components, obs: Observations, loop
            resume: dict | None = None) -> dict[str, Tensor]:
     """Optimise ``params`` in place through the preset's three steps; returns them."""
     preset = loop.preset
+    loss = preset_loss(preset)
     start_step, start_it, lam_resume = 0, 0, None
     if resume is not None:
         start_step, start_it, lam_resume = resume["step"], resume["iteration"], resume.get("lambda")
@@ -159,14 +218,14 @@ def run_lm(params: dict[str, Tensor], comps: Components, obs: Observations, loop
             continue
         it0 = start_it if s == start_step else 0
         if step == "specular" and preset.grid_init and it0 == 0:
-            grid_init(params, comps, data, preset.back_weight)
+            grid_init(params, comps, data, loss)
         fixed = {k: v for k, v in params.items() if k not in free}
         x = pack(params, free)
         h, w = obs.shape
         lam = lam_resume if (s == start_step and lam_resume is not None) else torch.full((h, w), 1e-2, dtype=x.dtype)
         for it in range(it0, preset.iterations[s]):
             bounds = bounds_at(loop.fraction(s, it), preset.bounds)
-            x, lam, c = lm_iteration(x, lam, free, fixed, comps, data, preset.back_weight, bounds)
+            x, lam, c = lm_iteration(x, lam, free, fixed, comps, data, loss, bounds)
             for k, v in unpack(x, free).items():
                 params[k].copy_(v)
             project(params, bounds_at(loop.fraction(s, it + 1), preset.bounds))
