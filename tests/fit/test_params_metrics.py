@@ -63,6 +63,22 @@ def test_normal_angle_and_map_errors():
     assert map_errors(worse, gt)["albedo_rmse"] > 0.01
 
 
+def test_albedo_opacity_error_sees_only_the_reflected_product():
+    from dualscale.materials import generate
+
+    gt = generate("sheer", 16, 0.009).maps
+    gt.opacity = torch.where(gt.opacity > 0.5, 0.9, 0.0)
+    assert "albedo_opacity_rmse" not in map_errors(generate("twill", 16, 0.009).maps, generate("twill", 16, 0.009).maps)
+    fit = generate("sheer", 16, 0.009).maps
+    fit.opacity = torch.where(gt.opacity > 0.5, torch.ones_like(gt.opacity), gt.opacity)  # 0.9 -> 1 ...
+    fit.albedo = gt.albedo * gt.opacity / fit.opacity.clamp(min=1e-6)  # ... and a darker albedo: same reflection
+    e = map_errors(fit, gt)
+    assert e["albedo_rmse"] > 0.005
+    assert e["albedo_opacity_rmse"] == pytest.approx(0.0, abs=1e-6)
+    fit.albedo = fit.albedo * 1.1
+    assert map_errors(fit, gt)["albedo_opacity_rmse"] > 0.01
+
+
 def test_ssim_identical_is_one_and_detects_difference():
     x = torch.rand(2, 16, 16, 3, generator=torch.Generator().manual_seed(1))
     assert ssim_images(x, x) == pytest.approx([1.0, 1.0])

@@ -25,11 +25,13 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from dualscale.bsdf import Components
+import math
 
-from .loop import Loop, StepData, free_names, step_data
+from dualscale.bsdf import DEFAULT_IOR, Components, map_from_ior
+
+from .loop import Loop, StepData
 from .observations import Observations
-from .params import BOX, PARAM_CHANNELS, bounds_at, pack, project, to_maps, unpack
+from .params import BOX, PARAM_CHANNELS, pack, project, to_maps, unpack
 from .presets import Preset
 from .render import render_back, render_leds
 
@@ -39,14 +41,25 @@ LOSSES = ("l1", "l2")
 
 
 @dataclass(frozen=True)
+class Prior:
+    """Gaussian prior on the scalar map ``name``: ``mean`` and ``sd`` in normalised units."""
+
+    name: str
+    mean: float
+    sd: float
+
+
+@dataclass(frozen=True)
 class Loss:
     """Per-pixel cost of the residuals: ``kind`` 'l1' or 'l2'; ``eps`` (normalised image units)
     floors ``|r|`` in the L1 reweighting so that zero residuals get a finite weight; the
-    back-lit residuals count ``back_weight`` times."""
+    back-lit residuals count ``back_weight`` times; ``priors`` turn the fit into a MAP estimate
+    (module doc)."""
 
     kind: str = "l2"
     eps: float = 1e-4
     back_weight: float = 16.0
+    priors: tuple[Prior, ...] = ()
 
     def __post_init__(self) -> None:
         if self.kind not in LOSSES:
@@ -70,10 +83,32 @@ class Loss:
             return c.sqrt().expand_as(r)
         return (c / r.abs().clamp(min=self.eps)).sqrt()
 
+    def scale(self, r: Tensor) -> Tensor:
+        """Per-pixel likelihood scale ``k`` of residuals ``r (..., K)`` (module doc)."""
+        m = r.abs().median(-1).values.clamp(min=self.eps)
+        return m / math.log(2.0) if self.kind == "l1" else (1.4826 * m) ** 2
+
+    def prior_terms(self, x: Tensor, names: tuple[str, ...], k: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """``(cost (...), gradient (..., P), curvature (..., P))`` of the priors at ``x`` with
+        scale ``k``; the last two enter the (reweighted) normal equations."""
+        cost = torch.zeros_like(k)
+        grad, curv = torch.zeros_like(x), torch.zeros_like(x)
+        for p in self.priors:
+            if p.name not in names:
+                continue
+            j = sum(PARAM_CHANNELS[n] for n in names[:names.index(p.name)])
+            z = (x[..., j] - p.mean) / p.sd
+            cost = cost + k * z * z * (0.5 if self.kind == "l1" else 1.0)
+            grad[..., j] = k * z / p.sd
+            curv[..., j] = k / p.sd ** 2
+        return cost, grad, curv
+
 
 def preset_loss(preset: Preset) -> Loss:
-    """The :class:`Loss` a :class:`~.presets.Preset` asks for."""
-    return Loss(preset.loss, preset.l1_eps, preset.back_weight)
+    """The :class:`Loss` a :class:`~.presets.Preset` asks for (its IOR prior is centred on
+    the default eta of an unmapped IOR)."""
+    priors = (Prior("ior", float(map_from_ior(DEFAULT_IOR)), preset.ior_prior_sd),) if preset.ior_prior_sd > 0 else ()
+    return Loss(preset.loss, preset.l1_eps, preset.back_weight, priors)
 
 
 def _lohi(names: tuple[str, ...], bounds: dict[str, tuple[float, float]], like: Tensor) -> tuple[Tensor, Tensor]:
@@ -114,21 +149,23 @@ def _chunks(h: int, w: int) -> list[tuple[int, int]]:
 
 
 def cost(x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor], comps: Components, d: StepData,
-         loss: Loss) -> Tensor:
-    """Per-pixel cost ``(H, W)`` (see :class:`Loss`)."""
+         loss: Loss, scale: Tensor | None = None) -> Tensor:
+    """Per-pixel cost ``(H, W)`` (see :class:`Loss`); with the likelihood ``scale`` ``(H, W)``,
+    plus the priors."""
     out = []
     for y0, y1 in _chunks(*x.shape[:2]):
         fx = {k: v[y0:y1] for k, v in fixed.items()}
         r = _residual(x[y0:y1], names, fx, comps, _block(d, y0, y1))
         out.append(loss.cost(r, _row_weights(d, loss, r)))
-    return torch.cat(out, 0)
+    c = torch.cat(out, 0)
+    return c if scale is None else c + loss.prior_terms(x, names, scale)[0]
 
 
 def _normal_equations(x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor], comps: Components, d: StepData,
-                      loss: Loss, hi: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """``(J^T W J (H, W, P, P), J^T W r (H, W, P), cost (H, W))`` by forward differences, with
-    the weights ``W`` taken at the current residuals (IRLS for L1)."""
-    jtj, jtr, c = [], [], []
+                      loss: Loss, hi: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """``(J^T W J (H, W, P, P), J^T W r (H, W, P), data cost (H, W), likelihood scale (H, W))``
+    by forward differences, with the weights ``W`` taken at the current residuals (IRLS for L1)."""
+    jtj, jtr, c, k = [], [], [], []
     p = x.shape[-1]
     for y0, y1 in _chunks(*x.shape[:2]):
         xb = x[y0:y1]
@@ -147,7 +184,8 @@ def _normal_equations(x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor
         jtj.append(torch.einsum("hwkp,hwkq->hwpq", jac, jac))
         jtr.append(torch.einsum("hwkp,hwk->hwp", jac, r0 * sw))
         c.append(loss.cost(r0, cw))
-    return torch.cat(jtj, 0), torch.cat(jtr, 0), torch.cat(c, 0)
+        k.append(loss.scale(r0))
+    return torch.cat(jtj, 0), torch.cat(jtr, 0), torch.cat(c, 0), torch.cat(k, 0)
 
 
 def lm_iteration(x: Tensor, lam: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor], comps: Components,
@@ -155,7 +193,9 @@ def lm_iteration(x: Tensor, lam: Tensor, names: tuple[str, ...], fixed: dict[str
     """One damped (reweighted) Gauss-Newton step for every pixel: ``(x, lambda, cost)`` after it;
     a pixel's step is kept only where its true cost drops."""
     lo, hi = _lohi(names, bounds, x)
-    jtj, jtr, c0 = _normal_equations(x, names, fixed, comps, d, loss, hi)
+    jtj, jtr, c0, k = _normal_equations(x, names, fixed, comps, d, loss, hi)
+    pc, pg, ph = loss.prior_terms(x, names, k)
+    c0, jtr, jtj = c0 + pc, jtr + pg, jtj + torch.diag_embed(ph)
     diag = torch.diagonal(jtj, dim1=-2, dim2=-1)
     a = jtj + torch.diag_embed(lam.unsqueeze(-1) * (diag + 1e-9))
     a64, b64 = a.to(torch.float64), (-jtr).to(torch.float64).unsqueeze(-1)
@@ -164,7 +204,7 @@ def lm_iteration(x: Tensor, lam: Tensor, names: tuple[str, ...], fixed: dict[str
     ok = (info == 0) & torch.isfinite(delta).all(-1)
     delta = torch.where(ok.unsqueeze(-1), delta, torch.zeros_like(delta))
     trial = torch.maximum(torch.minimum(x + delta, hi), lo)
-    c1 = cost(trial, names, fixed, comps, d, loss)
+    c1 = cost(trial, names, fixed, comps, d, loss, k)
     better = ok & torch.isfinite(c1) & (c1 < c0)
     x = torch.where(better.unsqueeze(-1), trial, x)
     lam = torch.where(better, lam / 3.0, lam * 4.0).clamp(1e-7, 1e7)
@@ -203,34 +243,21 @@ def run_lm(params: dict[str, Tensor], comps: Components, obs: Observations, loop
     """Optimise ``params`` in place through the preset's three steps; returns them."""
     preset = loop.preset
     loss = preset_loss(preset)
-    start_step, start_it, lam_resume = 0, 0, None
-    if resume is not None:
-        start_step, start_it, lam_resume = resume["step"], resume["iteration"], resume.get("lambda")
-        for k, v in resume["params"].items():
-            params[k].copy_(v)
-    project(params, bounds_at(loop.fraction(start_step, start_it), preset.bounds))
-    for s, step in loop.steps():
-        if s < start_step or preset.iterations[s] == 0:
-            continue
-        data = step_data(obs, step)
-        free = free_names(step, params)
-        if not free:
-            continue
-        it0 = start_it if s == start_step else 0
+    lam_resume = resume.get("lambda") if resume is not None else None
+    h, w = obs.shape
+    for s, step, data, free, it0 in loop.plan(params, obs, resume):
         if step == "specular" and preset.grid_init and it0 == 0:
             grid_init(params, comps, data, loss)
         fixed = {k: v for k, v in params.items() if k not in free}
         x = pack(params, free)
-        h, w = obs.shape
-        lam = lam_resume if (s == start_step and lam_resume is not None) else torch.full((h, w), 1e-2, dtype=x.dtype)
+        lam = lam_resume if (it0 > 0 and lam_resume is not None) else torch.full((h, w), 1e-2, dtype=x.dtype)
         for it in range(it0, preset.iterations[s]):
-            bounds = bounds_at(loop.fraction(s, it), preset.bounds)
-            x, lam, c = lm_iteration(x, lam, free, fixed, comps, data, loss, bounds)
+            x, lam, c = lm_iteration(x, lam, free, fixed, comps, data, loss, loop.bounds(s, it))
             for k, v in unpack(x, free).items():
                 params[k].copy_(v)
-            project(params, bounds_at(loop.fraction(s, it + 1), preset.bounds))
+            project(params, loop.bounds(s, it + 1))
             x = pack(params, free)
-            nxt = (s, it + 1) if it + 1 < preset.iterations[s] else (s + 1, 0)
+            nxt = loop.after(s, it)
             loop.after_iteration(s, it, float(c.mean()), lambda: {
                 "step": nxt[0], "iteration": nxt[1], "params": {k: v.clone() for k, v in params.items()},
                 "lambda": lam.clone() if nxt[0] == s else None})

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, Iterator
 
 from torch import Tensor
 from tqdm import tqdm
@@ -13,6 +13,7 @@ from dualscale.bsdf import Components
 from .checkpoint import Checkpointer, FitInterrupted
 from .init import diffuse_images
 from .observations import Observations
+from .params import bounds_at, project
 from .presets import STEP_DATA, STEP_FITS, STEP_NAMES, Preset
 from .render import clamp_images
 
@@ -59,6 +60,31 @@ class Loop:
 
     def steps(self):
         return list(enumerate(STEP_NAMES))
+
+    def bounds(self, step: int, it: int) -> dict[str, tuple[float, float]]:
+        """The bounds in force before iteration ``it`` of ``step``."""
+        return bounds_at(self.fraction(step, it), self.preset.bounds)
+
+    def after(self, step: int, it: int) -> tuple[int, int]:
+        """``(step, iteration)`` that follows iteration ``it`` of ``step``."""
+        return (step, it + 1) if it + 1 < self.preset.iterations[step] else (step + 1, 0)
+
+    def plan(self, params: dict[str, Tensor], obs: Observations,
+             resume: dict | None) -> Iterator[tuple[int, str, StepData, tuple[str, ...], int]]:
+        """Restore ``params`` from ``resume`` (projected onto the bounds in force there), then
+        yield ``(step index, step, data, free names, first iteration)`` for every step left
+        to run; steps with no iterations or nothing to fit are skipped."""
+        start_step, start_it = (resume["step"], resume["iteration"]) if resume is not None else (0, 0)
+        if resume is not None:
+            for k, v in resume["params"].items():
+                params[k].data.copy_(v)
+        project(params, self.bounds(start_step, start_it))
+        for s, step in self.steps():
+            if s < start_step or self.preset.iterations[s] == 0:
+                continue
+            free = free_names(step, params)
+            if free:
+                yield s, step, step_data(obs, step), free, start_it if s == start_step else 0
 
     def after_iteration(self, step: int, it: int, loss: float, state: Callable[[], dict]) -> None:
         """Call after iteration ``it`` of ``step`` finished; ``state()`` resumes at the next one."""

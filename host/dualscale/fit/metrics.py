@@ -33,7 +33,8 @@ def _scalar(maps: MaterialMaps, name: str, neutral: float) -> Tensor:
 
 def map_errors(fit: MaterialMaps, gt: MaterialMaps, fit_ior: float = 1.5) -> dict[str, float]:
     """``albedo_rmse``, ``normal_mean_deg``, ``normal_p95_deg``, ``roughness_mae``,
-    ``anisotropy_mae``, ``ior_mae`` (and ``transmittance_rmse`` for translucent ground truth)."""
+    ``anisotropy_mae``, ``ior_mae`` (and ``transmittance_rmse`` and ``albedo_opacity_rmse``, the
+    reflected ``opacity x albedo``, for translucent ground truth)."""
     if fit.shape != gt.shape:
         raise ValueError(f"fit is {fit.shape}, ground truth {gt.shape}")
     f = fit.to(torch.float64)
@@ -54,6 +55,12 @@ def map_errors(fit: MaterialMaps, gt: MaterialMaps, fit_ior: float = 1.5) -> dic
     if g.transmittance is not None:
         tf = f.transmittance if f.transmittance is not None else torch.zeros_like(g.transmittance)
         out["transmittance_rmse"] = float(((tf - g.transmittance)[mask] ** 2).mean().sqrt())
+    if g.opacity is not None:
+        # a translucent texel reflects opacity x albedo; the split between the two is barely
+        # observable (a lower opacity with a higher albedo and transmittance fits nearly as
+        # well), so this product is the identifiable quantity
+        of = f.opacity if f.opacity is not None else torch.ones_like(g.opacity)
+        out["albedo_opacity_rmse"] = float(((of * f.albedo - g.opacity * g.albedo)[mask] ** 2).mean().sqrt())
     return out
 
 

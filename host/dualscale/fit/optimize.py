@@ -13,9 +13,9 @@ from torch import Tensor
 
 from dualscale.bsdf import Components
 
-from .loop import Loop, free_names, step_data
+from .loop import Loop
 from .observations import Observations
-from .params import bounds_at, project, to_maps
+from .params import project, to_maps
 from .render import render_back, render_leds
 
 
@@ -34,28 +34,15 @@ def run_adam(params: dict[str, Tensor], comps: Components, obs: Observations, lo
     """Optimise ``params`` in place through the preset's three steps; returns them."""
     preset = loop.preset
     gen = torch.Generator().manual_seed(seed)
-    start_step, start_it = 0, 0
     if resume is not None:
-        start_step, start_it = resume["step"], resume["iteration"]
-        for k, v in resume["params"].items():
-            params[k].data.copy_(v)
         gen.set_state(resume["generator"])
-    project(params, bounds_at(loop.fraction(start_step, start_it), preset.bounds))
-    for s, step in loop.steps():
-        if s < start_step or preset.iterations[s] == 0:
-            continue
-        data = step_data(obs, step)
-        free = free_names(step, params)
-        if not free:
-            continue
+    for s, step, data, free, it0 in loop.plan(params, obs, resume):
         fixed = {k: v.detach() for k, v in params.items() if k not in free}
         leaves = [params[k].requires_grad_(True) for k in free]
         opt = torch.optim.Adam(leaves, lr=preset.lr)
-        it0 = start_it if s == start_step else 0
-        if resume is not None and s == start_step and resume.get("adam") is not None:
+        if resume is not None and it0 > 0 and resume.get("adam") is not None:
             opt.load_state_dict(resume["adam"])
         for it in range(it0, preset.iterations[s]):
-            bounds = bounds_at(loop.fraction(s, it), preset.bounds)
             o, imgs = data.obs, data.images
             if preset.light_batch is not None and preset.light_batch < o.n:
                 idx = torch.randperm(o.n, generator=gen)[:preset.light_batch]
@@ -67,8 +54,8 @@ def run_adam(params: dict[str, Tensor], comps: Components, obs: Observations, lo
                 if p.grad is not None:
                     torch.nan_to_num_(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
             opt.step()
-            project(params, bounds_at(loop.fraction(s, it + 1), preset.bounds))
-            nxt = (s, it + 1) if it + 1 < preset.iterations[s] else (s + 1, 0)
+            project(params, loop.bounds(s, it + 1))
+            nxt = loop.after(s, it)
             loop.after_iteration(s, it, float(loss.detach()), lambda: {
                 "step": nxt[0], "iteration": nxt[1], "params": {k: v.detach().clone() for k, v in params.items()},
                 "adam": opt.state_dict() if nxt[0] == s else None, "generator": gen.get_state()})

@@ -43,7 +43,10 @@ class Preset:
 
     ``coarse_factor`` > 1 (LM only): first fit images box-averaged over that many pixels per
     side for ``coarse_iterations`` (with ``grid_init`` and ``bounds``), then refine at full
-    resolution for ``iterations`` from the upsampled maps (:mod:`.pyramid`)."""
+    resolution for ``iterations`` from the upsampled maps (:mod:`.pyramid`).
+
+    ``ior_prior_sd`` > 0 (LM only): MAP fit with a Gaussian prior of that sd (normalised units)
+    on the IOR map, centred on eta 1.5 (:class:`.lm.Prior`); 0 is the maximum-likelihood fit."""
 
     name: str
     optimizer: str
@@ -60,8 +63,11 @@ class Preset:
     l1_eps: float = 1e-4
     coarse_factor: int = 1
     coarse_iterations: tuple[int, int, int] = (0, 0, 0)
+    ior_prior_sd: float = 0.0
 
     def __post_init__(self) -> None:
+        if self.ior_prior_sd < 0 or (self.ior_prior_sd > 0 and self.optimizer != "lm"):
+            raise ValueError("ior_prior_sd must be >= 0 and is implemented for the LM optimiser only")
         if self.loss not in ("l1", "l2"):
             raise ValueError(f"unknown loss {self.loss!r}; choose 'l1' or 'l2'")
         if self.optimizer == "adam" and self.loss != "l1":
@@ -82,13 +88,17 @@ class Preset:
         return replace(self, iterations=sc(self.iterations), coarse_iterations=sc(self.coarse_iterations))
 
 
+#: sd of the LM presets' Gaussian prior on the normalised IOR map, centred on eta 1.5: eta sd
+#: 0.1, so eta 1.3-1.7 is within 2 sd, the range of textile fibres and most finishes
+IOR_PRIOR_SD = 0.05
+
 PRESETS: dict[str, Preset] = {
     "paper": Preset("paper", "adam", (700, 500, 600), lr=0.01, loss="l1"),
-    "standard": Preset("standard", "lm", (5, 5, 10), grid_init=True, loss="l1"),
-    "draft": Preset("draft", "lm", (3, 3, 5), grid_init=True, led_stride=2, loss="l1"),
+    "standard": Preset("standard", "lm", (5, 5, 10), grid_init=True, loss="l1", ior_prior_sd=IOR_PRIOR_SD),
+    "draft": Preset("draft", "lm", (3, 3, 5), grid_init=True, led_stride=2, loss="l1", ior_prior_sd=IOR_PRIOR_SD),
     # measured slower than `standard` at equal accuracy (docs/FITTING.md); kept for comparison
     "coarse-to-fine": Preset("coarse-to-fine", "lm", (2, 2, 6), grid_init=True, loss="l1", coarse_factor=2,
-                             coarse_iterations=(5, 5, 10)),
+                             coarse_iterations=(5, 5, 10), ior_prior_sd=IOR_PRIOR_SD),
     "adam-fast": Preset("adam-fast", "adam", (140, 100, 120), lr=0.03, light_batch=64),
 }
 
