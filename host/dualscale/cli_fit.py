@@ -19,14 +19,24 @@ def _threads(n: int | None) -> None:
 def cmd_fit(args: argparse.Namespace) -> int:
     import sys
 
+    from dataclasses import replace
+
     from dualscale.fit.api import fit_dataset
     from dualscale.fit.checkpoint import FitInterrupted
+    from dualscale.fit.presets import get_preset
 
     _threads(args.threads)
+    preset = get_preset(args.preset)
+    if args.ior_prior is not None:
+        try:
+            preset = replace(preset, ior_prior_sd=args.ior_prior)
+        except ValueError as e:
+            print(f"dualscale fit: --ior-prior: {e}", file=sys.stderr)
+            return 2
     overrides = {"transmittance": _SWITCH[args.transmittance], "anisotropy": _SWITCH[args.anisotropy],
                  "tint": _SWITCH[args.tint]}
     try:
-        res, extra = fit_dataset(args.dataset, args.output, args.preset, overrides, holdout_every=args.holdout_every,
+        res, extra = fit_dataset(args.dataset, args.output, preset, overrides, holdout_every=args.holdout_every,
                                  progress=not args.no_progress and sys.stderr.isatty() or args.progress,
                                  checkpoint_every=args.checkpoint_every, restart=args.restart,
                                  stop_after=args.stop_after, seed=args.seed, previews=not args.no_previews)
@@ -85,6 +95,9 @@ def register(subparsers) -> None:
     for comp in ("transmittance", "anisotropy", "tint"):
         f.add_argument(f"--{comp}", choices=sorted(_SWITCH), default="auto",
                        help=f"force the {comp} component on/off (default: decided from the data)")
+    f.add_argument("--ior-prior", type=float, default=None, metavar="SD",
+                   help="sd of the Gaussian prior on the normalised IOR map (eta = 1 + 2 v), centred on eta 1.5; "
+                        "0 = none (LM presets only; default: the preset's, 0.05 for standard)")
     f.add_argument("--holdout-every", type=int, default=8,
                    help="hold out every N-th LED for the re-render SSIM report (0 = fit all)")
     f.add_argument("--checkpoint-every", type=int, default=50, help="iterations between checkpoints")

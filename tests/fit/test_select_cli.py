@@ -76,6 +76,19 @@ def test_cli_fit_override_and_resume(datasets, tmp_path):
     assert rep["selection"]["tint"] == {"chosen": True, "overridden": True}
 
 
+def test_cli_fit_ior_prior_override(datasets, tmp_path, capsys):
+    out = tmp_path / "maps"
+    rc = main(["fit", str(datasets("leather")), "-o", str(out), "--preset", "draft", "--no-previews",
+               "--anisotropy", "off", "--tint", "off", "--transmittance", "off", "--ior-prior", "0"])
+    assert rc == 0
+    rep = json.loads((out / "fit.json").read_text())
+    assert rep["preset"]["name"] == "draft" and rep["preset"]["ior_prior_sd"] == 0.0
+    assert main(["fit", str(datasets("leather")), "-o", str(tmp_path / "o"), "--preset", "paper",
+                 "--ior-prior", "0.05"]) == 2
+    assert "LM optimiser only" in capsys.readouterr().err
+    assert not (tmp_path / "o" / "checkpoint.pt").exists()
+
+
 def test_cli_errors_are_clear(tmp_path, capsys):
     assert main(["fit", str(tmp_path / "missing"), "-o", str(tmp_path / "o")]) == 2
     assert "dataset not found" in capsys.readouterr().err
