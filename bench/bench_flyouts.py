@@ -33,9 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_fit import add_noise  # noqa: E402
 
-from dualscale.dome.cameras import micro_camera  # noqa: E402
-from dualscale.dome.geometry import DomeGeometry  # noqa: E402
-from dualscale.dome.render import Analyzer, LightRealism, LightState, render  # noqa: E402
+from dualscale.dome.testbed import flyout_views  # noqa: E402
 from dualscale.fit.flyouts import confidence_map, detect, score  # noqa: E402
 from dualscale.fit.observations import Observations  # noqa: E402
 from dualscale.materials import generate  # noqa: E402
@@ -44,15 +42,7 @@ FABRICS = "plain,twill,satin,denim,rib_knit,sheer"
 
 
 def observations(mat, size: int, texel_um: float, shadows: bool, seed: int) -> Observations:
-    dome, cam = DomeGeometry.from_regmap(), micro_camera(size, texel_um)
-    z = dome.led_dirs[:, 2]
-    ids = [0] + [i for i in range(dome.n_leds) if z[i] <= z.min() + 1e-3]
-    real = LightRealism(shadows=shadows)
-    imgs = torch.stack([render(mat.maps, cam, LightState.led(i), dome, Analyzer(0.0, True), realism=real,
-                               geometry=mat.geometry if shadows else None) for i in ids])
-    n = len(ids)
-    obs = Observations(imgs, dome.led_dirs[ids].float(), torch.ones(n), torch.zeros(n), torch.full((n,), 0.5),
-                       torch.tensor(ids), pixel_mm=texel_um / 1000)
+    obs = flyout_views(mat, texel_um, shadows)
     torch.manual_seed(seed)
     add_noise(obs, size, texel_um)
     return obs
@@ -128,27 +118,33 @@ def run_fitted(materials: list[str], seeds: list[int], size: int, texel_um: floa
     return rows
 
 
+def _machine(size: int, texel_um: float) -> str:
+    return (f"Machine: {platform.machine()} {platform.node() or 'vm'}, {torch.get_num_threads()} torch threads; "
+            f"date {datetime.date.today()}; {size}x{size} px of {texel_um} um")
+
+
+def _pr(row: dict, keys: tuple[str, ...]) -> dict[str, str]:
+    return {k: f"{row[k]['precision']:.2f} / {row[k]['recall']:.2f}" for k in keys}
+
+
 def table_fitted(rows: list[dict], size: int, texel_um: float, preset_name: str) -> str:
-    out = [f"Machine: {platform.machine()} {platform.node() or 'vm'}, {torch.get_num_threads()} torch threads; "
-           f"date {datetime.date.today()}; {size}x{size} px of {texel_um} um; full dataset with shadows and "
-           f"HDR-style sensor noise; `{preset_name}` fit; tolerance 2 px.", "",
+    out = [f"{_machine(size, texel_um)}; full dataset with shadows and HDR-style sensor noise; `{preset_name}` "
+           "fit; tolerance 2 px.", "",
            "| material | seed | fit [s] | tangent err on yarns, median / p90 [deg] | P / R fitted tangent | "
            "P / R true tangent | P / R no tangent |", "|---|---:|---:|---|---|---|---|"]
     for r in rows:
-        pr = {k: f"{r[k]['precision']:.2f} / {r[k]['recall']:.2f}" for k in ("fitted", "tangent", "no_tangent")}
+        pr = _pr(r, ("fitted", "tangent", "no_tangent"))
         out.append(f"| {r['material']} | {r['seed']} | {r['fit_seconds']:.0f} | {r['tangent_err_median_deg']:.1f} / "
                    f"{r['tangent_err_p90_deg']:.1f} | {pr['fitted']} | {pr['tangent']} | {pr['no_tangent']} |")
     return "\n".join(out)
 
 
 def table(rows: list[dict], size: int, texel_um: float) -> str:
-    out = [f"Machine: {platform.machine()} {platform.node() or 'vm'}, {torch.get_num_threads()} torch threads; "
-           f"date {datetime.date.today()}; {size}x{size} px of {texel_um} um; zenith + grazing ring at P0, "
-           "HDR-style sensor noise; tolerance 2 px.", "",
+    out = [f"{_machine(size, texel_um)}; zenith + grazing ring at P0, HDR-style sensor noise; tolerance 2 px.", "",
            "| material | seed | fibres | chance | P / R with tangent | P / R no tangent | P / R no shadows | "
            "detect [s] |", "|---|---:|---:|---:|---|---|---|---:|"]
     for r in rows:
-        pr = {k: f"{r[k]['precision']:.2f} / {r[k]['recall']:.2f}" for k in ("tangent", "no_tangent", "no_shadows")}
+        pr = _pr(r, ("tangent", "no_tangent", "no_shadows"))
         out.append(f"| {r['material']} | {r['seed']} | {r['fibres']} | {r['chance']:.3f} | {pr['tangent']} | "
                    f"{pr['no_tangent']} | {pr['no_shadows']} | {r['tangent']['seconds']:.1f} |")
     med = {k: (statistics.median(r[k]["precision"] for r in rows), statistics.median(r[k]["recall"] for r in rows))

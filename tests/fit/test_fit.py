@@ -36,12 +36,13 @@ def test_observation_weights(datasets):
     assert ho.n == 2 * 16
 
 
-def test_standard_recovers_ground_truth(datasets):
+@pytest.mark.parametrize("name", ["standard", "coarse-to-fine"])
+def test_lm_presets_recover_ground_truth(datasets, name):
     root = datasets("twill")
     obs = load_observations(root)
     gt, _ = load_maps(root / "maps")
     train, held = split_holdout(obs)
-    res = fit_observations(train, PRESETS["standard"], TWILL, held_out=held)
+    res = fit_observations(train, PRESETS[name], TWILL, held_out=held)
     _finite(res)
     e = map_errors(res.maps, gt)
     assert e["normal_mean_deg"] < 1.0 and e["albedo_rmse"] < 0.01 and e["roughness_mae"] < 0.02

@@ -125,23 +125,11 @@ def test_cli_flyouts_end_to_end(datasets, tmp_path):
 def test_flyouts_found_on_shadowed_test_bed(material):
     """At the paper's 1.8 um pixels, with cast shadows and raised fibres, the detector finds
     the true fly-outs (chance level here is a precision of about 0.03)."""
-    from dualscale.dome.cameras import micro_camera
-    from dualscale.dome.geometry import DomeGeometry
-    from dualscale.dome.render import Analyzer, LightRealism, LightState, render
+    from dualscale.dome.testbed import flyout_views
     from dualscale.materials import generate
 
-    size = 320
-    mat = generate(material, size, 0.0018, seed=0)
-    dome, cam = DomeGeometry.from_regmap(), micro_camera(size, 1.8)
-    z = dome.led_dirs[:, 2]
-    ids = [0] + [i for i in range(dome.n_leds) if z[i] <= z.min() + 1e-3]
-    real = LightRealism(shadows=True)
-    imgs = torch.stack([render(mat.maps, cam, LightState.led(i), dome, Analyzer(0.0, True), realism=real,
-                               geometry=mat.geometry) for i in ids])
-    n = len(ids)
-    obs = Observations(imgs, dome.led_dirs[ids].float(), torch.ones(n), torch.zeros(n), torch.full((n,), 0.5),
-                       torch.tensor(ids), pixel_mm=0.0018)
-    conf = confidence_map(obs)
+    mat = generate(material, 320, 0.0018, seed=0)
+    conf = confidence_map(flyout_views(mat, 1.8))
     assert conf[mat.flyout_mask].mean() > 2 * conf[~mat.flyout_mask].mean()
     res = detect(conf, 0.0018, tangent=mat.maps.tangent[..., 0].double().numpy())
     s = score(res["mask"], mat.flyout_mask)
