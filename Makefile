@@ -14,7 +14,7 @@ FUZZ_SECONDS ?= 20
 # C test framework (cmocka), clang + its runtime for libFuzzer, the GL/GLib runtime OpenCV's
 # wheel loads.
 APT_PKGS := gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm mbpoll libmodbus-dev \
-            libcmocka-dev clang libclang-rt-14-dev make gcc python3-venv libgl1 libglib2.0-0
+            libcmocka-dev clang libclang-rt-14-dev make gcc g++ python3-venv libgl1 libglib2.0-0
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
 .PHONY: all deps apt venv gen gen-check firmware sim test test-fast test-slow demo bench fuzz fuzz-long clean

@@ -27,12 +27,14 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
     _threads(args.threads)
     preset = get_preset(args.preset)
-    if args.ior_prior is not None:
-        try:
+    try:
+        if args.ior_prior is not None:
             preset = replace(preset, ior_prior_sd=args.ior_prior)
-        except ValueError as e:
-            print(f"dualscale fit: --ior-prior: {e}", file=sys.stderr)
-            return 2
+        if args.compile:
+            preset = replace(preset, compiled=True)
+    except ValueError as e:
+        print(f"dualscale fit: {e}", file=sys.stderr)
+        return 2
     overrides = {"transmittance": _SWITCH[args.transmittance], "anisotropy": _SWITCH[args.anisotropy],
                  "tint": _SWITCH[args.tint]}
     try:
@@ -98,6 +100,9 @@ def register(subparsers) -> None:
     f.add_argument("--ior-prior", type=float, default=None, metavar="SD",
                    help="sd of the Gaussian prior on the normalised IOR map (eta = 1 + 2 v), centred on eta 1.5; "
                         "0 = none (LM presets only; default: the preset's, 0.05 for standard)")
+    f.add_argument("--compile", action="store_true",
+                   help="render through torch.compile'd kernels (LM presets): about 2x faster once compiled; compiling "
+                        "takes ~13 s, so it pays off from about 128x128 maps (docs/FITTING.md)")
     f.add_argument("--holdout-every", type=int, default=8,
                    help="hold out every N-th LED for the re-render SSIM report (0 = fit all)")
     f.add_argument("--checkpoint-every", type=int, default=50, help="iterations between checkpoints")

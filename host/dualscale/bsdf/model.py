@@ -92,8 +92,29 @@ _COMPILED: dict[str, Callable] = {}
 
 
 def _compiled_shade() -> Callable:
+    """``_shade`` through ``torch.compile``, falling back to eager (with a warning, for the rest
+    of the process) if compiling fails: a missing C++ compiler must not stop a fit."""
     if "shade" not in _COMPILED:
-        _COMPILED["shade"] = torch.compile(_shade, dynamic=False, fullgraph=True)
+        import torch._dynamo.config as dynamo_config
+
+        # every pixel-block shape and set of active components is its own graph; one fit meets
+        # about a dozen, a benchmark over several materials a few dozen (the default is 8)
+        dynamo_config.recompile_limit = max(dynamo_config.recompile_limit, 64)
+        fn = torch.compile(_shade, dynamic=False, fullgraph=True)
+
+        def shade(*args, **kwargs) -> Tensor:
+            if "failed" not in _COMPILED:
+                try:
+                    return fn(*args, **kwargs)
+                except Exception as e:  # compiler or toolchain error: the eager kernel is equivalent
+                    import warnings
+
+                    _COMPILED["failed"] = shade
+                    warnings.warn(f"torch.compile of the BSDF kernel failed ({type(e).__name__}: "
+                                  f"{str(e).splitlines()[0][:200]}); using the eager kernel", RuntimeWarning)
+            return _shade(*args, **kwargs)
+
+        _COMPILED["shade"] = shade
     return _COMPILED["shade"]
 
 

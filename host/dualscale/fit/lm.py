@@ -128,7 +128,7 @@ def _residual(x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor], comps
               d: StepData) -> Tensor:
     """Unweighted residuals ``(h, w, K)`` of a pixel block: LED images, then the back-lit image."""
     maps = to_maps(unpack(x, names), fixed)
-    r = (render_leds(maps, comps, d.obs) - d.images).permute(1, 2, 0, 3).reshape(*x.shape[:2], -1)
+    r = (render_leds(maps, comps, d.obs, compiled=d.compiled) - d.images).permute(1, 2, 0, 3).reshape(*x.shape[:2], -1)
     if d.back is not None:
         r = torch.cat([r, render_back(maps, comps, d.obs) - d.back], -1)
     return r
@@ -140,7 +140,7 @@ def _row_weights(d: StepData, loss: Loss, like: Tensor) -> Tensor:
 
 def _block(d: StepData, y0: int, y1: int) -> StepData:
     o = d.obs.crop(y0, y1, 0, d.obs.shape[1])
-    return StepData(o, d.images[:, y0:y1], None if d.back is None else d.back[y0:y1])
+    return StepData(o, d.images[:, y0:y1], None if d.back is None else d.back[y0:y1], d.compiled)
 
 
 def _chunks(h: int, w: int) -> list[tuple[int, int]]:

@@ -20,17 +20,19 @@ from .render import clamp_images
 
 @dataclass
 class StepData:
-    """Observations of one step with their images clamped at 2 (LED and back-lit)."""
+    """Observations of one step with their images clamped at 2 (LED and back-lit); ``compiled``:
+    render them through the compiled BSDF kernel."""
 
     obs: Observations
     images: Tensor
     back: Tensor | None
+    compiled: bool = False
 
 
-def step_data(obs: Observations, step: str) -> StepData:
+def step_data(obs: Observations, step: str, compiled: bool = False) -> StepData:
     o = diffuse_images(obs) if STEP_DATA[step] == "diffuse" else obs
     back = None if o.backlight is None else clamp_images(o.backlight)
-    return StepData(o, clamp_images(o.images), back)
+    return StepData(o, clamp_images(o.images), back, compiled)
 
 
 def free_names(step: str, params: dict[str, Tensor]) -> tuple[str, ...]:
@@ -84,7 +86,7 @@ class Loop:
                 continue
             free = free_names(step, params)
             if free:
-                yield s, step, step_data(obs, step), free, start_it if s == start_step else 0
+                yield s, step, step_data(obs, step, self.preset.compiled), free, start_it if s == start_step else 0
 
     def after_iteration(self, step: int, it: int, loss: float, state: Callable[[], dict]) -> None:
         """Call after iteration ``it`` of ``step`` finished; ``state()`` resumes at the next one."""

@@ -46,7 +46,11 @@ class Preset:
     resolution for ``iterations`` from the upsampled maps (:mod:`.pyramid`).
 
     ``ior_prior_sd`` > 0 (LM only): MAP fit with a Gaussian prior of that sd (normalised units)
-    on the IOR map, centred on eta 1.5 (:class:`.lm.Prior`); 0 is the maximum-likelihood fit."""
+    on the IOR map, centred on eta 1.5 (:class:`.lm.Prior`); 0 is the maximum-likelihood fit.
+
+    ``compiled`` (LM only): render through ``torch.compile``d BSDF kernels.  LM only renders
+    forward (no autograd), where the fused kernels pay off; compiling costs seconds to a minute
+    per distinct problem shape in a process (cached on disk by Inductor)."""
 
     name: str
     optimizer: str
@@ -64,8 +68,11 @@ class Preset:
     coarse_factor: int = 1
     coarse_iterations: tuple[int, int, int] = (0, 0, 0)
     ior_prior_sd: float = 0.0
+    compiled: bool = False
 
     def __post_init__(self) -> None:
+        if self.compiled and self.optimizer != "lm":
+            raise ValueError("a compiled renderer is implemented for the LM optimiser only")
         if self.ior_prior_sd < 0 or (self.ior_prior_sd > 0 and self.optimizer != "lm"):
             raise ValueError("ior_prior_sd must be >= 0 and is implemented for the LM optimiser only")
         if self.loss not in ("l1", "l2"):
@@ -102,6 +109,10 @@ PRESETS: dict[str, Preset] = {
                              coarse_iterations=(5, 5, 10), ior_prior_sd=IOR_PRIOR_SD),
     "adam-fast": Preset("adam-fast", "adam", (140, 100, 120), lr=0.03, light_batch=64),
 }
+
+
+# `standard` through compiled kernels: the same fit, faster once compiled (docs/FITTING.md)
+PRESETS["standard-compiled"] = replace(PRESETS["standard"], name="standard-compiled", compiled=True)
 
 
 def get_preset(name: str) -> Preset:

@@ -23,10 +23,12 @@ def clamp_images(x: Tensor) -> Tensor:
     return torch.clamp(x, max=CLAMP)
 
 
-def render_leds(maps: MaterialMaps, comps: Components, obs: Observations, light_chunk: int | None = 32) -> Tensor:
-    """Predicted LED images ``(N, H, W, 3)``, clamped at 2."""
+def render_leds(maps: MaterialMaps, comps: Components, obs: Observations, light_chunk: int | None = 32,
+                compiled: bool = False) -> Tensor:
+    """Predicted LED images ``(N, H, W, 3)``, clamped at 2; ``compiled`` runs the BSDF kernel
+    through ``torch.compile`` (``bsdf.evaluate``; the first call per shape compiles)."""
     f = evaluate(maps, obs.dirs, obs.view, comps, w_s=obs.w_s, w_p=obs.w_p, diffuse_weight=obs.w_d,
-                 light_chunk=light_chunk, validate=False)
+                 light_chunk=light_chunk, validate=False, compiled=compiled)
     return clamp_images(f)
 
 
