@@ -90,6 +90,23 @@ def cmd_synth(args: argparse.Namespace) -> int:
     return 0
 
 
+def _shadow_geometry(args: argparse.Namespace, shape: tuple[int, int]):
+    """The relief saved beside the maps, checked against the micro camera it will shade."""
+    from dualscale.dome.shadow import load_geometry
+
+    path = Path(args.maps) / "geometry.exr"
+    if args.camera != "micro":
+        raise SystemExit("--shadows works on the map grid only: use --camera micro")
+    if not path.is_file():
+        raise SystemExit(f"--shadows needs the relief {path} (written by 'dualscale synth')")
+    geom = load_geometry(path)
+    if geom.shape != tuple(shape):
+        raise SystemExit(f"{path} is {geom.shape}, the maps are {tuple(shape)}")
+    if abs(geom.texel_mm * 1000.0 - args.texel_um) > 1e-6 * args.texel_um:
+        raise SystemExit(f"--texel-um {args.texel_um} does not match the relief's {geom.texel_mm * 1000.0:g} um")
+    return geom
+
+
 def cmd_render(args: argparse.Namespace) -> int:
     from dualscale.dome.cameras import micro_camera, mid_camera, polar_camera
     from dualscale.dome.sensor import SensorModel
@@ -116,8 +133,10 @@ def cmd_render(args: argparse.Namespace) -> int:
     if bad:
         raise SystemExit(f"LED ids out of range 0..{regmap.N_LEDS - 1}: {bad}")
     sensor = SensorModel.realistic() if args.realistic else None
+    geometry = _shadow_geometry(args, maps.shape) if args.shadows else None
     path = _capture_set(maps, cam, Path(args.output), lights, _analyzers(args.analyzer), args.relative, texel,
-                        sensor, True, {"maps": str(args.maps), "material": meta})
+                        sensor, True, {"maps": str(args.maps), "material": meta, "shadows": bool(args.shadows)},
+                        geometry)
     print(f"wrote {path}")
     return 0
 
@@ -156,4 +175,6 @@ def register(subparsers) -> None:
     r.add_argument("--size", type=int, default=None, help="image size for mid/polar cameras")
     r.add_argument("--realistic", action="store_true")
     r.add_argument("--float64", action="store_true")
+    r.add_argument("--shadows", action="store_true",
+                   help="cast the shadows of the relief saved with the maps (geometry.exr; micro camera only)")
     r.set_defaults(fn=cmd_render)

@@ -101,3 +101,51 @@ def test_flyout_geometry():
     sheer = generate("sheer", 64, 0.009)
     assert sheer.geometry is not None and sheer.flyout_mask.any()
     assert generate("leather", 32, 0.009).geometry.fibre_mask is None
+
+
+def test_geometry_roundtrips_through_exr(tmp_path):
+    from dualscale.dome.shadow import load_geometry, save_geometry
+
+    g = generate("twill", 48, 0.0045, seed=0).geometry
+    assert g.fibre_mask is not None and g.fibre_mask.any()
+    save_geometry(tmp_path / "g.exr", g)
+    back = load_geometry(tmp_path / "g.exr")
+    assert back.texel_mm == g.texel_mm and back.fibre_radius_mm == g.fibre_radius_mm
+    assert np.array_equal(back.fibre_mask, g.fibre_mask)
+    for a, b in ((back.height_mm, g.height_mm), (back.fibre_axis_mm[g.fibre_mask], g.fibre_axis_mm[g.fibre_mask]),
+                 (back.fibre_top_mm[g.fibre_mask], g.fibre_top_mm[g.fibre_mask])):
+        assert np.allclose(a, b, rtol=1e-6, atol=1e-9)  # float32 on disk
+    d = _dir(10.0, 30.0)
+    assert torch.equal(visibility(back, d), visibility(g, d))
+    from dualscale.dome.exr import write_exr
+
+    write_exr(tmp_path / "bad.exr", np.zeros((4, 4, 4)), ("height", "fibre_mask", "fibre_axis", "fibre_top"))
+    with pytest.raises(ValueError, match="not a dualscale geometry file"):
+        load_geometry(tmp_path / "bad.exr")
+    with pytest.raises(FileNotFoundError):
+        load_geometry(tmp_path / "missing.exr")
+
+
+def test_render_cli_casts_the_saved_shadows(tmp_path, capsys):
+    from dualscale.cli import main
+    from dualscale.dome.exr import read_exr
+
+    maps = tmp_path / "t" / "maps"
+    assert main(["synth", "twill", "-o", str(tmp_path / "t"), "--size", "48", "--texel-um", "4.5",
+                 "--no-previews"]) == 0
+    assert (maps / "geometry.exr").is_file()
+    dome = DomeGeometry.from_regmap()
+    grazing = int(torch.argmin(dome.led_dirs[:, 2]))
+    args = ["render", str(maps), "--led", str(grazing), "--texel-um", "4.5", "--analyzer", "90", "--relative"]
+    assert main(args + ["-o", str(tmp_path / "lit")]) == 0
+    assert main(args + ["-o", str(tmp_path / "shade"), "--shadows"]) == 0
+    lit = read_exr(next((tmp_path / "lit").rglob("*.exr")))
+    shade = read_exr(next((tmp_path / "shade").rglob("*.exr")))
+    assert shade.mean() < 0.9 * lit.mean() and np.all(shade <= lit + 1e-6)
+    with pytest.raises(SystemExit, match="does not match"):
+        main(args + ["-o", str(tmp_path / "x"), "--shadows", "--texel-um", "9"])
+    with pytest.raises(SystemExit, match="micro"):
+        main(["render", str(maps), "--led", "0", "--camera", "mid", "--shadows", "-o", str(tmp_path / "y")])
+    (maps / "geometry.exr").unlink()
+    with pytest.raises(SystemExit, match="needs the relief"):
+        main(args + ["-o", str(tmp_path / "z"), "--shadows"])

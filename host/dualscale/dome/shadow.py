@@ -138,3 +138,48 @@ def visibility(geom: SurfaceGeometry, dirs: Tensor, tol_texels: float = 0.05) ->
         lit &= ~torch.from_numpy(_fibre_shadows(geom, base_np, u_rc, tan_el))
         out[i] = lit.to(torch.float64)
     return out
+
+
+GEOMETRY_CHANNELS = ("height", "fibre_mask", "fibre_axis", "fibre_top")
+
+
+def save_geometry(path, geom: SurfaceGeometry) -> None:
+    """Write ``geom`` as one float32 EXR: channels :data:`GEOMETRY_CHANNELS` (mm; mask 0/1,
+    fibre channels 0 where there is no fibre) and the attributes ``dualscale:texel_mm`` and
+    ``dualscale:fibre_radius_mm``."""
+    from .exr import write_exr
+
+    h = np.asarray(geom.height_mm, np.float64)
+    zero = np.zeros_like(h)
+    mask = zero if geom.fibre_mask is None else np.asarray(geom.fibre_mask, np.float64)
+    axis = zero if geom.fibre_axis_mm is None else np.asarray(geom.fibre_axis_mm, np.float64)
+    top = zero if geom.fibre_top_mm is None else np.asarray(geom.fibre_top_mm, np.float64)
+    write_exr(path, np.stack([h, mask, axis, top], -1), GEOMETRY_CHANNELS,
+              {"dualscale:texel_mm": repr(float(geom.texel_mm)),
+               "dualscale:fibre_radius_mm": repr(float(geom.fibre_radius_mm))})
+
+
+def load_geometry(path) -> SurfaceGeometry:
+    """Read a file written by :func:`save_geometry`; a missing attribute or channel, or
+    non-finite data, is a clear error."""
+    from pathlib import Path
+
+    import OpenImageIO as oiio
+
+    from .exr import read_exr
+
+    path = Path(path)
+    data = read_exr(path, GEOMETRY_CHANNELS).astype(np.float64)
+    inp = oiio.ImageInput.open(str(path))
+    try:
+        attrs = {k: inp.spec().getattribute(k) for k in ("dualscale:texel_mm", "dualscale:fibre_radius_mm")}
+    finally:
+        inp.close()
+    if any(v is None for v in attrs.values()):
+        raise ValueError(f"{path}: not a dualscale geometry file (missing {[k for k, v in attrs.items() if v is None]})")
+    if not np.isfinite(data).all():
+        raise ValueError(f"{path}: non-finite heights")
+    mask = data[..., 1] > 0.5
+    return SurfaceGeometry(data[..., 0], float(attrs["dualscale:texel_mm"]), mask if mask.any() else None,
+                           data[..., 2] if mask.any() else None, data[..., 3] if mask.any() else None,
+                           float(attrs["dualscale:fibre_radius_mm"]))

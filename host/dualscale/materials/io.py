@@ -3,7 +3,8 @@
 ``material.json``: ``{"format": "dualscale-maps", "version": 1, "maps": [names], "height": H,
 "width": W, "conventions": {...}, "meta": {...}}``.  Fly-outs (when present):
 ``flyouts.json`` (polylines in pixel coordinates ``[col, row]`` and in mm) and
-``flyout_mask.exr`` (1 on fibre pixels).
+``flyout_mask.exr`` (1 on fibre pixels).  Relief (when present): ``geometry.exr``
+(:func:`dualscale.dome.shadow.save_geometry`), which ``dualscale render --shadows`` reads.
 """
 
 from __future__ import annotations
@@ -80,9 +81,14 @@ def load_maps(root: str | Path, dtype: torch.dtype = torch.float32) -> tuple[Mat
 
 
 def save_material(root: str | Path, mat: SyntheticMaterial, previews: bool = True) -> None:
-    """Maps plus fly-out ground truth (polylines JSON and mask EXR/PNG) when present."""
+    """Maps plus fly-out ground truth (polylines JSON and mask EXR/PNG) and the relief
+    (``geometry.exr``) when present."""
     root = Path(root)
     save_maps(root, mat.maps, mat.meta, previews)
+    if mat.geometry is not None:
+        from dualscale.dome.shadow import save_geometry
+
+        save_geometry(root / "geometry.exr", mat.geometry)
     if mat.flyout_mask is not None:
         h, w = mat.maps.shape
         t = float(mat.meta.get("texel_mm", 0.0))
