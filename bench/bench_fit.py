@@ -75,9 +75,9 @@ def add_noise(obs, size: int, texel_um: float, headroom: float = 0.9):
         obs.backlight = shoot(obs.backlight, 99999)
 
 
-def dataset(root: Path, material: str, size: int, texel_um: float, noise: bool = True):
+def dataset(root: Path, material: str, size: int, texel_um: float, noise: bool = True, shadows: bool = False):
     rc = cli_main(["synth", material, "-o", str(root), "--size", str(size), "--texel-um", str(texel_um),
-                   "--dataset", "--no-previews"])
+                   "--dataset", "--no-previews", *(["--shadows"] if shadows else [])])
     assert rc == 0
     obs = load_observations(root)
     gt, _ = load_maps(root / "maps")
@@ -89,14 +89,15 @@ def dataset(root: Path, material: str, size: int, texel_um: float, noise: bool =
     return obs, gt
 
 
-def run(materials: list[str], presets: list[str], size: int, texel_um: float, noise: bool) -> dict:
+def run(materials: list[str], presets: list[str], size: int, texel_um: float, noise: bool,
+        shadows: bool = False) -> dict:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         warm_obs, _ = dataset(Path(tmp) / "warm", "leather", 8, texel_um)
         for p in presets:  # warm-up (allocator, thread pools)
             fit_observations(warm_obs, preset(p).scaled(0.01), select_components(warm_obs)[0])
         for m in materials:
-            obs, gt = dataset(Path(tmp) / m, m, size, texel_um, noise)
+            obs, gt = dataset(Path(tmp) / m, m, size, texel_um, noise, shadows)
             train, held = split_holdout(obs, 8)
             t0 = time.perf_counter()
             comps, sel = select_components(train)
@@ -113,7 +114,8 @@ def run(materials: list[str], presets: list[str], size: int, texel_um: float, no
                       f"normal {err['normal_mean_deg']:.2f} deg  albedo {err['albedo_rmse']:.4f}", flush=True)
     return {"machine": f"{platform.node()} {platform.machine()} {torch.get_num_threads()} torch threads",
             "date": date.today().isoformat(), "size": size, "texel_um": texel_um, "lights": "127 LEDs x P0/P90 "
-            "+ back light, every 8th LED held out", "noise": ("HDR-style per-image exposure (peak at 90 % of full well), shot + read "
+            "+ back light, every 8th LED held out" + (", cast shadows in the captures (not in the fit's model)"
+                                                      if shadows else ""), "noise": ("HDR-style per-image exposure (peak at 90 % of full well), shot + read "
             "noise, 12 bit" if noise else "none"), "rows": rows}
 
 
@@ -185,6 +187,8 @@ def main() -> None:
     ap.add_argument("--presets", default="draft,standard,adam-fast,coarse-to-fine,paper")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--clean", action="store_true", help="no sensor noise")
+    ap.add_argument("--shadows", action="store_true",
+                    help="render the captures with cast shadows (dualscale synth --shadows); the fit does not model them")
     ap.add_argument("--json", default=None)
     ap.add_argument("--study", action="store_true", help="run the light-subset study instead of the trade table")
     a = ap.parse_args()
@@ -192,7 +196,7 @@ def main() -> None:
     if a.study:
         print(study(a.materials.split(","), a.size, a.texel_um, not a.clean, "standard"))
         return
-    rep = run(a.materials.split(","), a.presets.split(","), a.size, a.texel_um, not a.clean)
+    rep = run(a.materials.split(","), a.presets.split(","), a.size, a.texel_um, not a.clean, a.shadows)
     if a.json:
         Path(a.json).write_text(json.dumps(rep, indent=1))
     print(tables(rep))
