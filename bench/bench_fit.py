@@ -5,8 +5,9 @@ paper preset in the same run on the same machine.
         [--presets draft,standard,adam-fast,coarse-to-fine,paper] [--json out.json]
 
 A preset may name its loss, scale its iterations and set its IOR prior,
-``NAME[@l1|@l2][*FACTOR][~SD]``: ``standard@l2`` is the least-squares variant of ``standard``,
-``standard*0.5`` runs half its iterations, ``standard~0`` drops its IOR prior.
+``NAME[@l1|@l2][*FACTOR][~SD][%RATIO]``: ``standard@l2`` is the least-squares variant of
+``standard``, ``standard*0.5`` runs half its iterations, ``standard~0`` drops its IOR prior,
+``standard%0`` fits every capture (no cast-shadow rejection).
 
 Each material is generated at ``size`` x ``size`` texels of ``texel_um`` (9 um by default so a
 small map still covers yarn structure), rendered by the virtual dome (127 LEDs x P0/P90, plus
@@ -46,12 +47,14 @@ BOUNDS = {"normal_mean_deg": 3.0, "albedo_rmse": 0.02, "heldout_ssim": 0.95}
 
 
 def preset(spec: str) -> Preset:
-    """``NAME[@LOSS][*FACTOR][~SD]`` (see the module docstring)."""
+    """``NAME[@LOSS][*FACTOR][~SD][%RATIO]`` (see the module docstring)."""
+    spec, _, ratio = spec.partition("%")
     spec, _, sd = spec.partition("~")
     head, _, factor = spec.partition("*")
     name, _, loss = head.partition("@")
     p = replace(PRESETS[name], loss=loss) if loss else PRESETS[name]
     p = replace(p, ior_prior_sd=float(sd)) if sd else p
+    p = replace(p, shadow_ratio=float(ratio)) if ratio else p
     return p.scaled(float(factor)) if factor else p
 
 

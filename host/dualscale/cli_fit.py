@@ -30,6 +30,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
     try:
         if args.ior_prior is not None:
             preset = replace(preset, ior_prior_sd=args.ior_prior)
+        if args.shadow_ratio is not None:
+            preset = replace(preset, shadow_ratio=args.shadow_ratio)
         if args.compile:
             preset = replace(preset, compiled=True)
     except ValueError as e:
@@ -100,6 +102,9 @@ def register(subparsers) -> None:
     f.add_argument("--ior-prior", type=float, default=None, metavar="SD",
                    help="sd of the Gaussian prior on the normalised IOR map (eta = 1 + 2 v), centred on eta 1.5; "
                         "0 = none (LM presets only; default: the preset's, 0.05 for standard)")
+    f.add_argument("--shadow-ratio", type=float, default=None, metavar="R",
+                   help="set aside an LED's captures where its diffuse capture is below R x the render (a cast "
+                        "shadow); 0 = fit every capture (LM presets only; default: the preset's, 0.5 for standard)")
     f.add_argument("--compile", action="store_true",
                    help="render through torch.compile'd kernels (LM presets): about 2x faster once compiled; compiling "
                         "takes ~13 s, so it pays off from about 128x128 maps (docs/FITTING.md)")

@@ -16,16 +16,29 @@ equations ``(J^T W J + lambda diag(J^T W J)) d = -J^T W r`` per pixel, projects 
 in force, and accepts the step per pixel only where the true cost (L1 or L2) drops (``lambda``
 shrinks 3x on success, grows 4x on failure), so the cost never rises.  A pixel whose solve fails
 keeps its value.
+
+A :class:`Prior` makes the fit a MAP estimate: a Gaussian on one scalar map, in the same units
+as the data cost.  The data term is a likelihood whose scale ``k`` is estimated per pixel and
+per iteration from the median absolute residual (L1, Laplace: ``k = median|r| / ln 2``; L2,
+Gaussian: ``k = s^2``, ``s = 1.4826 median|r|``), so the prior weighs ``k (x - m)^2 / (2 sd^2)``
+against ``sum c |r|`` (L1) or ``k (x - m)^2 / sd^2`` against ``sum c r^2`` (L2).  A pixel whose
+data pin the map down barely feels it; one whose data do not (a fly-out fibre seen by few LEDs,
+a dark or clipped pixel) stays near ``m`` instead of following the noise.
+
+Cast shadows: the model is local, so a texel in the shadow of its neighbours under a grazing
+LED is an outlier that no parameter can fit.  With ``Loss.shadow_ratio``, each iteration sets
+aside (zero weight, in the step and in its accept test alike) the captures of every LED whose
+diffuse-only capture is below that fraction of its render at the current parameters
+(:meth:`Loss.keep`).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
-
-import math
 
 from dualscale.bsdf import DEFAULT_IOR, Components, map_from_ior
 
@@ -37,6 +50,8 @@ from .render import render_back, render_leds
 
 FD_STEP = 3e-4
 ROW_PIXELS = 4096  # pixels per Jacobian chunk
+SHADOW_FLOOR = 1e-3  # renders below this (normalised radiance) are too dark to call a shadow
+SHADOW_ANCHOR_COS = math.cos(math.radians(15.0))  # LEDs this close to the camera's axis light what it sees
 LOSSES = ("l1", "l2")
 
 
@@ -54,12 +69,13 @@ class Loss:
     """Per-pixel cost of the residuals: ``kind`` 'l1' or 'l2'; ``eps`` (normalised image units)
     floors ``|r|`` in the L1 reweighting so that zero residuals get a finite weight; the
     back-lit residuals count ``back_weight`` times; ``priors`` turn the fit into a MAP estimate
-    (module doc)."""
+    (module doc); ``shadow_ratio`` sets cast shadows aside (:meth:`keep`)."""
 
     kind: str = "l2"
     eps: float = 1e-4
     back_weight: float = 16.0
     priors: tuple[Prior, ...] = ()
+    shadow_ratio: float = 0.0
 
     def __post_init__(self) -> None:
         if self.kind not in LOSSES:
@@ -82,6 +98,38 @@ class Loss:
         if self.kind == "l2":
             return c.sqrt().expand_as(r)
         return (c / r.abs().clamp(min=self.eps)).sqrt()
+
+    def keep(self, r: Tensor, d: "StepData") -> Tensor | None:
+        """``(h, w, K)`` 1/0 row mask: with ``shadow_ratio`` > 0, the rows of an LED whose
+        capture is below ``shadow_ratio`` x its render (a cast shadow, which the model cannot
+        produce) are dropped for this iteration; ``None`` keeps every row.
+
+        A shadow darkens the diffuse reflection, so where the LED has a diffuse-only capture
+        (the crossed analyser, P90) the test is made on it, in luminance, and applies to all the
+        LED's captures; a model that merely predicts a specular highlight the data lack (over an
+        open gap, say) is then never mistaken for a shadow.  Without one, each capture is tested
+        on its own."""
+        if self.shadow_ratio <= 0:
+            return None
+        o = d.obs
+        n = o.n
+        img = d.images.mean(-1).permute(1, 2, 0)  # (h, w, n) luminance
+        render = r[..., :3 * n].reshape(*r.shape[:2], n, 3).mean(-1) + img
+        dark = (img < self.shadow_ratio * render) & (render > SHADOW_FLOOR)  # (h, w, n)
+        diffuse = (o.w_s < 1e-6) & (o.w_p < 1e-6)
+        same = (o.led_ids.reshape(-1, 1) == o.led_ids.reshape(1, -1)) & diffuse.reshape(1, -1)  # image i <- P90 j
+        via_p90 = torch.einsum("hwj,ij->hwi", dark.to(r.dtype), same.to(r.dtype)) > 0
+        drop = torch.where(same.any(1), via_p90, dark)
+        # the camera looks down the dome's axis, so a texel it sees is lit by the LEDs next to
+        # it: a pixel also dark against its render under those is a model still far off, not a
+        # shadow, and setting its data aside would freeze it there; it keeps every capture
+        near = o.dirs[:, 2] >= SHADOW_ANCHOR_COS
+        if bool(near.any()):
+            off = (dark & near).to(r.dtype).sum(-1, keepdim=True) > 0.5 * float(near.sum())
+            drop = drop & ~off
+        out = torch.ones_like(r)
+        out[..., :3 * n] = (~drop).to(r.dtype).repeat_interleave(3, -1)
+        return out
 
     def scale(self, r: Tensor) -> Tensor:
         """Per-pixel likelihood scale ``k`` of residuals ``r (..., K)`` (module doc)."""
@@ -108,7 +156,7 @@ def preset_loss(preset: Preset) -> Loss:
     """The :class:`Loss` a :class:`~.presets.Preset` asks for (its IOR prior is centred on
     the default eta of an unmapped IOR)."""
     priors = (Prior("ior", float(map_from_ior(DEFAULT_IOR)), preset.ior_prior_sd),) if preset.ior_prior_sd > 0 else ()
-    return Loss(preset.loss, preset.l1_eps, preset.back_weight, priors)
+    return Loss(preset.loss, preset.l1_eps, preset.back_weight, priors, preset.shadow_ratio)
 
 
 def _lohi(names: tuple[str, ...], bounds: dict[str, tuple[float, float]], like: Tensor) -> tuple[Tensor, Tensor]:
@@ -149,23 +197,25 @@ def _chunks(h: int, w: int) -> list[tuple[int, int]]:
 
 
 def cost(x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor], comps: Components, d: StepData,
-         loss: Loss, scale: Tensor | None = None) -> Tensor:
+         loss: Loss, scale: Tensor | None = None, keep: Tensor | None = None) -> Tensor:
     """Per-pixel cost ``(H, W)`` (see :class:`Loss`); with the likelihood ``scale`` ``(H, W)``,
-    plus the priors."""
+    plus the priors; with ``keep`` ``(H, W, K)``, over the kept rows only."""
     out = []
     for y0, y1 in _chunks(*x.shape[:2]):
         fx = {k: v[y0:y1] for k, v in fixed.items()}
         r = _residual(x[y0:y1], names, fx, comps, _block(d, y0, y1))
-        out.append(loss.cost(r, _row_weights(d, loss, r)))
+        cw = _row_weights(d, loss, r)
+        out.append(loss.cost(r, cw if keep is None else cw * keep[y0:y1]))
     c = torch.cat(out, 0)
     return c if scale is None else c + loss.prior_terms(x, names, scale)[0]
 
 
 def _normal_equations(x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor], comps: Components, d: StepData,
-                      loss: Loss, hi: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """``(J^T W J (H, W, P, P), J^T W r (H, W, P), data cost (H, W), likelihood scale (H, W))``
-    by forward differences, with the weights ``W`` taken at the current residuals (IRLS for L1)."""
-    jtj, jtr, c, k = [], [], [], []
+                      loss: Loss, hi: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor | None]:
+    """``(J^T W J (H, W, P, P), J^T W r (H, W, P), data cost (H, W), likelihood scale (H, W),
+    kept rows (H, W, K) or None)`` by forward differences, with the weights ``W`` and the kept
+    rows taken at the current residuals (IRLS for L1)."""
+    jtj, jtr, c, k, kept = [], [], [], [], []
     p = x.shape[-1]
     for y0, y1 in _chunks(*x.shape[:2]):
         xb = x[y0:y1]
@@ -173,6 +223,10 @@ def _normal_equations(x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor
         db = _block(d, y0, y1)
         r0 = _residual(xb, names, fx, comps, db)
         cw = _row_weights(d, loss, r0)
+        keep = loss.keep(r0, db)
+        if keep is not None:
+            cw = cw * keep
+            kept.append(keep)
         sw = loss.sqrt_weights(r0, cw)  # (h, w, K)
         cols = []
         for j in range(p):
@@ -185,7 +239,8 @@ def _normal_equations(x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor
         jtr.append(torch.einsum("hwkp,hwk->hwp", jac, r0 * sw))
         c.append(loss.cost(r0, cw))
         k.append(loss.scale(r0))
-    return torch.cat(jtj, 0), torch.cat(jtr, 0), torch.cat(c, 0), torch.cat(k, 0)
+    return (torch.cat(jtj, 0), torch.cat(jtr, 0), torch.cat(c, 0), torch.cat(k, 0),
+            torch.cat(kept, 0) if kept else None)
 
 
 def lm_iteration(x: Tensor, lam: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor], comps: Components,
@@ -193,7 +248,7 @@ def lm_iteration(x: Tensor, lam: Tensor, names: tuple[str, ...], fixed: dict[str
     """One damped (reweighted) Gauss-Newton step for every pixel: ``(x, lambda, cost)`` after it;
     a pixel's step is kept only where its true cost drops."""
     lo, hi = _lohi(names, bounds, x)
-    jtj, jtr, c0, k = _normal_equations(x, names, fixed, comps, d, loss, hi)
+    jtj, jtr, c0, k, keep = _normal_equations(x, names, fixed, comps, d, loss, hi)
     pc, pg, ph = loss.prior_terms(x, names, k)
     c0, jtr, jtj = c0 + pc, jtr + pg, jtj + torch.diag_embed(ph)
     diag = torch.diagonal(jtj, dim1=-2, dim2=-1)
@@ -204,7 +259,7 @@ def lm_iteration(x: Tensor, lam: Tensor, names: tuple[str, ...], fixed: dict[str
     ok = (info == 0) & torch.isfinite(delta).all(-1)
     delta = torch.where(ok.unsqueeze(-1), delta, torch.zeros_like(delta))
     trial = torch.maximum(torch.minimum(x + delta, hi), lo)
-    c1 = cost(trial, names, fixed, comps, d, loss, k)
+    c1 = cost(trial, names, fixed, comps, d, loss, k, keep)
     better = ok & torch.isfinite(c1) & (c1 < c0)
     x = torch.where(better.unsqueeze(-1), trial, x)
     lam = torch.where(better, lam / 3.0, lam * 4.0).clamp(1e-7, 1e7)

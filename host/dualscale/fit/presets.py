@@ -48,6 +48,10 @@ class Preset:
     ``ior_prior_sd`` > 0 (LM only): MAP fit with a Gaussian prior of that sd (normalised units)
     on the IOR map, centred on eta 1.5 (:class:`.lm.Prior`); 0 is the maximum-likelihood fit.
 
+    ``shadow_ratio`` > 0 (LM only): every iteration, set aside the captures of an LED whose
+    diffuse-only (P90) capture is below that fraction of its render: a cast shadow, which the
+    local model cannot produce (:meth:`.lm.Loss.keep`); 0 fits every capture.
+
     ``compiled`` (LM only): render through ``torch.compile``d BSDF kernels.  LM only renders
     forward (no autograd), where the fused kernels pay off; compiling costs seconds to a minute
     per distinct problem shape in a process (cached on disk by Inductor)."""
@@ -69,8 +73,11 @@ class Preset:
     coarse_iterations: tuple[int, int, int] = (0, 0, 0)
     ior_prior_sd: float = 0.0
     compiled: bool = False
+    shadow_ratio: float = 0.0
 
     def __post_init__(self) -> None:
+        if not 0.0 <= self.shadow_ratio < 1.0 or (self.shadow_ratio > 0 and self.optimizer != "lm"):
+            raise ValueError("shadow_ratio must be in [0, 1) and is implemented for the LM optimiser only")
         if self.compiled and self.optimizer != "lm":
             raise ValueError("a compiled renderer is implemented for the LM optimiser only")
         if self.ior_prior_sd < 0 or (self.ior_prior_sd > 0 and self.optimizer != "lm"):
@@ -98,15 +105,19 @@ class Preset:
 #: sd of the LM presets' Gaussian prior on the normalised IOR map, centred on eta 1.5: eta sd
 #: 0.1, so eta 1.3-1.7 is within 2 sd, the range of textile fibres and most finishes
 IOR_PRIOR_SD = 0.05
+#: an LED's diffuse capture below half its render is taken for a cast shadow (docs/FITTING.md)
+SHADOW_RATIO = 0.5
 
 PRESETS: dict[str, Preset] = {
     "paper": Preset("paper", "adam", (700, 500, 600), lr=0.01, loss="l1"),
     # the joint step does the work: the first two only give it a start (docs/FITTING.md)
-    "standard": Preset("standard", "lm", (3, 3, 15), grid_init=True, loss="l1", ior_prior_sd=IOR_PRIOR_SD),
-    "draft": Preset("draft", "lm", (3, 3, 5), grid_init=True, led_stride=2, loss="l1", ior_prior_sd=IOR_PRIOR_SD),
+    "standard": Preset("standard", "lm", (3, 3, 15), grid_init=True, loss="l1", ior_prior_sd=IOR_PRIOR_SD,
+                       shadow_ratio=SHADOW_RATIO),
+    "draft": Preset("draft", "lm", (3, 3, 5), grid_init=True, led_stride=2, loss="l1", ior_prior_sd=IOR_PRIOR_SD,
+                    shadow_ratio=SHADOW_RATIO),
     # measured slower than `standard` at equal accuracy (docs/FITTING.md); kept for comparison
     "coarse-to-fine": Preset("coarse-to-fine", "lm", (2, 2, 6), grid_init=True, loss="l1", coarse_factor=2,
-                             coarse_iterations=(5, 5, 10), ior_prior_sd=IOR_PRIOR_SD),
+                             coarse_iterations=(5, 5, 10), ior_prior_sd=IOR_PRIOR_SD, shadow_ratio=SHADOW_RATIO),
     "adam-fast": Preset("adam-fast", "adam", (140, 100, 120), lr=0.03, light_batch=64),
 }
 
