@@ -7,7 +7,10 @@
   random subset of pixels is fitted (``standard`` LM, fewer iterations) with and without the
   component on the training LEDs, and the component is kept only if it lowers the RMS error on
   the validation LEDs by more than ``MARGIN`` (relative).  Anisotropy is decided first (both
-  candidates untinted), then tint on top of that choice.
+  candidates untinted), then tint on top of that choice.  Validation captures that the first
+  (isotropic, untinted) fit finds in cast shadow (``lm.Loss.keep``) are left out of every
+  candidate's error, so all candidates are scored on the same captures and no local model is
+  asked to explain a shadow.
 
 The decision, with its evidence, goes into the fit's metadata.  ``overrides`` (True/False per
 component) replaces a decision; the report then says so.
@@ -23,10 +26,12 @@ import torch
 from dualscale.bsdf import Components
 
 from .core import fit_observations, split_holdout
-from .metrics import image_losses
+from .lm import preset_loss
+from .loop import StepData
 from .observations import Observations
 from .params import fit_components
 from .presets import PRESETS
+from .render import clamp_images, render_leds
 
 TRANS_LEVEL = 0.02
 TRANS_FRACTION = 0.01
@@ -45,10 +50,28 @@ def transmission_evidence(obs: Observations) -> dict[str, Any]:
             "transmits": frac > TRANS_FRACTION}
 
 
-def _val_rmse(train: Observations, val: Observations, comps: Components, iters_scale: float) -> float:
-    preset = PRESETS["standard"].scaled(iters_scale)
-    res = fit_observations(train, preset, comps)
-    return image_losses(res.maps, comps, val)["rmse"]
+class _Validation:
+    """RMS error on the validation LEDs of ``standard`` fits, over the captures the first fit
+    does not find in cast shadow."""
+
+    def __init__(self, train: Observations, val: Observations, iters_scale: float) -> None:
+        self.train, self.val = train, val
+        self.preset = PRESETS["standard"].scaled(iters_scale)
+        self.images = clamp_images(val.images)
+        self.keep: torch.Tensor | None = None
+
+    def rmse(self, comps: Components) -> float:
+        res = fit_observations(self.train, self.preset, comps)
+        with torch.no_grad():
+            r = (render_leds(res.maps.to(self.images.dtype), comps, self.val) - self.images)
+        r = r.permute(1, 2, 0, 3).reshape(*self.val.shape, -1)
+        if self.keep is None:
+            keep = preset_loss(self.preset).keep(r, StepData(self.val, self.images, None))
+            self.keep = torch.ones_like(r) if keep is None else keep
+        return float(((r * r * self.keep).sum() / self.keep.sum().clamp(min=1.0)).sqrt())
+
+    def shadowed_share(self) -> float:
+        return 0.0 if self.keep is None else float(1.0 - self.keep.mean())
 
 
 def select_components(obs: Observations, overrides: dict[str, bool | None] | None = None, seed: int = 0,
@@ -73,13 +96,14 @@ def select_components(obs: Observations, overrides: dict[str, bool | None] | Non
     need_fit = "anisotropy" not in overrides or "tint" not in overrides
     if val is None and need_fit:
         raise ValueError("component selection needs at least two LEDs; set --anisotropy and --tint explicitly")
-    base = _val_rmse(train, val, fit_components(not translucent, True, False), iters_scale) if need_fit else None
+    v = _Validation(train, val, iters_scale) if need_fit else None
+    base = v.rmse(fit_components(not translucent, True, False)) if need_fit else None
     if "anisotropy" in overrides:
         aniso = overrides["anisotropy"]
         report["anisotropy"] = {"chosen": bool(aniso), "overridden": True}
         ref = None
     else:
-        a = _val_rmse(train, val, fit_components(not translucent, False, False), iters_scale)
+        a = v.rmse(fit_components(not translucent, False, False))
         gain = (base - a) / max(base, 1e-12)
         aniso = gain > MARGIN
         report["anisotropy"] = {"chosen": bool(aniso), "overridden": False,
@@ -91,12 +115,14 @@ def select_components(obs: Observations, overrides: dict[str, bool | None] | Non
         report["tint"] = {"chosen": bool(tint), "overridden": True}
     else:
         if ref is None:
-            ref = _val_rmse(train, val, fit_components(not translucent, not aniso, False), iters_scale)
-        t = _val_rmse(train, val, fit_components(not translucent, not aniso, True), iters_scale)
+            ref = v.rmse(fit_components(not translucent, not aniso, False))
+        t = v.rmse(fit_components(not translucent, not aniso, True))
         gain = (ref - t) / max(ref, 1e-12)
         tint = gain > MARGIN
         report["tint"] = {"chosen": bool(tint), "overridden": False,
                           "evidence": {"val_rmse_untinted": ref, "val_rmse_tinted": t, "relative_gain": gain}}
     comps = fit_components(not translucent, not aniso, bool(tint))
+    if v is not None:
+        report["validation"]["shadowed_share"] = v.shadowed_share()
     report["components"] = asdict(comps)
     return comps, report
