@@ -100,3 +100,15 @@ def test_shadow_ratio_settings():
         Preset("x", "adam", (1, 1, 1), shadow_ratio=0.5)
     with pytest.raises(ValueError, match="shadow_ratio"):
         Preset("x", "lm", (1, 1, 1), shadow_ratio=1.5)
+
+
+def test_selection_leaves_shadowed_validation_captures_out(tmp_path):
+    from dualscale.cli import main
+    from dualscale.fit.select import select_components
+
+    root = tmp_path / "tw"
+    assert main(["synth", "twill", "-o", str(root), "--size", "16", "--texel-um", "9", "--dataset", "--shadows",
+                 "--no-previews"]) == 0
+    comps, rep = select_components(load_observations(root))
+    assert rep["validation"]["shadowed_share"] > 0.01
+    assert not comps.isotropic and comps.opaque, rep
