@@ -69,6 +69,23 @@ def read_exr(path: str | Path, channels: Sequence[str] | None = None) -> np.ndar
     return data[..., idx]
 
 
+def read_exr_attributes(path: str | Path, prefix: str = "dualscale:") -> dict[str, str]:
+    """The header attributes named ``prefix...`` (as :func:`write_exr` writes them), keyed
+    without the prefix."""
+    import OpenImageIO as oiio
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"image not found: {path}")
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise OSError(f"cannot read {path}: {oiio.geterror()}")
+    try:
+        return {a.name[len(prefix):]: str(a.value) for a in inp.spec().extra_attribs if a.name.startswith(prefix)}
+    finally:
+        inp.close()
+
+
 def srgb_encode(linear: np.ndarray) -> np.ndarray:
     """IEC 61966-2-1 transfer function on [0, 1]-clipped linear values."""
     x = np.clip(np.nan_to_num(linear), 0.0, 1.0)

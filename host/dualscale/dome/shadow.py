@@ -162,24 +162,16 @@ def save_geometry(path, geom: SurfaceGeometry) -> None:
 def load_geometry(path) -> SurfaceGeometry:
     """Read a file written by :func:`save_geometry`; a missing attribute or channel, or
     non-finite data, is a clear error."""
-    from pathlib import Path
+    from .exr import read_exr, read_exr_attributes
 
-    import OpenImageIO as oiio
-
-    from .exr import read_exr
-
-    path = Path(path)
     data = read_exr(path, GEOMETRY_CHANNELS).astype(np.float64)
-    inp = oiio.ImageInput.open(str(path))
-    try:
-        attrs = {k: inp.spec().getattribute(k) for k in ("dualscale:texel_mm", "dualscale:fibre_radius_mm")}
-    finally:
-        inp.close()
-    if any(v is None for v in attrs.values()):
-        raise ValueError(f"{path}: not a dualscale geometry file (missing {[k for k, v in attrs.items() if v is None]})")
+    attrs = read_exr_attributes(path)
+    missing = [k for k in ("texel_mm", "fibre_radius_mm") if k not in attrs]
+    if missing:
+        raise ValueError(f"{path}: not a dualscale geometry file (missing {missing})")
     if not np.isfinite(data).all():
         raise ValueError(f"{path}: non-finite heights")
     mask = data[..., 1] > 0.5
-    return SurfaceGeometry(data[..., 0], float(attrs["dualscale:texel_mm"]), mask if mask.any() else None,
+    return SurfaceGeometry(data[..., 0], float(attrs["texel_mm"]), mask if mask.any() else None,
                            data[..., 2] if mask.any() else None, data[..., 3] if mask.any() else None,
-                           float(attrs["dualscale:fibre_radius_mm"]))
+                           float(attrs["fibre_radius_mm"]))

@@ -14,7 +14,7 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
-from dualscale.dome.exr import write_exr, write_png_preview
+from dualscale.dome.exr import read_exr_attributes, write_exr, write_png_preview
 from dualscale.materials.io import CONVENTIONS
 
 from .core import FitResult
@@ -62,22 +62,10 @@ def save_fit(root: str | Path, res: FitResult, selection: dict | None = None, ex
 
 def read_fit_attributes(path: str | Path) -> dict[str, Any]:
     """The ``dualscale:*`` attributes of a fitted EXR, JSON values decoded."""
-    import OpenImageIO as oiio
-
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise OSError(f"cannot read {path}: {oiio.geterror()}")
-    try:
-        spec = inp.spec()
-        out = {}
-        for a in spec.extra_attribs:
-            if a.name.startswith("dualscale:"):
-                key = a.name.split(":", 1)[1]
-                val = a.value
-                try:
-                    out[key] = json.loads(val) if key in ("components", "final_losses", "selection") else val
-                except (TypeError, json.JSONDecodeError):
-                    out[key] = val
-        return out
-    finally:
-        inp.close()
+    out: dict[str, Any] = {}
+    for key, val in read_exr_attributes(path).items():
+        try:
+            out[key] = json.loads(val) if key in ("components", "final_losses", "selection") else val
+        except (TypeError, json.JSONDecodeError):
+            out[key] = val
+    return out
