@@ -46,7 +46,7 @@ from .loop import Loop, StepData
 from .observations import Observations
 from .params import BOX, PARAM_CHANNELS, pack, project, to_maps, unpack
 from .presets import Preset
-from .render import render_back, render_leds
+from .render import pixel_rows, render_back, render_leds
 
 FD_STEP = 3e-4
 ROW_PIXELS = 4096  # pixels per Jacobian chunk
@@ -176,7 +176,7 @@ def _residual(x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor], comps
               d: StepData) -> Tensor:
     """Unweighted residuals ``(h, w, K)`` of a pixel block: LED images, then the back-lit image."""
     maps = to_maps(unpack(x, names), fixed)
-    r = (render_leds(maps, comps, d.obs, compiled=d.compiled) - d.images).permute(1, 2, 0, 3).reshape(*x.shape[:2], -1)
+    r = pixel_rows(render_leds(maps, comps, d.obs, compiled=d.compiled) - d.images)
     if d.back is not None:
         r = torch.cat([r, render_back(maps, comps, d.obs) - d.back], -1)
     return r

@@ -32,6 +32,12 @@ def render_leds(maps: MaterialMaps, comps: Components, obs: Observations, light_
     return clamp_images(f)
 
 
+def pixel_rows(images: Tensor) -> Tensor:
+    """``(N, H, W, 3)`` image stack -> ``(H, W, 3 N)`` rows per pixel (image-major, then channel):
+    the residual layout of the per-pixel solvers."""
+    return images.permute(1, 2, 0, 3).reshape(*images.shape[1:3], -1)
+
+
 def render_back(maps: MaterialMaps, comps: Components, obs: Observations) -> Tensor | None:
     """Predicted back-lit image ``(H, W, 3)`` (``None`` without a back-lit capture); an opaque
     model predicts black."""

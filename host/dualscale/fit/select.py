@@ -31,7 +31,7 @@ from .loop import StepData
 from .observations import Observations
 from .params import fit_components
 from .presets import PRESETS
-from .render import clamp_images, render_leds
+from .render import clamp_images, pixel_rows, render_leds
 
 TRANS_LEVEL = 0.02
 TRANS_FRACTION = 0.01
@@ -63,8 +63,7 @@ class _Validation:
     def rmse(self, comps: Components) -> float:
         res = fit_observations(self.train, self.preset, comps)
         with torch.no_grad():
-            r = (render_leds(res.maps.to(self.images.dtype), comps, self.val) - self.images)
-        r = r.permute(1, 2, 0, 3).reshape(*self.val.shape, -1)
+            r = pixel_rows(render_leds(res.maps.to(self.images.dtype), comps, self.val) - self.images)
         if self.keep is None:
             keep = preset_loss(self.preset).keep(r, StepData(self.val, self.images, None))
             self.keep = torch.ones_like(r) if keep is None else keep
