@@ -66,7 +66,70 @@ def constants(regs: dict, rig: dict) -> dict[str, int]:
             c[k.upper()] = v
     for k, v in rig["polarizer"].items():
         c["POL_" + k.upper()] = v
+    for k, v in regs.get("special", {}).items():
+        c[k] = v["value"]
     return c
+
+
+def words(r: dict) -> int:
+    """Registers one entry of [[input]] / [[holding]] occupies."""
+    return WORDS[r["type"]] * r.get("count", 1)
+
+
+def direct_count(regs: dict, space: str) -> int:
+    """Size of the directly mapped block 0..N-1 of a register space: every register without a
+    `count` (blocks such as EVT_WINDOW and the step table are mapped on their own)."""
+    return max((r["addr"] + words(r) for r in regs[space] if "count" not in r), default=0)
+
+
+def hr_defaults(regs: dict, rig: dict, c: dict) -> list[tuple[int, str]]:
+    """Reset value of every holding-register word 0..HR_COUNT-1, with a comment naming it.
+    No `default` = 0; multi-word values big-endian by word, like on the wire."""
+    out: list[tuple[int, str]] = [(0, "unmapped gap")] * direct_count(regs, "holding")
+    for r in regs["holding"]:
+        if "count" in r:
+            continue
+        n = words(r)
+        v = resolve(r["default"], regs, rig, c) if "default" in r else 0
+        for i in range(n):
+            part = f" word {i}" if n > 1 else ""
+            src = f"= {v}" if "default" in r else "no default"
+            out[r["addr"] + i] = ((v >> (16 * (n - 1 - i))) & 0xFFFF, f"{r['name']}{part} ({src})")
+    return out
+
+
+def validate(regs: dict, rig: dict) -> None:
+    """Refuse a register map the firmware cannot implement as generated."""
+    c = constants(regs, rig)
+    errors = []
+    for space in ("input", "holding"):
+        used: dict[int, str] = {}
+        for r in regs[space]:
+            for a in range(r["addr"], r["addr"] + words(r)):
+                if a in used:
+                    errors.append(f"{space} register {r['name']} overlaps {used[a]} at address {a}")
+                used[a] = r["name"]
+            if "count" in r and r["addr"] < direct_count(regs, space):
+                errors.append(f"{space} block {r['name']} at {r['addr']} lies inside the direct block "
+                              f"0..{direct_count(regs, space) - 1}")
+            if "default" in r:
+                if space != "holding":
+                    errors.append(f"input register {r['name']} has a default")
+                    continue
+                v = resolve(r["default"], regs, rig, c)
+                if not 0 <= v < 1 << (16 * words(r)):
+                    errors.append(f"default {v} of {r['name']} does not fit {r['type']}")
+                if "range" in r:
+                    lo, hi = (resolve(x, regs, rig, c) for x in r["range"])
+                    if not lo <= v <= hi:
+                        errors.append(f"default {v} of {r['name']} outside its range {lo}..{hi}")
+    st = regs["step_table"]
+    if direct_count(regs, "holding") > st["addr"]:
+        errors.append("the holding registers run into the step table")
+    if st["addr"] + st["words"] * c["MAX_STEPS"] > 0x10000:
+        errors.append("the step table does not fit the 16-bit address space")
+    if errors:
+        raise SystemExit("protocol/registers.toml: " + "; ".join(errors))
 
 
 def resolve(v, regs: dict, rig: dict, c: dict) -> int:
@@ -89,10 +152,12 @@ def _hex(v: int) -> str:
 
 def gen_c(regs: dict, rig: dict, vecs: dict) -> str:
     c = constants(regs, rig)
-    L = [f"/* {HEADER_NOTE} */", "#ifndef DS_REGMAP_H", "#define DS_REGMAP_H", ""]
-    L.append("/* Rig constants and limits (protocol/rig.toml) */")
+    L = [f"/* {HEADER_NOTE} */", "#ifndef DS_REGMAP_H", "#define DS_REGMAP_H", "",
+         "#include <stdint.h>", ""]
+    L.append("/* Rig constants and limits (protocol/rig.toml), special values (registers.toml [special]) */")
+    special = regs.get("special", {})
     for k, v in c.items():
-        L.append(f"#define DS_{k} {v}u")
+        L.append(f"#define DS_{k} {_hex(v) if k in special else v}u")
     L.append("static const unsigned char DS_DOME_ROW_COUNTS[DS_N_ROWS] = {"
              + ", ".join(str(n) for n in rig["dome"]["counts"]) + "};")
     L.append("")
@@ -110,9 +175,10 @@ def gen_c(regs: dict, rig: dict, vecs: dict) -> str:
     L.append("")
     for space, tag in (("input", "IR"), ("holding", "HR")):
         L.append(f"/* {space.capitalize()} registers */")
+        L.append(f"#define DS_{tag}_COUNT {direct_count(regs, space)}u "
+                 f"/* directly mapped: {space} registers 0..{direct_count(regs, space) - 1} */")
         for r in regs[space]:
-            words = WORDS[r["type"]] * r.get("count", 1)
-            L.append(f"#define DS_{tag}_{r['name']} {r['addr']}u /* {r['type']}, {words} word(s) */")
+            L.append(f"#define DS_{tag}_{r['name']} {r['addr']}u /* {r['type']}, {words(r)} word(s) */")
             if "range" in r:
                 lo, hi = (resolve(x, regs, rig, c) for x in r["range"])
                 L.append(f"#define DS_{tag}_{r['name']}_MIN {lo}u")
@@ -122,10 +188,17 @@ def gen_c(regs: dict, rig: dict, vecs: dict) -> str:
             if "count" in r:
                 L.append(f"#define DS_{tag}_{r['name']}_COUNT {r['count']}u")
         L.append("")
+    L.append("/* Reset value of every holding-register word 0..DS_HR_COUNT-1 (registers.toml `default`;")
+    L.append(" * none = 0; multi-word values big-endian by word). ds_core_init copies it into hr[]. */")
+    L.append("static const uint16_t DS_HR_DEFAULTS[DS_HR_COUNT] = {")
+    for a, (v, what) in enumerate(hr_defaults(regs, rig, c)):
+        L.append(f"    {_hex(v)}u, /* {a} {what} */")
+    L.append("};")
+    L.append("")
     L.append("/* Step table: word offsets inside one step */")
     for w in regs["step_word"]:
         L.append(f"#define DS_STEP_{w['name']} {w['offset']}u")
-    L.append("#define DS_EVENT_WORDS 6u")
+    L.append(f"#define DS_EVENT_WORDS {WORDS['event']}u")
     L += ["", "#endif /* DS_REGMAP_H */", ""]
     return "\n".join(L)
 
@@ -135,8 +208,11 @@ def gen_py(regs: dict, rig: dict) -> str:
     L = [f'"""Register map and rig constants ({HEADER_NOTE})."""', "",
          "from __future__ import annotations", "", "from dataclasses import dataclass",
          "from enum import IntEnum", ""]
+    special = regs.get("special", {})
     for k, v in c.items():
-        L.append(f"{k} = {v!r}")
+        L.append(f"{k} = {_hex(v) if k in special else repr(v)}")
+    L.append(f"IR_COUNT = {direct_count(regs, 'input')}  # input registers 0..IR_COUNT-1 are mapped")
+    L.append(f"HR_COUNT = {direct_count(regs, 'holding')}  # holding registers 0..HR_COUNT-1 are mapped")
     L.append(f"PROTOCOL_VERSION = ({c['PROTO_VERSION_MAJOR']}, {c['PROTO_VERSION_MINOR']})")
     L.append(f"FIRMWARE_VERSION = ({c['FW_VERSION_MAJOR']}, {c['FW_VERSION_MINOR']}, {c['FW_VERSION_PATCH']})")
     L.append("")
@@ -160,13 +236,13 @@ def gen_py(regs: dict, rig: dict) -> str:
     L.append("REGISTERS: tuple[Register, ...] = (")
     for space in ("input", "holding"):
         for r in regs[space]:
-            words = WORDS[r["type"]] * r.get("count", 1)
+            n = words(r)
             lo = hi = None
             if "range" in r:
                 lo, hi = (resolve(x, regs, rig, c) for x in r["range"])
             d = resolve(r["default"], regs, rig, c) if "default" in r else None
             acc = r.get("access", "r")
-            L.append(f"    Register({space!r}, {r['name']!r}, {r['addr']}, {r['type']!r}, {words}, "
+            L.append(f"    Register({space!r}, {r['name']!r}, {r['addr']}, {r['type']!r}, {n}, "
                      f"{acc!r}, {r.get('units', '')!r}, {lo!r}, {hi!r}, {d!r},")
             L.append(f"             {r['doc']!r}),")
     L.append(")")
@@ -179,7 +255,7 @@ def gen_py(regs: dict, rig: dict) -> str:
     L += ["", "", "class StepWord:", '    """Word offsets inside one step of the step table."""', ""]
     L += [f"    {w['name']} = {w['offset']}" for w in regs["step_word"]]
     L += ["", "", "EVT_WINDOW_COUNT = " + str(next(r["count"] for r in regs["input"] if r["name"] == "EVT_WINDOW")),
-          "EVENT_WORDS = 6", ""]
+          f"EVENT_WORDS = {WORDS['event']}", ""]
     return "\n".join(L)
 
 
@@ -198,6 +274,25 @@ def gen_tables(regs: dict, rig: dict) -> str:
     c = constants(regs, rig)
     L = [BEGIN, "", "_Generated from `protocol/registers.toml` and `protocol/rig.toml`; edit those, then run "
          "`make gen`._", ""]
+    st = regs["step_table"]
+    L += ["### Mapped ranges", "",
+          "Any request touching an address outside these answers exception 02.", "",
+          "| space | addresses |", "|---|---|"]
+    coils = ", ".join(f"{r['addr']}" + (f"..{r['addr'] + c[r['count']] - 1}" if c[r["count"]] > 1 else "")
+                      + f" ({r['name']})" for r in regs["coils"])
+    L.append(f"| coils | {coils} |")
+    for space in ("input", "holding"):
+        spans = [f"0..{direct_count(regs, space) - 1}"]
+        spans += [f"{r['addr']}..{r['addr'] + words(r) - 1} ({r['name']})" for r in regs[space] if "count" in r]
+        if space == "holding":
+            spans.append(f"0x{st['addr']:04X}..0x{st['addr'] + st['words'] * c['MAX_STEPS'] - 1:04X} (step table)")
+        L.append(f"| {space} registers | {', '.join(spans)} |")
+    L += ["", "At reset every holding register takes its `default` below; one without a default "
+          "(and any unnamed word inside the mapped range) is 0.", ""]
+    if regs.get("special"):
+        L += ["### Special values", "", "| name | value | meaning |", "|---|---|---|"]
+        L += [f"| `{k}` | 0x{v['value']:04X} | {v['doc']} |" for k, v in regs["special"].items()]
+        L.append("")
     L += ["### Coils", "", "| address | name | count | description |", "|---|---|---|---|"]
     for r in regs["coils"]:
         L.append(f"| {r['addr']} | `{r['name']}` | {c[r['count']]} | {r['doc']} |")
@@ -207,16 +302,15 @@ def gen_tables(regs: dict, rig: dict) -> str:
               "| address | name | type | words | units | range | default | access | description |",
               "|---|---|---|---|---|---|---|---|---|"]
         for r in regs[space]:
-            words = WORDS[r["type"]] * r.get("count", 1)
+            n = words(r)
             rng = ""
             if "range" in r:
                 lo, hi = (resolve(x, regs, rig, c) for x in r["range"])
                 dyn = [x for x in r["range"] if isinstance(x, str) and x.isupper() and x not in c]
                 rng = f"{lo}..{hi}" + (f" (and {', '.join(dyn)})" if dyn else "")
             d = resolve(r["default"], regs, rig, c) if "default" in r else ""
-            L.append(f"| {r['addr']} (0x{r['addr']:04X}) | `{r['name']}` | {r['type']} | {words} | "
+            L.append(f"| {r['addr']} (0x{r['addr']:04X}) | `{r['name']}` | {r['type']} | {n} | "
                      f"{r.get('units', '')} | {rng} | {d} | {r.get('access', 'r')} | {r['doc']} |")
-    st = regs["step_table"]
     L += ["", f"### Step table (holding registers from 0x{st['addr']:04X}, {st['words']} words a step, "
           f"{c['MAX_STEPS']} steps)", "", st["doc"], "", "| offset | word | type | units | description |",
           "|---|---|---|---|---|"]
@@ -231,6 +325,7 @@ def gen_tables(regs: dict, rig: dict) -> str:
 
 def outputs() -> dict[Path, str]:
     regs, rig, vecs = load()
+    validate(regs, rig)
     out = {OUT_H: gen_c(regs, rig, vecs), OUT_PY: gen_py(regs, rig), OUT_VEC: gen_vectors(vecs)}
     if DOC.exists():
         text = DOC.read_text()

@@ -130,15 +130,16 @@ static void test_reconnecting_host_loses_nothing(void **state)
     for (int i = 0; i < 25; i++) {
         push(DS_EVT_CAMERA_EDGE, (uint16_t)i, 0);
     }
-    uint16_t w[120];
-    assert_int_equal(th_read(&core, &th, 0x04, DS_IR_EVT_WINDOW, 120, w), 0);
-    assert_int_equal(w[19 * 6], 19);
+    enum { WIN = DS_IR_EVT_WINDOW_COUNT * DS_EVENT_WORDS }; /* the whole window */
+    uint16_t w[WIN];
+    assert_int_equal(th_read(&core, &th, 0x04, DS_IR_EVT_WINDOW, WIN, w), 0);
+    assert_int_equal(w[19 * DS_EVENT_WORDS], 19);
     assert_int_equal(th_write1(&core, &th, DS_HR_EVT_ACK, 19), 0); /* host never sees this reply */
     assert_int_equal(th_write1(&core, &th, DS_HR_EVT_ACK, 19), 0); /* retried after reconnect */
-    assert_int_equal(th_read(&core, &th, 0x04, DS_IR_EVT_WINDOW, 120, w), 0);
+    assert_int_equal(th_read(&core, &th, 0x04, DS_IR_EVT_WINDOW, WIN, w), 0);
     assert_int_equal(w[0], 20);
-    assert_int_equal(w[4 * 6], 24);
-    assert_int_equal(w[5 * 6 + 1], 0); /* kind NONE beyond EVT_COUNT */
+    assert_int_equal(w[4 * DS_EVENT_WORDS], 24);
+    assert_int_equal(w[5 * DS_EVENT_WORDS + 1], 0); /* kind NONE beyond EVT_COUNT */
 }
 
 int main(void)

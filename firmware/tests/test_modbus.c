@@ -110,7 +110,7 @@ static void test_frame_timeout_register_tolerates_byte_gaps(void **state)
 static void test_back_to_back_frames_are_both_answered(void **state)
 {
     (void)state;
-    uint8_t a[16], b[16], pa[5] = {0x04, 0, 0, 0, 1}, pb[5] = {0x03, 0, 6, 0, 1};
+    uint8_t a[16], b[16], pa[5] = {0x04, 0, 0, 0, 1}, pb[5] = {0x03, 0, DS_HR_MANUAL_INTENSITY, 0, 1};
     size_t na = th_adu(a, 1, pa, 5), nb = th_adu(b, 1, pb, 5);
     ds_core_rx(&core, a, na, th.now);
     th.now += 1750; /* the next frame starts exactly t3.5 later, before any poll */
@@ -169,12 +169,13 @@ static void test_largest_responses_fit_in_256_bytes(void **state)
 {
     (void)state;
     uint8_t resp[256];
-    uint8_t rd[5] = {0x03, 0x10, 0x00, 0x00, 125};
+    uint8_t rd[5] = {0x03, DS_STEP_TABLE_ADDR >> 8, DS_STEP_TABLE_ADDR & 0xFF, 0x00, 125};
     assert_int_equal(th_request(&core, &th, rd, 5, resp), 255);
-    uint8_t ev[5] = {0x04, 0x01, 0x00, 0x00, 120};
-    assert_int_equal(th_request(&core, &th, ev, 5, resp), 245);
-    uint8_t coils[5] = {0x01, 0x00, 0x00, 0x00, 127};
-    assert_int_equal(th_request(&core, &th, coils, 5, resp), 21);
+    const unsigned win = DS_IR_EVT_WINDOW_COUNT * DS_EVENT_WORDS; /* <= 125: one read */
+    uint8_t ev[5] = {0x04, DS_IR_EVT_WINDOW >> 8, DS_IR_EVT_WINDOW & 0xFF, 0x00, (uint8_t)win};
+    assert_int_equal(th_request(&core, &th, ev, 5, resp), 5 + 2 * win);
+    uint8_t coils[5] = {0x01, DS_COIL_LED >> 8, DS_COIL_LED & 0xFF, 0x00, DS_N_LEDS};
+    assert_int_equal(th_request(&core, &th, coils, 5, resp), 5 + (DS_N_LEDS + 7) / 8);
     uint8_t id[4] = {0x2B, 0x0E, 0x03, 0x00};
     ds_core_set_target(&core, "a-target-name-much-longer-than-anything-real-0123456789");
     size_t n = th_request(&core, &th, id, 4, resp);
@@ -251,6 +252,25 @@ static void test_garbage_stream_never_lights_anything(void **state)
     assert_int_equal(th_ir(&core, &th, DS_IR_MAGIC), DS_MAGIC);
 }
 
+static void test_holding_registers_reset_to_the_generated_defaults(void **state)
+{
+    (void)state;
+    /* ds_core_init applies DS_HR_DEFAULTS (generated from registers.toml) to the whole direct
+     * block; one past it is unmapped */
+    uint16_t hr[DS_HR_COUNT];
+    assert_int_equal(th_read(&core, &th, 0x03, 0, DS_HR_COUNT, hr), 0);
+    for (unsigned a = 0; a < DS_HR_COUNT; a++) {
+        assert_int_equal(hr[a], a == DS_HR_COMMAND ? 0u : DS_HR_DEFAULTS[a]); /* COMMAND: write-only */
+    }
+    assert_int_equal(hr[DS_HR_MANUAL_INTENSITY], DS_HR_MANUAL_INTENSITY_DEFAULT);
+    assert_int_equal(hr[DS_HR_SERVO_MAX_CDEG], DS_HR_SERVO_MAX_CDEG_DEFAULT);
+    assert_int_equal(th_ir(&core, &th, DS_IR_POLARIZER_NOW), DS_HR_POLARIZER_CDEG_DEFAULT);
+    assert_int_equal(th_read(&core, &th, 0x03, 0, DS_HR_COUNT + 1u, hr), DS_EX_ILLEGAL_ADDRESS);
+    uint16_t ir[DS_IR_COUNT + 1u];
+    assert_int_equal(th_read(&core, &th, 0x04, 0, DS_IR_COUNT, ir), 0);
+    assert_int_equal(th_read(&core, &th, 0x04, 0, DS_IR_COUNT + 1u, ir), DS_EX_ILLEGAL_ADDRESS);
+}
+
 int main(void)
 {
     const struct CMUnitTest tests[] = {
@@ -267,6 +287,7 @@ int main(void)
         cmocka_unit_test_setup(test_broadcast_coil_write_takes_effect, setup),
         cmocka_unit_test_setup(test_server_id_run_indicator_follows_fault, setup),
         cmocka_unit_test_setup(test_garbage_stream_never_lights_anything, setup),
+        cmocka_unit_test_setup(test_holding_registers_reset_to_the_generated_defaults, setup),
     };
     return cmocka_run_group_tests(tests, NULL, NULL);
 }

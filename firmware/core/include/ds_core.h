@@ -56,7 +56,7 @@ typedef struct ds_core {
     uint8_t tx[DS_RTU_MAX_ADU];
 
     /* registers */
-    uint16_t hr[32];                                 /* holding registers 0..31 */
+    uint16_t hr[DS_HR_COUNT];                        /* holding registers 0..DS_HR_COUNT-1 */
     uint16_t steps[DS_MAX_STEPS * DS_STEP_WORDS];    /* the step table */
     uint16_t state, error, error_step, cur_step;
     uint16_t polarizer_now;

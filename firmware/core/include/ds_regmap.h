@@ -2,7 +2,9 @@
 #ifndef DS_REGMAP_H
 #define DS_REGMAP_H
 
-/* Rig constants and limits (protocol/rig.toml) */
+#include <stdint.h>
+
+/* Rig constants and limits (protocol/rig.toml), special values (registers.toml [special]) */
 #define DS_N_LEDS 127u
 #define DS_N_ROWS 7u
 #define DS_N_BACKLIGHTS 4u
@@ -40,6 +42,9 @@
 #define DS_POL_SERVO_PULSE_MIN_US 1000u
 #define DS_POL_SERVO_PULSE_MAX_US 2000u
 #define DS_POL_SLEW_CDEG_PER_MS 40u
+#define DS_STEP_NONE 0xFFFFu
+#define DS_POL_KEEP 0xFFFFu
+#define DS_EDGE_IGNORED 0x0080u
 static const unsigned char DS_DOME_ROW_COUNTS[DS_N_ROWS] = {1, 6, 12, 18, 24, 30, 36};
 
 /* enums.state: Sequencer state (input register STATE). */
@@ -114,6 +119,7 @@ static const unsigned char DS_DOME_ROW_COUNTS[DS_N_ROWS] = {1, 6, 12, 18, 24, 30
 #define DS_COIL_DIFFUSE 136u
 
 /* Input registers */
+#define DS_IR_COUNT 27u /* directly mapped: input registers 0..26 */
 #define DS_IR_MAGIC 0u /* u16, 1 word(s) */
 #define DS_IR_PROTO_VERSION 1u /* u16, 1 word(s) */
 #define DS_IR_FW_VERSION 2u /* u16, 1 word(s) */
@@ -141,6 +147,7 @@ static const unsigned char DS_DOME_ROW_COUNTS[DS_N_ROWS] = {1, 6, 12, 18, 24, 30
 #define DS_IR_EVT_WINDOW_COUNT 20u
 
 /* Holding registers */
+#define DS_HR_COUNT 16u /* directly mapped: holding registers 0..15 */
 #define DS_HR_COMMAND 0u /* u16, 1 word(s) */
 #define DS_HR_COMMAND_MIN 0u
 #define DS_HR_COMMAND_MAX 5u
@@ -197,6 +204,27 @@ static const unsigned char DS_DOME_ROW_COUNTS[DS_N_ROWS] = {1, 6, 12, 18, 24, 30
 #define DS_HR_FRAME_TIMEOUT_US_MIN 0u
 #define DS_HR_FRAME_TIMEOUT_US_MAX 50000u
 #define DS_HR_FRAME_TIMEOUT_US_DEFAULT 0u
+
+/* Reset value of every holding-register word 0..DS_HR_COUNT-1 (registers.toml `default`;
+ * none = 0; multi-word values big-endian by word). ds_core_init copies it into hr[]. */
+static const uint16_t DS_HR_DEFAULTS[DS_HR_COUNT] = {
+    0x0000u, /* 0 COMMAND (no default) */
+    0x0000u, /* 1 TRIGGER_MODE (= 0) */
+    0x0000u, /* 2 SEQ_LEN (= 0) */
+    0x0000u, /* 3 EVT_ACK (no default) */
+    0x0000u, /* 4 WATCHDOG_MS (= 0) */
+    0x0000u, /* 5 POLARIZER_CDEG (= 0) */
+    0x8000u, /* 6 MANUAL_INTENSITY (= 32768) */
+    0x2710u, /* 7 LED_MAX_ON_MS (= 10000) */
+    0x01F4u, /* 8 LED_DUTY_PERMILLE (= 500) */
+    0x0000u, /* 9 SERVO_MIN_CDEG (= 0) */
+    0x4650u, /* 10 SERVO_MAX_CDEG (= 18000) */
+    0x07D0u, /* 11 CAMERA_TIMEOUT_MS (= 2000) */
+    0x0000u, /* 12 MASTER_CAMERA (= 0) */
+    0x0000u, /* 13 FRAME_GAP_US word 0 (= 0) */
+    0x0000u, /* 14 FRAME_GAP_US word 1 (= 0) */
+    0x0000u, /* 15 FRAME_TIMEOUT_US (= 0) */
+};
 
 /* Step table: word offsets inside one step */
 #define DS_STEP_SOURCE 0u

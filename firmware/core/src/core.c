@@ -27,25 +27,15 @@ void ds_core_init(ds_core_t *c, const ds_hal_t *hal, uint8_t address, uint64_t n
     c->t35_us = ds_rtu_t35_us(DS_DEFAULT_BAUD);
     ds_core_set_target(c, "unknown");
 
-    c->hr[DS_HR_TRIGGER_MODE] = DS_HR_TRIGGER_MODE_DEFAULT;
-    c->hr[DS_HR_SEQ_LEN] = DS_HR_SEQ_LEN_DEFAULT;
-    c->hr[DS_HR_WATCHDOG_MS] = DS_HR_WATCHDOG_MS_DEFAULT;
-    c->hr[DS_HR_POLARIZER_CDEG] = DS_HR_POLARIZER_CDEG_DEFAULT;
-    c->hr[DS_HR_MANUAL_INTENSITY] = DS_HR_MANUAL_INTENSITY_DEFAULT;
-    c->hr[DS_HR_LED_MAX_ON_MS] = DS_HR_LED_MAX_ON_MS_DEFAULT;
-    c->hr[DS_HR_LED_DUTY_PERMILLE] = DS_HR_LED_DUTY_PERMILLE_DEFAULT;
-    c->hr[DS_HR_SERVO_MIN_CDEG] = DS_HR_SERVO_MIN_CDEG_DEFAULT;
-    c->hr[DS_HR_SERVO_MAX_CDEG] = DS_HR_SERVO_MAX_CDEG_DEFAULT;
-    c->hr[DS_HR_CAMERA_TIMEOUT_MS] = DS_HR_CAMERA_TIMEOUT_MS_DEFAULT;
-    c->hr[DS_HR_MASTER_CAMERA] = DS_HR_MASTER_CAMERA_DEFAULT;
-    c->hr[DS_HR_FRAME_GAP_US] = (uint16_t)(DS_HR_FRAME_GAP_US_DEFAULT >> 16);
-    c->hr[DS_HR_FRAME_GAP_US + 1u] = (uint16_t)(DS_HR_FRAME_GAP_US_DEFAULT & 0xFFFFu);
-    c->hr[DS_HR_FRAME_TIMEOUT_US] = DS_HR_FRAME_TIMEOUT_US_DEFAULT;
+    /* reset values of the holding registers: the table protocol/gen.py generates from the
+     * `default` of each register in registers.toml */
+    _Static_assert(sizeof c->hr == sizeof DS_HR_DEFAULTS, "hr[] and DS_HR_DEFAULTS differ");
+    memcpy(c->hr, DS_HR_DEFAULTS, sizeof c->hr);
 
     c->state = DS_STATE_IDLE;
     c->error = DS_ERR_NONE;
     c->error_step = DS_STEP_NONE;
-    c->polarizer_now = DS_HR_POLARIZER_CDEG_DEFAULT;
+    c->polarizer_now = c->hr[DS_HR_POLARIZER_CDEG];
     c->last_host_us = now_us;
     c->last_edge_us = now_us;
     c->seq_light = DS_NO_SOURCE;

@@ -12,11 +12,9 @@
 #define DS_EX_DEVICE_FAILURE 4u
 #define DS_EX_BUSY 6u
 
-#define DS_HR_COUNT 16u                 /* mapped holding registers 0..15 */
-#define DS_IR_COUNT 27u                 /* mapped input registers 0..26 */
+/* Register-map numbers (DS_HR_COUNT, DS_IR_COUNT, DS_HR_DEFAULTS, DS_STEP_NONE, DS_POL_KEEP, ...)
+ * come from ds_regmap.h, generated from protocol/registers.toml: never define them here. */
 #define DS_STEP_TABLE_WORDS (DS_MAX_STEPS * DS_STEP_WORDS)
-#define DS_STEP_NONE 0xFFFFu            /* event STEP / ERROR_STEP when not step-related */
-#define DS_POL_KEEP 0xFFFFu
 
 /* HAL calls, NULL-safe */
 static inline void ds_hal_light(const ds_core_t *c, uint8_t kind, uint8_t index, uint16_t intensity)

@@ -14,6 +14,10 @@ static uint16_t get16(const uint8_t *p)
     return (uint16_t)((uint16_t)(p[0] << 8) | p[1]);
 }
 
+/* ds_regs_write_holding marks the written registers in a 32-bit mask. */
+_Static_assert(DS_HR_COUNT <= 32u, "more than 32 directly mapped holding registers");
+_Static_assert(DS_HR_COUNT <= DS_STEP_TABLE_ADDR, "holding registers overlap the step table");
+
 int ds_regs_holding_mapped(uint16_t addr, uint16_t n)
 {
     uint32_t end = (uint32_t)addr + n; /* exclusive */
@@ -259,8 +263,8 @@ uint8_t ds_regs_write_holding(ds_core_t *c, uint16_t addr, uint16_t n, const uin
     if (has_cmd && cmd == DS_CMD_START && c->state == DS_STATE_FAULT) {
         return DS_EX_BUSY;
     }
-    for (uint16_t a = 1; a < DS_HR_COUNT; a++) {
-        if (written & (1u << a)) {
+    for (uint16_t a = 0; a < DS_HR_COUNT; a++) {
+        if (a != DS_HR_COMMAND && (written & (1u << a))) { /* COMMAND is write-only: not stored */
             c->hr[a] = cand[a];
         }
     }

@@ -1,7 +1,7 @@
 /* Safety (PROTOCOL.md §5): light bookkeeping, leaky buckets, host watchdog, faults. */
 #include "ds_priv.h"
 
-/* Source index: 0..126 LEDs, then the back lights, then the diffuse group. */
+/* Source index: the DS_N_LEDS LEDs, then the back lights, then the diffuse group. */
 void ds_src_split(uint16_t src, uint8_t *kind, uint8_t *index)
 {
     if (src < DS_N_LEDS) {
@@ -46,8 +46,8 @@ int ds_src_from_word(uint16_t w, uint16_t *src)
 
 uint16_t ds_src_from_coil(uint16_t coil)
 {
-    if (coil < DS_COIL_LED + DS_N_LEDS) {
-        return coil;
+    if ((uint16_t)(coil - DS_COIL_LED) < DS_N_LEDS) { /* wraps below DS_COIL_LED */
+        return (uint16_t)(coil - DS_COIL_LED);
     }
     if (coil >= DS_COIL_BACKLIGHT && coil < DS_COIL_BACKLIGHT + DS_N_BACKLIGHTS) {
         return (uint16_t)(DS_N_LEDS + coil - DS_COIL_BACKLIGHT);

@@ -374,7 +374,7 @@ static void count_edge(ds_core_t *c, uint8_t camera, uint64_t now)
 {
     step_view_t s = step_at(c, c->cur_step);
     if (now < c->latch_us + s.settle) {
-        ds_evt_push(c, (uint8_t)DS_EVT_CAMERA_EDGE, (uint8_t)(camera | 0x80u), c->cur_step, now);
+        ds_evt_push(c, (uint8_t)DS_EVT_CAMERA_EDGE, (uint8_t)(camera | DS_EDGE_IGNORED), c->cur_step, now);
         return;
     }
     c->edges_in_step++;
@@ -405,7 +405,7 @@ void ds_seq_edge(ds_core_t *c, uint8_t camera, uint64_t now)
         latch_camera(c, (uint16_t)(k + 1u), now);
         count_edge(c, camera, now);
     } else {
-        ds_evt_push(c, (uint8_t)DS_EVT_CAMERA_EDGE, (uint8_t)(camera | 0x80u), k, now);
+        ds_evt_push(c, (uint8_t)DS_EVT_CAMERA_EDGE, (uint8_t)(camera | DS_EDGE_IGNORED), k, now);
         ds_evt_push(c, (uint8_t)DS_EVT_STEP_END, 0u, k, now);
         finish(c, now);
     }

@@ -11,6 +11,8 @@
 #define TRIG_PORT GPIOC        /* PC0..PC3 */
 #define CAM_PORT_INDEX 1u      /* EXTICR port code for GPIOB: PB0..PB3 */
 #define EDGE_RING 32u          /* power of two */
+#define TRIG_PINS ((1u << DS_N_TRIGGERS) - 1u) /* PC0.. one pin per trigger output */
+#define CAM_PINS ((1u << DS_N_CAMERAS) - 1u)   /* PB0.. / EXTI0.. one line per camera input */
 
 _Static_assert(DS_N_TRIGGERS == 4 && DS_N_CAMERAS == 4, "pin map is for 4 triggers/cameras");
 
@@ -30,7 +32,7 @@ void io_init(void)
     (void)RCC->APB2ENR;
 
     /* Trigger outputs low before they become outputs: no glitch at boot. */
-    TRIG_PORT->BSRR = 0xFu << 16;
+    TRIG_PORT->BSRR = TRIG_PINS << 16;
     for (unsigned pin = 0; pin < DS_N_TRIGGERS; pin++) {
         gpio_config(TRIG_PORT, pin, GPIO_MODE_OUT, 0, 0);
     }
@@ -54,10 +56,10 @@ void io_init(void)
     }
     SYSCFG->EXTICR[0] = (CAM_PORT_INDEX << 0) | (CAM_PORT_INDEX << 4) | (CAM_PORT_INDEX << 8) |
                         (CAM_PORT_INDEX << 12);
-    EXTI->RTSR |= 0xFu;
-    EXTI->FTSR &= ~0xFu;
-    EXTI->PR = 0xFu;
-    EXTI->IMR |= 0xFu;
+    EXTI->RTSR |= CAM_PINS;
+    EXTI->FTSR &= ~CAM_PINS;
+    EXTI->PR = CAM_PINS;
+    EXTI->IMR |= CAM_PINS;
     nvic_enable(IRQ_EXTI0, 0);
     nvic_enable(IRQ_EXTI1, 0);
     nvic_enable(IRQ_EXTI2, 0);
@@ -78,15 +80,15 @@ void triggers_write(uint8_t mask)
 {
     /* One BSRR write sets and clears all four lines in the same bus cycle: triggers that rise
      * together are simultaneous. */
-    uint32_t set = mask & 0xFu;
-    TRIG_PORT->BSRR = set | ((~set & 0xFu) << 16);
+    uint32_t set = mask & TRIG_PINS;
+    TRIG_PORT->BSRR = set | ((~set & TRIG_PINS) << 16);
 }
 
 void triggers_emergency_low(void)
 {
     RCC->AHB1ENR |= RCC_AHB1ENR_GPIOC;
     (void)RCC->AHB1ENR;
-    TRIG_PORT->BSRR = 0xFu << 16;
+    TRIG_PORT->BSRR = TRIG_PINS << 16;
 }
 
 static void edge_isr(uint8_t camera)
