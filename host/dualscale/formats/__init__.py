@@ -1,0 +1,1 @@
+"""On-disk artefacts: each with one reader and one writer."""

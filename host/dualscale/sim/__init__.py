@@ -1,0 +1,1 @@
+"""The virtual rig: renderer, sensor, shadows, synthetic materials and targets. No production stage imports it."""
