@@ -31,7 +31,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
-import cv2
 import numpy as np
 from scipy import ndimage, optimize
 from skimage import measure
@@ -39,7 +38,6 @@ from skimage import measure
 from dualscale.formats.lightfile import LightRecord
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr")
-ImageLike = "str | Path | np.ndarray"
 
 
 class LightSphereError(ValueError):
