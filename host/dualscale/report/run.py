@@ -1,0 +1,488 @@
+"""The report of one ``dualscale digitize`` run: ``RUN/report/index.html`` (+ ``RUN/report/assets/``).
+
+:func:`write_run_report` reads only the run folder's contract:
+
+* ``run.json`` and ``stages/<stage>.json`` (stage records: params, versions, seconds, warnings,
+  summary);
+* ``fit/maps/`` (maps folder, ``fit.json``), ``fit/residual.exr``, ``fit/heldout/``;
+* ``flyouts/`` and ``propagate/`` when those stages ran (a skipped stage says why in its summary);
+* ``export/`` (the files list of its summary).
+
+Required: ``run.json``, the ``calibrate`` and ``fit`` stage records, the fit maps, the fit
+residual and the held-out lights listed in ``heldout.json``. A missing or unreadable required
+artefact raises :class:`dualscale.errors.FormatError` naming the file and the stage that writes
+it; a missing optional part is one line in the page. Every stage warning is listed at the top and
+again in its own section.
+
+The page is self-contained: every image is written into ``report/assets/`` and the page loads
+nothing else (no script, no font, no URL), so the folder can be zipped, mailed and opened offline.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dualscale.errors import FormatError, InputError
+
+from . import format as fmt
+from . import plots
+from .html import Assets, write_page
+
+STAGES = ("calibrate", "fit", "flyouts", "propagate", "export", "report")
+REQUIRED_STAGES = ("calibrate", "fit")
+
+# Goals shown beside the values, with where they come from.
+HELDOUT_SSIM_GOAL = 0.95  # docs/FITTING.md, acceptance bounds (held-out SSIM > 0.95)
+
+MAP_ORDER = ("albedo", "normal", "roughness", "anisotropy", "tangent", "ior", "specular_tint",
+             "transmittance", "opacity")
+MAX_HELDOUT_FIGURES = 8
+
+
+class _Missing(FormatError):
+    """A required artefact of the run folder is missing or unreadable."""
+
+
+# ---------------------------------------------------------------------------------------------
+# reading
+
+def _rel(run: Path, p: Path) -> str:
+    try:
+        return p.relative_to(run).as_posix()
+    except ValueError:
+        return str(p)
+
+
+def _json(run: Path, rel: str, *, required: bool, writer: str) -> dict[str, Any] | None:
+    path = run / rel
+    if not path.is_file():
+        if required:
+            raise _Missing(f"run report: {path} is missing (written by the {writer}); "
+                           f"{run} is not a complete dualscale run folder")
+        return None
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as e:
+        raise _Missing(f"run report: {path} is not readable JSON ({e})") from e
+    if not isinstance(doc, dict):
+        raise _Missing(f"run report: {path} must hold a JSON object")
+    return doc
+
+
+def _exr(run: Path, rel: str, channels, *, writer: str) -> np.ndarray:
+    from dualscale.formats.exr import read_exr
+
+    path = run / rel
+    if not path.is_file():
+        raise _Missing(f"run report: {path} is missing (written by the {writer})")
+    try:
+        return read_exr(path, channels)
+    except (OSError, ValueError) as e:
+        raise _Missing(f"run report: cannot read {path}: {e}") from e
+
+
+def _exr_any(run: Path, rel: str, *, writer: str, rgb: bool) -> np.ndarray:
+    """An image by channel names (R, G, B or Y), falling back to the first channels."""
+    from dualscale.formats.exr import read_exr
+
+    path = run / rel
+    if not path.is_file():
+        raise _Missing(f"run report: {path} is missing (written by the {writer})")
+    try:
+        return read_exr(path, ("R", "G", "B") if rgb else ("Y",))
+    except ValueError:
+        a = read_exr(path)
+        if rgb:
+            return a[..., :3] if a.shape[2] >= 3 else np.repeat(a[..., :1], 3, -1)
+        return a[..., :1]
+    except OSError as e:
+        raise _Missing(f"run report: cannot read {path}: {e}") from e
+
+
+def _maps(run: Path, rel: str, writer: str):
+    """``(arrays, doc)`` of a maps folder through the one maps reader."""
+    from dualscale.formats.maps import load_maps
+
+    root = run / rel
+    if not (root / "material.json").is_file():
+        raise _Missing(f"run report: {root / 'material.json'} is missing (written by the {writer})")
+    try:
+        maps, meta = load_maps(root)
+    except InputError:
+        raise
+    except (OSError, ValueError) as e:
+        raise _Missing(f"run report: cannot read the maps in {root}: {e}") from e
+    arrays = {name: t.detach().cpu().numpy() for name, t in maps.items()}
+    return arrays, meta
+
+
+# ---------------------------------------------------------------------------------------------
+# page model
+
+@dataclass
+class Fig:
+    src: str
+    caption: str
+    title: str = ""
+    alt: str = ""
+
+
+@dataclass
+class Table:
+    header: list[str]
+    rows: list[list[Any]]
+    numeric: set[int] = field(default_factory=set)
+
+
+@dataclass
+class Stage:
+    name: str
+    record: dict[str, Any] | None
+    summary: dict[str, Any]
+    warnings: list[dict[str, str]]
+
+    @property
+    def skipped(self) -> str | None:
+        s = self.summary.get("skipped")
+        return str(s) if s else None
+
+    @property
+    def seconds(self) -> float | None:
+        v = (self.record or {}).get("seconds")
+        return float(v) if isinstance(v, (int, float)) else None
+
+
+def _stage_rows(st: Stage) -> dict[str, Any]:
+    r = st.record or {}
+    return {
+        "name": st.name,
+        "present": st.record is not None,
+        "skipped": st.skipped,
+        "rows": [("finished", fmt.timestamp(r.get("finished"))), ("time", fmt.duration(r.get("seconds"))),
+                 ("warnings", fmt.number(len(st.warnings)))],
+        "params": fmt.rows(r.get("params") or {}),
+        "versions": [(fmt.label(k), fmt.value(v)) for k, v in (r.get("versions") or {}).items()],
+        "inputs": [(k, fmt.short_hash(v, 16)) for k, v in (r.get("inputs") or {}).items()],
+        "outputs": [str(o) for o in (r.get("outputs") or [])],
+        "summary": fmt.rows({k: v for k, v in st.summary.items()}),
+        "warnings": st.warnings,
+    }
+
+
+def _direction_deg(d) -> tuple[float, float]:
+    v = np.asarray(d, float)
+    n = float(np.linalg.norm(v)) or 1.0
+    theta = math.degrees(math.acos(max(-1.0, min(1.0, v[2] / n))))
+    phi = math.degrees(math.atan2(v[1], v[0])) % 360.0
+    return theta, phi
+
+
+def _components_text(c: Any) -> str:
+    if isinstance(c, dict):
+        on = [fmt.label(k) for k, v in c.items() if v is True]
+        other = [f"{fmt.label(k)} {fmt.value(v)}" for k, v in c.items() if not isinstance(v, bool)]
+        return ", ".join(on + other) or "none"
+    return fmt.value(c)
+
+
+def _selection(sel: dict[str, Any] | None) -> dict[str, Any] | None:
+    """The component decision as tables (robust to missing keys)."""
+    if not sel:
+        return None
+    comps = sel.get("components") if isinstance(sel.get("components"), dict) else {}
+    comp_rows = [(fmt.label(k), fmt.value(v)) for k, v in comps.items()]
+    decisions = []
+    for k, v in sel.items():
+        if isinstance(v, dict) and "chosen" in v:
+            decisions.append([fmt.label(k), fmt.value(v.get("chosen")), fmt.value(v.get("overridden", False)),
+                              fmt.value(v.get("evidence")) if v.get("evidence") is not None else fmt.DASH])
+    cands = sel.get("candidates")
+    cand_table = None
+    if isinstance(cands, list) and cands:
+        keys: list[str] = []
+        for c in cands:
+            for k in (c if isinstance(c, dict) else {}):
+                if k not in keys:
+                    keys.append(k)
+        errs = [c.get("validation_error") for c in cands if isinstance(c, dict)
+                and isinstance(c.get("validation_error"), (int, float))]
+        best = min(errs) if errs else None
+        header = [fmt.label(k) for k in keys] + ["chosen"]
+        rows, numeric = [], set()
+        for c in cands:
+            c = c if isinstance(c, dict) else {"candidate": c}
+            row = []
+            for i, k in enumerate(keys):
+                v = c.get(k)
+                if k == "components":
+                    row.append(_components_text(v))
+                else:
+                    if isinstance(v, (int, float)) and not isinstance(v, bool):
+                        numeric.add(i)
+                    row.append(fmt.value(v))
+            chosen = (c.get("components") == comps) if comps and "components" in c else (
+                best is not None and c.get("validation_error") == best)
+            row.append("✓" if chosen else "")
+            rows.append(row)
+        cand_table = Table(header, rows, numeric)
+    skip = {"components", "candidates"} | {k for k, v in sel.items() if isinstance(v, dict) and "chosen" in v}
+    other = fmt.rows({k: v for k, v in sel.items() if k not in skip})
+    return {"components": comp_rows, "decisions": decisions, "candidates": cand_table, "other": other}
+
+
+# ---------------------------------------------------------------------------------------------
+# the report
+
+def write_run_report(run_dir: str | Path) -> Path:
+    """Render ``RUN/report/index.html`` (images in ``RUN/report/assets/``) from the run folder
+    ``run_dir``; returns the page's path. Raises :class:`dualscale.errors.FormatError` when a
+    required artefact is missing."""
+    run = Path(run_dir)
+    if not run.is_dir():
+        raise _Missing(f"run report: {run} is not a folder")
+    run_doc = _json(run, "run.json", required=True, writer="digitize command")
+    if run_doc.get("format") not in (None, "dualscale-run"):
+        raise FormatError(f"run report: {run / 'run.json'} is a {run_doc.get('format')!r} file, "
+                          "not dualscale-run")
+    order = [str(s) for s in (run_doc.get("stages") or STAGES)]
+
+    stages: dict[str, Stage] = {}
+    all_warnings: list[dict[str, str]] = []
+    for name in order:
+        rec = _json(run, f"stages/{name}.json", required=name in REQUIRED_STAGES, writer=f"{name} stage")
+        summary = (rec or {}).get("summary") or {}
+        ws = [{"stage": name, "text": str(w)} for w in ((rec or {}).get("warnings") or [])]
+        stages[name] = Stage(name, rec, summary if isinstance(summary, dict) else {"summary": summary}, ws)
+        all_warnings.extend(ws)
+    for name in REQUIRED_STAGES:
+        if name not in stages:
+            raise _Missing(f"run report: {run / 'run.json'} lists no {name!r} stage; the report needs it")
+    report_notes: list[dict[str, str]] = []
+
+    def note(text: str) -> None:
+        w = {"stage": "report", "text": text}
+        report_notes.append(w)
+        all_warnings.append(w)
+
+    out_dir = run / "report"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    if (out_dir / "assets").is_dir():
+        shutil.rmtree(out_dir / "assets")
+    assets = Assets(out_dir, "assets")
+
+    def fig(figure_caption, stem: str, title: str = "", alt: str = "") -> Fig:
+        f, cap = figure_caption
+        return Fig(assets.figure(f, stem), cap, title, alt or title or stem)
+
+    # -- inputs and calibration
+    cal = stages["calibrate"].summary
+    texel = cal.get("texel_mm")
+    calib_rows = [
+        ("calibration file", str(cal["calibration"]) if cal.get("calibration") else
+         "none: the captures were used as they came, without radiometric or colour calibration"),
+        ("radiometric units", f"{cal.get('units_in', fmt.DASH)} → {cal.get('units_out', fmt.DASH)}"),
+        ("colour space", f"{cal.get('colour_space_in', fmt.DASH)} → {cal.get('colour_space_out', fmt.DASH)}"),
+        ("transfer curve removed", str(cal["transfer"]) if cal.get("transfer") else "none (input already linear)"),
+        ("images", fmt.value(cal.get("images"))),
+        ("clipped pixels (saturated in every bracket)", fmt.percent(cal.get("clipped_share"))),
+        ("texel size", fmt.length_mm(texel)),
+        ("micro field", fmt.size_mm(cal.get("field_mm"))),
+    ]
+    known = {"calibration", "units_in", "units_out", "colour_space_in", "colour_space_out", "transfer", "images",
+             "clipped_share", "texel_mm", "field_mm"}
+    calib_rows += fmt.rows({k: v for k, v in cal.items() if k not in known})
+    inputs = {"rows": [("input", str(run_doc.get("input", fmt.DASH))), ("run folder", str(run.resolve())),
+                       ("stages", ", ".join(order))],
+              "options": fmt.rows(run_doc.get("options") or {}), "calibration": calib_rows}
+
+    # -- fit: maps, selection, residual, held-out
+    fit_sum = stages["fit"].summary
+    maps, meta = _maps(run, "fit/maps", "fit stage")
+    texel_fit = meta.get("texel_mm") or texel
+    field_fit = meta.get("field_mm")
+    names = [n for n in MAP_ORDER if n in maps] + [n for n in maps if n not in MAP_ORDER]
+    h, w = next(iter(maps.values())).shape[:2]
+    map_figs = [fig(plots.map_figure(n, maps[n], texel_fit), f"map_{n}", plots.MAP_TITLES.get(n, n)) for n in names]
+    fit_json = _json(run, "fit/maps/fit.json", required=False, writer="fit stage")
+    if fit_json is None:
+        note("fit/maps/fit.json is missing: the component decision cannot be shown")
+    selection = _selection((fit_json or {}).get("selection"))
+
+    residual = _exr_any(run, "fit/residual.exr", writer="fit stage", rgb=False)
+    res_fig = fig(plots.residual_figure(residual, texel_fit), "fit_residual", "Fit residual")
+    fit_rows = [
+        ("preset", fmt.value(fit_sum.get("preset"))),
+        ("maps", f"{', '.join(names)} ({w} × {h} texels"
+                 + (f", {fmt.size_mm(field_fit)})" if field_fit else ")")),
+        ("training images", fmt.value(fit_sum.get("train_images"))),
+        ("held-out images", fmt.value(fit_sum.get("heldout_images"))),
+        ("held-out relative L1 (mean |render − capture| / mean capture)", fmt.percent(fit_sum.get("heldout_relative_l1"))),
+        ("held-out SSIM", fmt.check(fit_sum.get("heldout_ssim"), ">", HELDOUT_SSIM_GOAL)
+         if fit_sum.get("heldout_ssim") is not None else "not computed"),
+        ("fit time", fmt.duration(fit_sum.get("seconds"))),
+    ]
+
+    ho_doc = _json(run, "fit/heldout/heldout.json", required=True, writer="fit stage")
+    lights = [l for l in (ho_doc.get("lights") or []) if isinstance(l, dict)]
+    heldout: dict[str, Any] = {"figs": [], "table": None, "hemisphere": None, "note": ""}
+    if not lights:
+        heldout["note"] = "No held-out lights: every capture was used for the fit."
+    else:
+        rows, th, ph, err = [], [], [], []
+        for l in lights:
+            t, p = _direction_deg(l.get("direction", [0, 0, 1]))
+            e = l.get("relative_l1")
+            rows.append([fmt.value(l.get("led_id")), fmt.quantity(t, "°"), fmt.quantity(p, "°"), fmt.percent(e)])
+            th.append(t)
+            ph.append(p)
+            err.append(100.0 * float(e) if isinstance(e, (int, float)) else float("nan"))
+        heldout["table"] = Table(["LED", "zenith angle θ", "azimuth φ", "relative L1"], rows, {1, 2, 3})
+        if any(np.isfinite(err)):
+            f, cap, _ = plots.hemisphere_figure([("held-out lights", th, ph, err, None)],
+                                                label="relative L1 [%]", size=(4.6, 3.6))
+            heldout["hemisphere"] = Fig(assets.figure(f, "heldout_hemisphere"), cap, "Held-out light directions")
+        idx = list(range(len(lights)))
+        if len(idx) > MAX_HELDOUT_FIGURES:
+            by_err = sorted(idx, key=lambda i: (-(err[i]) if np.isfinite(err[i]) else 0.0))
+            pick = np.linspace(0, len(by_err) - 1, MAX_HELDOUT_FIGURES).round().astype(int)
+            idx = sorted({by_err[i] for i in pick})
+            heldout["note"] = (f"Showing {len(idx)} of {len(lights)} held-out lights, spread from the largest to "
+                               "the smallest error; the table lists all.")
+        for i in idx:
+            l = lights[i]
+            cap_img = _exr_any(run, f"fit/heldout/{l.get('capture')}", writer="fit stage", rgb=True)
+            ren_img = _exr_any(run, f"fit/heldout/{l.get('render')}", writer="fit stage", rgb=True)
+            title = (f"LED {fmt.value(l.get('led_id'))}: θ {fmt.quantity(th[i], '°')}, φ {fmt.quantity(ph[i], '°')}, "
+                     f"relative L1 {fmt.percent(l.get('relative_l1'))}")
+            f, cap = plots.heldout_figure(cap_img, ren_img, title=title, texel_mm=texel_fit)
+            heldout["figs"].append(Fig(assets.figure(f, f"heldout_led{l.get('led_id')}"), cap, title, title))
+
+    # -- fly-outs
+    fly: dict[str, Any] = {"note": "", "fig": None, "rows": []}
+    st = stages.get("flyouts")
+    if st is None or st.record is None:
+        fly["note"] = "Fly-out detection was not run for this material."
+    elif st.skipped:
+        fly["note"] = f"Fly-out detection was skipped: {st.skipped}."
+    else:
+        fdoc = _json(run, "flyouts/flyouts.json", required=False, writer="flyouts stage")
+        if fdoc is None:
+            fly["note"] = "The flyouts stage ran but wrote no flyouts/flyouts.json."
+            note(fly["note"])
+        else:
+            polys = fdoc.get("polylines_px") or []
+            mask = None
+            if (run / "flyouts/flyout_mask.exr").is_file():
+                mask = _exr_any(run, "flyouts/flyout_mask.exr", writer="flyouts stage", rgb=False)
+            bg = maps.get("albedo", np.full((h, w, 3), 0.5))
+            fly["fig"] = fig(plots.flyout_figure(bg, polys, mask=mask, texel_mm=texel_fit), "flyouts", "Fly-outs")
+            fly["rows"] = [("fibres found", fmt.value(fdoc.get("count", len(polys))))]
+            if mask is not None:
+                fly["rows"].append(("texels on a fibre", fmt.percent(float((mask > 0.5).mean()))))
+
+    # -- propagation
+    prop: dict[str, Any] = {"note": "", "guidance": None, "maps": [], "rows": []}
+    st = stages.get("propagate")
+    if st is None or st.record is None:
+        prop["note"] = "No guidance image was given: the maps cover the micro field only."
+    elif st.skipped:
+        prop["note"] = f"Propagation was skipped: {st.skipped}."
+    else:
+        ps = st.summary
+        gt = ps.get("texel_mm")
+        guidance = _exr_any(run, "propagate/guidance.exr", writer="propagate stage", rgb=True)
+        prop["guidance"] = fig(plots.guidance_figure(guidance, ps.get("micro_box_px"), texel_mm=gt),
+                               "guidance", "Guidance image")
+        pmaps, pmeta = _maps(run, "propagate/maps", "propagate stage")
+        pt = pmeta.get("texel_mm") or gt
+        prop["maps"] = [fig(plots.map_figure(n, pmaps[n], pt, prefix="propagated "), f"propagated_{n}",
+                            "propagated " + plots.MAP_TITLES.get(n, n))
+                        for n in [n for n in MAP_ORDER if n in pmaps] + [n for n in pmaps if n not in MAP_ORDER]]
+        gh, gw = guidance.shape[:2]
+        prop["rows"] = [("guidance", str(ps.get("guidance", fmt.DASH))),
+                        ("guidance size", f"{gw} × {gh} px" + (f" ({fmt.size_mm([gw * gt, gh * gt])})" if gt else "")),
+                        ("guidance texel", fmt.length_mm(gt)),
+                        ("micro field in the guidance", _box_text(ps.get("micro_box_px"))),
+                        ("training time", fmt.duration(ps.get("train_seconds")))]
+        prop["rows"] += [(f"registration › {k}", v) for k, v in fmt.rows(ps.get("registration") or {})]
+
+    # -- export
+    exp: dict[str, Any] = {"note": "", "table": None}
+    st = stages.get("export")
+    if st is None or st.record is None:
+        exp["note"] = "The maps were not exported."
+    elif st.skipped:
+        exp["note"] = f"Export was skipped: {st.skipped}."
+    else:
+        files = [str(f) for f in (st.summary.get("files") or [])]
+        if not files:
+            exp["note"] = "The export stage wrote no files."
+        rows = []
+        for f in files:
+            p = next((c for c in (run / f, run / "export" / f) if c.is_file()), None)
+            rows.append([f, _size(p.stat().st_size) if p else "missing"])
+            if p is None:
+                note(f"export lists {f}, which is not in the run folder")
+        if rows:
+            exp["table"] = Table(["file", "size"], rows, {1})
+
+    # -- time per stage
+    timed = [s for s in stages.values() if s.record is not None]
+    timing = None
+    if timed:
+        timing = fig(plots.time_bars([s.name for s in timed], [s.seconds for s in timed]), "time_per_stage",
+                     "Time per stage")
+
+    headline = [
+        ("held-out SSIM", fmt.check(fit_sum.get("heldout_ssim"), ">", HELDOUT_SSIM_GOAL)),
+        ("held-out relative L1", fmt.percent(fit_sum.get("heldout_relative_l1"))),
+        ("maps", f"{len(names)} at {w} × {h}"),
+        ("texel", fmt.length_mm(texel_fit)),
+        ("total time", fmt.duration(sum(s.seconds or 0.0 for s in timed))),
+        ("warnings", fmt.number(len(all_warnings))),
+    ]
+    sections = [("warnings", "Warnings"), ("inputs", "Inputs and calibration"), ("selection", "Components"),
+                ("maps", "Maps"), ("residual", "Fit residual"), ("heldout", "Held-out lights"),
+                ("flyouts", "Fly-outs"), ("propagation", "Propagation"), ("export", "Export"),
+                ("time", "Time"), ("records", "Stage records")]
+    stage_warn = {name: s.warnings for name, s in stages.items()}
+    stage_warn["report"] = stage_warn.get("report", []) + report_notes
+    now = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    from dualscale import __version__
+
+    title_input = Path(str(run_doc.get("input", run.name))).name or run.name
+    return write_page(
+        out_dir / "index.html", "run.html",
+        title=f"dualscale run: {title_input}",
+        subtitle=f"{run.resolve()} · {len(order)} stages · report written {now}",
+        toc=sections, footer=f"dualscale {__version__} · written {now} · this folder is self-contained and opens offline",
+        headline=headline, warnings=all_warnings, stage_warn=stage_warn, inputs=inputs, selection=selection,
+        fit_rows=fit_rows, maps=map_figs, residual=res_fig, heldout=heldout, flyouts=fly, propagation=prop,
+        export=exp, timing=timing, records=[_stage_rows(stages[n]) for n in order],
+        timing_table=Table(["stage", "time"], [[s.name, fmt.duration(s.seconds)] for s in timed], {1}),
+    )
+
+
+def _box_text(box) -> str:
+    if not box or len(box) != 4:
+        return fmt.DASH
+    x, y, bw, bh = box
+    return f"{fmt.number(bw)} × {fmt.number(bh)} px at column {fmt.number(x)}, row {fmt.number(y)}"
+
+
+def _size(n: int) -> str:
+    for unit, k in (("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
+        if n >= k:
+            return fmt.quantity(n / k, unit)
+    return f"{n} B"
+
+
+__all__ = ["write_run_report", "HELDOUT_SSIM_GOAL"]

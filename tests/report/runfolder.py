@@ -1,0 +1,122 @@
+"""A small synthetic RUN folder written by the run-folder contract (32x32 maps), for the report tests."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+H = W = 32
+TEXEL_MM = 0.0049
+
+
+def _stage(root: Path, name: str, seconds: float, summary: dict, warnings=(), params=None, outputs=()):
+    doc = {"format": "dualscale-stage", "version": 1, "stage": name,
+           "inputs": {"captures": "9f2c" * 16}, "params": params or {},
+           "versions": {"dualscale": "0.1.0", "torch": "2.13.0", "numpy": "2.1.0"},
+           "seconds": seconds, "finished": "2026-12-01T14:03:27.123456+00:00",
+           "warnings": list(warnings), "outputs": list(outputs), "summary": summary}
+    (root / "stages").mkdir(parents=True, exist_ok=True)
+    (root / "stages" / f"{name}.json").write_text(json.dumps(doc, indent=1))
+
+
+def _maps(rng, h=H, w=W):
+    import torch
+
+    from dualscale.bsdf import MaterialMaps
+
+    yy, xx = np.mgrid[0:h, 0:w] / max(h, w)
+    albedo = np.dstack([0.6 * xx + 0.1, 0.3 + 0.2 * yy, 0.25 + 0.05 * rng.random((h, w))])
+    n = np.dstack([0.3 * np.sin(6 * xx), 0.2 * np.cos(5 * yy), np.ones((h, w))])
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    rough = (0.3 + 0.4 * yy + 0.01 * rng.random((h, w)))[..., None]
+    rough[0, 0] = 0.99  # one outlier: the colour scale must say it clips
+    t = torch.from_numpy
+    return MaterialMaps(albedo=t(albedo.astype(np.float32)), roughness=t(rough.astype(np.float32)),
+                        normal=t(n.astype(np.float32)),
+                        anisotropy=t((0.5 * xx)[..., None].astype(np.float32)),
+                        tangent=t(((xx + yy) % 1.0)[..., None].astype(np.float32)),
+                        ior=t(np.full((h, w, 1), 0.25, np.float32)),
+                        specular_tint=t(np.full((h, w, 1), 0.2, np.float32)))
+
+
+def make_run(root: Path, *, flyouts: bool = True, guidance: bool = True, seed: int = 0) -> Path:
+    """Write a complete RUN folder under ``root``; optional stages can be skipped."""
+    from dualscale.formats.exr import write_exr
+    from dualscale.formats.maps import save_maps
+
+    rng = np.random.default_rng(seed)
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    stages = ["calibrate", "fit", "flyouts", "propagate", "export", "report"]
+    (root / "run.json").write_text(json.dumps({
+        "format": "dualscale-run", "version": 1, "input": "/data/captures/twill_042",
+        "options": {"preset": "standard", "guidance": "/data/guidance/twill.exr" if guidance else None,
+                    "flyouts": flyouts, "shadow_ratio": 0.5},
+        "stages": stages}))
+    _stage(root, "calibrate", 4.2, {
+        "calibration": "/lab/rig.calib.json", "units_in": "normalised_dn", "units_out": "relative_radiance",
+        "colour_space_in": "camera_raw:Nikon 5100 (NPL)", "colour_space_out": "linear_rec709", "transfer": None,
+        "images": 254, "clipped_share": 0.0012345678901234, "texel_mm": TEXEL_MM, "field_mm": [W * TEXEL_MM, H * TEXEL_MM]},
+        warnings=["3 of 254 images have more than 1% saturated pixels in every bracket"])
+
+    maps = _maps(rng)
+    save_maps(root / "fit" / "maps", maps, meta={"texel_mm": TEXEL_MM})
+    (root / "fit" / "maps" / "fit.json").write_text(json.dumps({"selection": {
+        "method": "held-out validation", "margin": 0.02,
+        "transmittance": {"chosen": False, "overridden": False,
+                          "evidence": {"backlit_capture": True, "fraction_above_level": 0.0, "level": 0.02}},
+        "anisotropy": {"chosen": True, "overridden": False,
+                       "evidence": {"val_rmse_isotropic": 0.013912345678, "val_rmse_anisotropic": 0.00213456789,
+                                    "relative_gain": 0.846666666666}},
+        "validation": {"pixels": 512, "train_images": 190, "val_leds": list(range(0, 120, 5))},
+        "components": {"opaque": True, "isotropic": False, "tinted": True, "normal_mapped": True, "ior": 1.5},
+        "candidates": [
+            {"components": {"opaque": True, "isotropic": True, "tinted": False}, "validation_error": 0.0139123456789},
+            {"components": {"opaque": True, "isotropic": False, "tinted": True, "normal_mapped": True, "ior": 1.5},
+             "validation_error": 0.00151234567891, "seconds": 2.412345678}]}}))
+    write_exr(root / "fit" / "residual.exr", (0.02 + 0.05 * rng.random((H, W)) ** 6)[..., None], ["Y"])
+    lights = []
+    for led, d in ((7, [0.3, 0.2, 0.93]), (31, [-0.5, 0.4, 0.77]), (88, [0.1, -0.8, 0.59])):
+        cap = np.asarray(maps.albedo) * (0.5 + 0.5 * rng.random((H, W, 1)))
+        ren = cap * (1 + 0.05 * rng.standard_normal((H, W, 3)))
+        write_exr(root / "fit" / "heldout" / f"capture_{led}.exr", cap)
+        write_exr(root / "fit" / "heldout" / f"render_{led}.exr", ren)
+        lights.append({"led_id": led, "direction": d, "capture": f"capture_{led}.exr", "render": f"render_{led}.exr",
+                       "relative_l1": float(np.abs(ren - cap).mean() / cap.mean())})
+    (root / "fit" / "heldout" / "heldout.json").write_text(json.dumps({"lights": lights}))
+    _stage(root, "fit", 133.4, {"preset": "standard", "seconds": 133.4, "train_images": 190, "heldout_images": 3,
+                                "heldout_relative_l1": 0.04312345678901, "heldout_ssim": 0.9612345678901},
+           params={"preset": "standard", "iterations": 120, "selection": {"margin": 0.02, "pixels": 512}},
+           outputs=["fit/maps/albedo.exr", "fit/residual.exr"])
+
+    if flyouts:
+        mask = np.zeros((H, W, 1), np.float32)
+        poly = [[[2, 3], [10, 9], [20, 12]], [[25, 28], [30, 20]]]
+        for c, r in (p for line in poly for p in line):
+            mask[r, c] = 1
+        (root / "flyouts").mkdir(parents=True, exist_ok=True)
+        (root / "flyouts" / "flyouts.json").write_text(json.dumps({"count": 2, "polylines_px": poly}))
+        write_exr(root / "flyouts" / "flyout_mask.exr", mask, ["Y"])
+        _stage(root, "flyouts", 0.84, {"count": 2})
+    else:
+        _stage(root, "flyouts", 0.01, {"skipped": "the material has no fly-out fibres option (--no-flyouts)"})
+
+    if guidance:
+        g = np.dstack([np.linspace(0.05, 0.6, 96)[None, :].repeat(96, 0)] * 3) * np.array([1.0, 0.8, 0.6])
+        write_exr(root / "propagate" / "guidance.exr", g.astype(np.float32))
+        save_maps(root / "propagate" / "maps", _maps(rng, 96, 96), meta={"texel_mm": 0.05})
+        _stage(root, "propagate", 61.0, {"guidance": "/data/guidance/twill.exr", "texel_mm": 0.05,
+                                          "micro_box_px": [40, 30, 3.1, 3.1],
+                                          "registration": {"method": "phase correlation", "scale": 0.098123456,
+                                                           "residual_px": 0.4123456}, "train_seconds": 58.9},
+               warnings=["guidance image has no colour calibration; maps may be tinted"])
+    else:
+        _stage(root, "propagate", 0.0, {"skipped": "no guidance image given"})
+
+    (root / "export").mkdir(parents=True, exist_ok=True)
+    for n in ("albedo.exr", "normal.exr"):
+        (root / "export" / n).write_bytes((root / "fit" / "maps" / n).read_bytes())
+    _stage(root, "export", 0.31, {"files": ["export/albedo.exr", "export/normal.exr"]})
+    return root

@@ -1,0 +1,415 @@
+"""The HTML reports: the run report of ``dualscale digitize`` on a small synthetic RUN folder
+(tests/report/runfolder.py, written by the run-folder contract), the device-evaluation report on
+synthetic results, the shared number formatting and plots, and a headless-browser check that the
+page loads offline with no console error and no broken image."""
+
+from __future__ import annotations
+
+import functools
+import html.parser
+import http.server
+import json
+import re
+import shutil
+import subprocess
+import threading
+import time
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dualscale.report import format as fmt
+
+from .runfolder import make_run
+
+
+# ---------------------------------------------------------------------------------------------
+# helpers
+
+class _Page(html.parser.HTMLParser):
+    """Visible text (no <style>/<script>) and every <img src> of a page."""
+
+    def __init__(self):
+        super().__init__()
+        self.text: list[str] = []
+        self.imgs: list[str] = []
+        self.scripts = 0
+        self._skip = 0
+
+    def handle_starttag(self, tag, attrs):
+        if tag in ("style", "script"):
+            self._skip += 1
+            self.scripts += tag == "script"
+        if tag == "img":
+            self.imgs.append(dict(attrs).get("src", ""))
+
+    def handle_endtag(self, tag):
+        if tag in ("style", "script"):
+            self._skip -= 1
+
+    def handle_data(self, data):
+        if not self._skip and data.strip():
+            self.text.append(data.strip())
+
+
+def _parse(path: Path) -> tuple[str, _Page]:
+    p = _Page()
+    p.feed(path.read_text(encoding="utf-8"))
+    return " ".join(p.text), p
+
+
+def _assert_readable(text: str) -> None:
+    """No JSON dump, no Python repr, no float with a long tail of digits."""
+    assert "{" not in text and "}" not in text, re.findall(r".{30}[{}].{30}", text)[:3]
+    assert not re.search(r"\[\s*[-\d.'\"(]", text), re.findall(r".{30}\[\s*[-\d.'\"(].{30}", text)[:3]  # list repr
+    for bad in ("True", "False", "None", "nan"):
+        assert not re.search(rf"(?<![\w|]){re.escape(bad)}(?![\w|])", text), (bad, re.findall(rf".{{30}}{re.escape(bad)}.{{30}}", text)[:3])
+    long_floats = [x for x in re.findall(r"\d+\.\d+", text) if len(x.replace(".", "").lstrip("0")) > 6]
+    assert not long_floats, long_floats[:5]
+    long_numbers = [n for n in re.findall(r"\d[\d.]*", text) if sum(c.isdigit() for c in n) >= 10]
+    assert not long_numbers, long_numbers[:5]
+
+
+@pytest.fixture(scope="module")
+def run_report(tmp_path_factory):
+    from dualscale.report import write_run_report
+
+    run = make_run(tmp_path_factory.mktemp("report") / "RUN")
+    return run, write_run_report(run)
+
+
+# ---------------------------------------------------------------------------------------------
+# the run report
+
+def test_run_report_content(run_report):
+    run, page = run_report
+    assert page == run / "report" / "index.html"
+    text, p = _parse(page)
+    raw = page.read_text(encoding="utf-8")
+    _assert_readable(text)
+    # self-contained: no script, no external URL, every image in report/assets and present
+    assert p.scripts == 0 and "http://" not in raw and "https://" not in raw and "//" not in "".join(p.imgs)
+    assert len(p.imgs) >= 14
+    for src in p.imgs:
+        assert src.startswith("assets/"), src
+        assert (page.parent / src).is_file() and (page.parent / src).stat().st_size > 1000, src
+    assert not list(page.parent.glob(".*.tmp")), "temporary file left behind"
+    # units and goals beside the values
+    assert "0.961 (goal > 0.95)" in text and "✓" in text
+    for unit in ("4.9 µm", "0.157 × 0.157 mm", "4.31%", "0.123%", "2 min 13 s", "1 min 1 s", "θ 21.2°"):
+        assert unit in text, unit
+    # every warning listed at the top and in its stage
+    top = text.split("Inputs and calibration")[1]
+    assert "2 warnings" in text.split("Inputs and calibration")[0] or "2 warnings" in top.split("Run")[0]
+    for w in ("3 of 254 images have more than 1% saturated", "guidance image has no colour calibration"):
+        assert text.count(w) >= 3, w  # top list, its section, its stage record
+    # the sections
+    for s in ("Component decision", "Evidence per decision", "Candidates", "Fit residual",
+              "Renders under held-out lights", "Fly-outs", "Propagated maps on the guidance", "Time per stage",
+              "Stage records", "normalised_dn → relative_radiance", "val rmse isotropic: 0.0139"):
+        assert s in text, s
+    for name in ("albedo", "normal", "roughness", "anisotropy", "tangent azimuth", "index of refraction η",
+                 "specular tint", "propagated albedo"):
+        assert f"{name}." in text, name
+    assert "η = 1 + 2·(stored value)" in text and "Clipped:" in text
+    assert text.count("LED 7: θ") == 1 and "LED 88" in text
+
+
+def test_run_report_optional_stages_missing(tmp_path):
+    from dualscale.report import write_run_report
+
+    run = make_run(tmp_path / "RUN", flyouts=False, guidance=False)
+    shutil.rmtree(run / "export")
+    (run / "stages" / "export.json").unlink()
+    text, p = _parse(write_run_report(run))
+    _assert_readable(text)
+    assert "Fly-out detection was skipped: the material has no fly-out fibres option (--no-flyouts)." in text
+    assert "Propagation was skipped: no guidance image given." in text
+    assert "The maps were not exported." in text
+    assert re.search(r"export\s*: no record \(stage not run\)", text)
+    assert all((run / "report" / s).is_file() for s in p.imgs)
+
+
+def test_run_report_rerun_replaces_assets(run_report):
+    from dualscale.report import write_run_report
+
+    run, page = run_report
+    stale = page.parent / "assets" / "stale.png"
+    stale.write_bytes(b"x")
+    write_run_report(run)
+    assert not stale.exists()
+
+
+@pytest.mark.parametrize("missing", ["run.json", "stages/fit.json", "fit/residual.exr", "fit/maps/material.json",
+                                     "fit/heldout/heldout.json", "fit/heldout/render_31.exr"])
+def test_run_report_missing_required_artefact(tmp_path, missing):
+    from dualscale.errors import FormatError
+    from dualscale.report import write_run_report
+
+    run = make_run(tmp_path / "RUN", flyouts=False, guidance=False)
+    (run / missing).unlink()
+    with pytest.raises(FormatError, match=re.escape(Path(missing).name)):
+        write_run_report(run)
+    assert not (run / "report" / "index.html").exists()
+
+
+# ---------------------------------------------------------------------------------------------
+# formatting and plots
+
+def test_format_numbers_units_goals_durations():
+    assert fmt.number(0.4299999999999) == "0.43"
+    assert fmt.number(12345) == "12\u2009345" and fmt.number(1234567.0) == "1.23 × 10⁶"
+    assert fmt.number(0.000123) == "1.23 × 10⁻⁴" and fmt.number(None) == "—" and fmt.number(float("nan")) == "—"
+    assert str(fmt.check(0.43, "<", 0.5, "°")) == "0.43° (goal < 0.5°) ✓"
+    assert str(fmt.check(0.93, ">=", 0.95)) == "0.93 (goal ≥ 0.95) ✗"
+    assert [fmt.duration(s) for s in (0.42, 12.34, 133, 3725)] == ["0.42 s", "12.3 s", "2 min 13 s", "1 h 02 min"]
+    assert fmt.length_mm(0.0049) == "4.9 µm" and fmt.length_mm(2.5) == "2.5 mm" and fmt.percent(0.0431) == "4.31%"
+    assert fmt.value({"a": 0.123456789, "b": [1, 2], "c": None, "d": True}) == "a: 0.123; b: 1, 2; c: —; d: yes"
+    assert fmt.value(list(range(20))) == "20 values, 0 to 19"
+    assert fmt.timestamp("2026-12-01T14:03:27.123456+00:00") == "2026-12-01 14:03:27 UTC"
+
+
+def test_plots_label_units_and_do_not_overlap():
+    from dualscale.report import plots
+
+    rng = np.random.default_rng(1)
+    n = np.dstack([rng.normal(0, 0.2, (24, 24)), rng.normal(0, 0.2, (24, 24)), np.ones((24, 24))])
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    figs = [plots.map_figure(k, v, 0.005) for k, v in (("albedo", rng.random((24, 24, 3))), ("normal", n),
+                                                       ("roughness", rng.random((24, 24, 1))),
+                                                       ("tangent", rng.random((24, 24, 1))),
+                                                       ("ior", np.full((24, 24, 1), 0.25)))]
+    figs += [plots.residual_figure(rng.random((24, 24, 1)) ** 6),
+             plots.heldout_figure(rng.random((24, 24, 3)), rng.random((24, 24, 3)), title="LED 3", texel_mm=0.005),
+             plots.time_bars(["calibrate", "fit", "propagate"], [1.5, 133.0, None]),
+             plots.flyout_figure(rng.random((24, 24, 3)), [[[1, 2], [9, 9]]], mask=rng.random((24, 24)) > 0.9),
+             plots.guidance_figure(rng.random((40, 40, 3)) * 3, [4, 4, 8, 8], texel_mm=0.05)]
+    for f, cap in figs:
+        assert plots.overlapping_texts(f) == [], (cap, plots.overlapping_texts(f))
+        for ax in f.axes:
+            if ax.name == "rectilinear" and ax.images and ax.get_label() != "<colorbar>":
+                assert "[" in ax.get_xlabel() or "(" in ax.get_xlabel(), ax.get_xlabel()
+        assert "{" not in cap
+        plots._plt().close(f)
+    # a clipped colour scale says so, and how much
+    r = plots.robust_range(np.r_[np.zeros(999), 100.0])
+    assert r.vmax < 100 and "0.1%" in plots.clip_note(r) and r.extend == "max"
+
+
+def test_hemisphere_scale_covers_the_data():
+    from dualscale.report import plots
+
+    before = [3.0, 8.0, 25.0, 14.0]
+    f, cap, norm = plots.hemisphere_figure([("before", [10, 40, 70, 20], [0, 90, 200, 300], before, 31.0),
+                                            ("after", [10, 40, 70, 20], [0, 90, 200, 300], [1, 2, 3, 1.5], 1.0)],
+                                           label="mean ΔE00", goal=3.0)
+    assert norm.vmax >= 31.0 and norm.vmin <= 0 and "no point is capped" in cap
+    assert plots.overlapping_texts(f) == []
+    _, _, lognorm = plots.hemisphere_figure([("x", [10, 20, 30], [0, 1, 2], [0.01, 1, 500], None)], label="v")
+    assert lognorm.vmax >= 500 and lognorm.vmin <= 0.01
+
+
+def test_write_atomic_leaves_nothing_on_error(tmp_path):
+    from dualscale.report.html import render, write_atomic
+
+    target = write_atomic(tmp_path / "a.html", "old")
+
+    class Boom(str):
+        def encode(self, *a, **k):
+            raise RuntimeError("boom")
+
+    with pytest.raises(RuntimeError):
+        write_atomic(target, Boom("new"))
+    assert target.read_text() == "old" and [p.name for p in tmp_path.iterdir()] == ["a.html"]
+    # autoescape is on
+    page = render("base.html", title="<script>x</script>", subtitle="", toc=[], footer="")
+    assert "<script>x" not in page and "&lt;script&gt;" in page
+
+
+# ---------------------------------------------------------------------------------------------
+# the device-evaluation report
+
+def _device_results(seed=0):
+    rng = np.random.default_rng(seed)
+    leds = [f"led{i:03d}" for i in range(0, 127, 16)]
+    colour = {cam: {l: {"before": list(rng.gamma(4, b / 4, 24)), "after": list(rng.gamma(4, a / 4, 24))}
+                    for l in leds + ["diffuse"]} for cam, b, a in (("micro", 8, 1.6), ("mid", 15, 3.3))}
+    res = {"colour": colour,
+           "sharpness": {"centres": [[x, y] for x in range(8, 40, 12) for y in range(8, 40, 12)],
+                         "values": list(rng.uniform(0.5, 0.95, 9))},
+           "polarization": {"leds": [{"led": int(l[3:]), "angles_deg": list(range(0, 180, 10)),
+                                      "intensity": list(1 + 0.5 * np.cos(np.radians(2 * (np.arange(0, 180, 10) - 3)))),
+                                      "error_deg": 3.0 + 0.01 * i} for i, l in enumerate(leds)]},
+           "collimation": {l: float(rng.uniform(0.01, 0.04)) for l in leds},
+           "summary": {"micro_mean_dE00": {"before": 7.934567891234, "after": 1.6412345678},
+                       "mid_mean_dE00": {"before": 14.83456789, "after": 3.2712345},
+                       "sharpness_mean": 0.7512345678,
+                       "polarization_error_deg": {"mean_abs": 3.0012345, "max_abs": 3.0412345678,
+                                                  "analyzer_misalignment": -3.00123456},
+                       "collimation_std_max": 0.0398765432}}
+    calib = {"rig": {"id": "virtual-dome-0", "layout": "dome127"}, "created": "2026-11-30T10:00:00Z",
+             "ccm": {"micro": {"led": {"mean_delta_e2000": {
+                 "before": {"fit": 7.481234, "held_out": 9.351234}, "least_squares": {"fit": 1.68, "held_out": 2.64},
+                 "ciede2000": {"fit": 1.43, "held_out": 2.0712345}}}}}}
+    return res, calib
+
+
+def test_device_report_summary_and_hemisphere_scale(tmp_path):
+    from dualscale.calib.report import write_report
+
+    res, calib = _device_results()
+    page = write_report(tmp_path / "rep", res, calib)
+    assert page.name == "report.html"
+    for name in ("colour_hemisphere", "colour_boxplots", "sharpness_map", "polarization", "collimation"):
+        assert (page.parent / f"{name}.png").is_file() and (page.parent / f"{name}.svg").is_file()
+    text, p = _parse(page)
+    _assert_readable(text)
+    summary = text.split("Summary", 2)[-1].split("Colour correction matrices")[0]
+    assert "micro: mean ΔE00 after the CCM 1.64 (goal < 3) ✓" in summary
+    assert "mid: mean ΔE00 after the CCM 3.27 (goal < 3) ✗" in summary
+    assert "3.04° (goal < 12°) ✓" in summary and "0.0399 (goal < 0.15) ✓" in summary
+    assert "2.07 (goal < 3) ✓" in text and "7.48 / 9.35" in text
+    # the colour scale of the hemisphere reaches the largest per-light mean (no cap at ΔE 10)
+    data_max = max(float(np.mean(d[s])) for cam in res["colour"].values() for d in cam.values() for s in d)
+    m = re.search(r"One colour scale for all panels, (\S+) to (\S+) = the data's full range", text)
+    assert m, text[:400]
+    assert float(m.group(2)) >= round(data_max, 1) - 0.05 and data_max > 10
+    assert all((page.parent / s).is_file() for s in p.imgs)
+
+
+def test_device_report_without_optional_parts(tmp_path):
+    from dualscale.calib.report import write_report
+
+    res, calib = _device_results()
+    res = {"colour": res["colour"], "summary": {}}
+    text, _ = _parse(write_report(tmp_path / "rep", res, {}))
+    _assert_readable(text)
+    assert "No dot-grid capture in this session" in text and "holds no colour correction matrix" in text
+
+
+# ---------------------------------------------------------------------------------------------
+# headless browser (Chrome DevTools Protocol)
+
+def _chromium() -> str | None:
+    for name in ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable"):
+        if shutil.which(name):
+            return shutil.which(name)
+    return None
+
+
+class _Quiet(http.server.SimpleHTTPRequestHandler):
+    def log_message(self, *args):  # keep pytest output clean
+        pass
+
+
+class _Cdp:
+    """A minimal DevTools Protocol client over one page's websocket."""
+
+    def __init__(self, ws_url: str, timeout: float):
+        import websocket
+
+        self.ws = websocket.create_connection(ws_url, timeout=timeout, suppress_origin=True)
+        self.events: list[dict] = []
+        self._id = 0
+
+    def send(self, method: str, params: dict | None = None, deadline: float | None = None) -> dict:
+        self._id += 1
+        self.ws.send(json.dumps({"id": self._id, "method": method, "params": params or {}}))
+        while True:
+            if deadline and time.monotonic() > deadline:
+                raise TimeoutError(method)
+            msg = json.loads(self.ws.recv())
+            if msg.get("id") == self._id:
+                if "error" in msg:
+                    raise RuntimeError(f"{method}: {msg['error']}")
+                return msg.get("result", {})
+            self.events.append(msg)
+
+    def wait_event(self, method: str, deadline: float) -> dict:
+        for e in self.events:
+            if e.get("method") == method:
+                return e
+        while time.monotonic() < deadline:
+            msg = json.loads(self.ws.recv())
+            self.events.append(msg)
+            if msg.get("method") == method:
+                return msg
+        raise TimeoutError(method)
+
+
+def test_report_loads_in_headless_browser(run_report, tmp_path):
+    """The page served on 127.0.0.1 loads in headless Chromium with no console error, no failed
+    or external request, every image decoded (naturalWidth > 0) and no horizontal overflow."""
+    exe = _chromium()
+    if exe is None:
+        pytest.skip("no chromium binary on PATH (Debian: apt-get install chromium; `make deps` installs it)")
+    pytest.importorskip("websocket", reason="websocket-client is not installed (pip install -e '.[dev]')")
+    run, page = run_report
+    handler = functools.partial(_Quiet, directory=str(page.parent))
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    base = f"http://127.0.0.1:{server.server_address[1]}/"
+    profile = tmp_path / "profile"
+    proc = subprocess.Popen([exe, "--headless=new", "--no-sandbox", "--disable-gpu", "--no-first-run",
+                             "--disable-extensions", "--disable-background-networking", "--disable-sync",
+                             "--remote-debugging-port=0", "--remote-debugging-address=127.0.0.1",
+                             f"--user-data-dir={profile}", "--window-size=1280,900", "about:blank"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 25
+    cdp = None
+    try:
+        port_file = profile / "DevToolsActivePort"
+        while not (port_file.is_file() and port_file.read_text().strip()):
+            assert proc.poll() is None, f"chromium exited with {proc.returncode}"
+            assert time.monotonic() < deadline, "chromium did not open its DevTools port"
+            time.sleep(0.1)
+        port = int(port_file.read_text().split()[0])
+        targets = []
+        while not targets:
+            assert time.monotonic() < deadline, "no page target"
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=5) as r:
+                targets = [t for t in json.load(r) if t.get("type") == "page"]
+            time.sleep(0.05)
+        cdp = _Cdp(targets[0]["webSocketDebuggerUrl"], timeout=10)
+        for domain in ("Page", "Runtime", "Log", "Network"):
+            cdp.send(f"{domain}.enable", deadline=deadline)
+        cdp.send("Page.navigate", {"url": base + "index.html"}, deadline=deadline)
+        cdp.wait_event("Page.loadEventFired", deadline)
+        state = cdp.send("Runtime.evaluate", {"returnByValue": True, "expression": """(() => ({
+            images: Array.from(document.images).map(i => [i.getAttribute('src'), i.complete, i.naturalWidth]),
+            overflow: document.documentElement.scrollWidth - window.innerWidth,
+            title: document.title}))()"""}, deadline=deadline)["result"]["value"]
+    finally:
+        if cdp is not None:
+            cdp.ws.close()
+        proc.terminate()
+        try:
+            proc.wait(5)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+        server.shutdown()
+        server.server_close()
+    ev = cdp.events
+    errors = [e["params"] for e in ev if e.get("method") == "Runtime.exceptionThrown"]
+    errors += [e["params"] for e in ev if e.get("method") == "Runtime.consoleAPICalled"
+               and e["params"].get("type") in ("error", "assert")]
+    errors += [e["params"]["entry"] for e in ev if e.get("method") == "Log.entryAdded"
+               and e["params"]["entry"].get("level") == "error"]
+    assert not errors, errors[:3]
+    failed = [e["params"] for e in ev if e.get("method") == "Network.loadingFailed"]
+    assert not failed, failed[:3]
+    bad_status = [(e["params"]["response"]["url"], e["params"]["response"]["status"]) for e in ev
+                  if e.get("method") == "Network.responseReceived" and e["params"]["response"]["status"] >= 400]
+    assert not bad_status, bad_status
+    requested = [e["params"]["request"]["url"] for e in ev if e.get("method") == "Network.requestWillBeSent"]
+    external = [u for u in requested if not (u.startswith(base) or u.startswith("data:"))]
+    assert not external, external
+    assert state["title"].startswith("dualscale run")
+    imgs = state["images"]
+    assert len(imgs) >= 14
+    broken = [src for src, complete, width in imgs if not complete or width == 0]
+    assert not broken, broken
+    assert state["overflow"] <= 0, f"page is {state['overflow']} px wider than the window"
