@@ -12,9 +12,10 @@ FUZZ_SECONDS ?= 20
 
 # Debian packages: ARM toolchain + newlib, QEMU, an independent Modbus peer (mbpoll),
 # C test framework (cmocka), clang + its runtime for libFuzzer, the GL/GLib runtime OpenCV's
-# wheel loads.
+# wheel loads, headless Chromium for the HTML report's browser test (skipped when absent).
 APT_PKGS := gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm mbpoll libmodbus-dev \
-            libcmocka-dev clang libclang-rt-14-dev make gcc g++ python3-venv libgl1 libglib2.0-0
+            libcmocka-dev clang libclang-rt-14-dev make gcc g++ python3-venv libgl1 libglib2.0-0 \
+            chromium
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
 .PHONY: all deps apt venv gen gen-check firmware sim test test-fast test-slow demo bench fuzz fuzz-long clean
