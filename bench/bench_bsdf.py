@@ -23,7 +23,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "host"))
 
 from dualscale import bsdf as B  # noqa: E402
-from dualscale.dome.geometry import led_directions  # noqa: E402
+from dualscale.geometry.dome import led_directions  # noqa: E402
 
 
 def make_leaves(size: int, dtype: torch.dtype) -> dict[str, torch.Tensor]:

@@ -30,14 +30,14 @@ from pathlib import Path
 import torch
 
 from dualscale.cli import main as cli_main
-from dualscale.dome.cameras import micro_camera
-from dualscale.dome.render import Analyzer, LightState, render
+from dualscale.geometry.cameras import micro_camera
+from dualscale.sim.render import Analyzer, LightState, render
 from dualscale.fit.core import fit_observations, split_holdout
 from dualscale.fit.metrics import map_errors
 from dualscale.fit.observations import load_observations
 from dualscale.fit.presets import PRESETS, Preset
 from dualscale.fit.select import select_components
-from dualscale.materials.io import load_maps
+from dualscale.formats.maps import load_maps
 
 CLASSES = {"plain": "woven", "twill": "woven", "satin": "woven", "denim": "woven (dark warp)", "rib_knit": "knit",
            "leather": "leather", "sheer": "sheer (extreme)", "brick": "photo surface", "grass": "photo surface",
@@ -63,7 +63,7 @@ def add_noise(obs, size: int, texel_um: float, headroom: float = 0.9):
     each image gets the exposure that puts its brightest pixel at ``headroom`` of full well,
     then shot and read noise, saturation and 12-bit quantisation (no spectral response or
     vignetting, so the ground truth stays in the same colour space); back to relative radiance."""
-    from dualscale.dome.sensor import SensorModel, capture, radiance_per_dn
+    from dualscale.sim.sensor import SensorModel, capture, radiance_per_dn
 
     base = SensorModel(shot_noise=True, read_noise=True, saturate=True, quantize=True)
     cam = micro_camera(size, texel_um)

@@ -33,16 +33,16 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_fit import add_noise  # noqa: E402
 
-from dualscale.dome.testbed import flyout_views  # noqa: E402
+from dualscale.sim.testbed import flyout_views  # noqa: E402
 from dualscale.fit.flyouts import confidence_map, detect, score  # noqa: E402
 from dualscale.fit.observations import Observations  # noqa: E402
-from dualscale.materials import generate  # noqa: E402
+from dualscale.sim.materials import generate  # noqa: E402
 
 FABRICS = "plain,twill,satin,denim,rib_knit,sheer"
 
 
 def observations(mat, size: int, texel_um: float, shadows: bool, seed: int) -> Observations:
-    obs = flyout_views(mat, texel_um, shadows)
+    obs = Observations.relative_p0(*flyout_views(mat, texel_um, shadows), pixel_mm=texel_um / 1000)
     torch.manual_seed(seed)
     add_noise(obs, size, texel_um)
     return obs

@@ -40,11 +40,11 @@ def load() -> str:
 
 
 def prep(work: Path) -> None:
-    from dualscale.dome.cameras import micro_camera
-    from dualscale.dome.exr import write_exr
-    from dualscale.dome.render import LightState, render
-    from dualscale.materials import generate
-    from dualscale.materials.io import save_maps
+    from dualscale.geometry.cameras import micro_camera
+    from dualscale.formats.exr import write_exr
+    from dualscale.sim.render import LightState, render
+    from dualscale.sim.materials import generate
+    from dualscale.formats.maps import save_maps
 
     for m in (EVAL, *WARM_MATERIALS):
         if not (work / m / "micro" / "manifest.json").is_file():
@@ -59,7 +59,7 @@ def prep(work: Path) -> None:
 
 
 def scores(work: Path, model: Path, out: Path, tile: int = 256, overlap: int = 64) -> dict:
-    from dualscale.materials.io import load_maps
+    from dualscale.formats.maps import load_maps
     from dualscale.propagate.export import export_model, onnx_paths
     from dualscale.propagate.infer import OnnxModel, run_tiled
     from dualscale.propagate.metrics import compare
@@ -90,7 +90,7 @@ def stage_warm(work: Path, repo: Path, iterations: int, batch: int) -> None:
     t = time.perf_counter()
     r = train(srcs, preset_with("fast", iterations=iterations, batch=batch), work / "warm_full.dsp",
               TrainOptions(width=16, progress=False), half_file=False)
-    from dualscale.propagate.io import save_model
+    from dualscale.propagate.model import save_model
     from dualscale.propagate.train import input_reference
 
     save_model(out, r.model, input_reference(srcs), {"materials": list(WARM_MATERIALS), "iterations": iterations,
@@ -134,7 +134,7 @@ def stage_parity(work: Path) -> None:
 
 def stage_seams(work: Path, tile: int = 128) -> None:
     """Error within 4 px of inner tile borders vs elsewhere, blended vs naive (no overlap)."""
-    from dualscale.materials.io import load_maps
+    from dualscale.formats.maps import load_maps
     from dualscale.propagate.export import onnx_paths
     from dualscale.propagate.infer import OnnxModel, run_tiled, tile_positions
 
@@ -162,7 +162,7 @@ def stage_seams(work: Path, tile: int = 128) -> None:
 
 
 def stage_big(work: Path, size: int = 4072) -> None:
-    from dualscale.dome.exr import read_exr, write_exr
+    from dualscale.formats.exr import read_exr, write_exr
     from dualscale.propagate.export import onnx_paths
 
     big = work / f"guidance_{size}.exr"

@@ -24,7 +24,7 @@ from dualscale.protocol.crc import rtu_frame
 from dualscale.rig.client import STEPS_PER_WRITE, RigClient
 from dualscale.rig.demo import measure_rtt as client_rtt, run_demo
 from dualscale.rig.sequence import Step, schedule
-from dualscale.rig.sim import SimulatedRig, firmware_elf
+from dualscale.rig.launcher import SimulatedRig, firmware_elf
 
 REPEATS = 5
 N_RTT = 300

@@ -8,11 +8,11 @@ import pytest
 import torch
 
 from dualscale.bsdf import MaterialMaps, evaluate
-from dualscale.dome.cameras import micro_camera, mid_camera, polar_camera, rig_cameras
-from dualscale.dome.dataset import DatasetWriter, read_dataset
-from dualscale.dome.geometry import DomeGeometry, led_directions, polarizer_axis
-from dualscale.dome.render import Analyzer, LightRealism, LightState, render
-from dualscale.dome.sensor import SensorModel, capture, spectral_matrix
+from dualscale.geometry.cameras import micro_camera, mid_camera, polar_camera, rig_cameras
+from dualscale.formats.dataset import DatasetWriter, read_dataset
+from dualscale.geometry.dome import DomeGeometry, led_directions, polarizer_axis
+from dualscale.sim.render import Analyzer, LightRealism, LightState, render
+from dualscale.sim.sensor import SensorModel, capture, spectral_matrix
 from dualscale.protocol import regmap
 
 D64 = torch.float64

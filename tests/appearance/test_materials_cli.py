@@ -8,9 +8,10 @@ import torch
 
 from dualscale import cli
 from dualscale.bsdf import evaluate, validate_maps
-from dualscale.dome.dataset import read_dataset
-from dualscale.materials import MATERIALS, generate
-from dualscale.materials.io import load_maps, save_material
+from dualscale.formats.dataset import read_dataset
+from dualscale.sim.materials import MATERIALS, generate
+from dualscale.formats.maps import load_maps
+from dualscale.sim.materials.io import save_material
 
 
 @pytest.mark.parametrize("name", sorted(MATERIALS))
@@ -60,7 +61,7 @@ def test_load_maps_errors(tmp_path):
         load_maps(tmp_path)
     mat = generate("leather", 16)
     save_material(tmp_path, mat, previews=False)
-    from dualscale.dome.exr import write_exr
+    from dualscale.formats.exr import write_exr
     write_exr(tmp_path / "roughness.exr", np.zeros((8, 8), np.float32))
     with pytest.raises(ValueError, match="roughness"):
         load_maps(tmp_path)

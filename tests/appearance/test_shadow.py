@@ -1,4 +1,4 @@
-"""Cast shadows of the relief and of raised fly-out fibres (dualscale.dome.shadow)."""
+"""Cast shadows of the relief and of raised fly-out fibres (dualscale.sim.shadow)."""
 
 import math
 
@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 import torch
 
-from dualscale.dome.cameras import micro_camera
-from dualscale.dome.geometry import DomeGeometry
-from dualscale.dome.render import Analyzer, LightRealism, LightState, render
-from dualscale.dome.shadow import SurfaceGeometry, visibility
-from dualscale.materials import generate
+from dualscale.geometry.cameras import micro_camera
+from dualscale.geometry.dome import DomeGeometry
+from dualscale.sim.render import Analyzer, LightRealism, LightState, render
+from dualscale.sim.shadow import SurfaceGeometry, visibility
+from dualscale.sim.materials import generate
 
 TEXEL = 0.01  # mm
 
@@ -104,7 +104,7 @@ def test_flyout_geometry():
 
 
 def test_geometry_roundtrips_through_exr(tmp_path):
-    from dualscale.dome.shadow import load_geometry, save_geometry
+    from dualscale.formats.relief import load_geometry, save_geometry
 
     g = generate("twill", 48, 0.0045, seed=0).geometry
     assert g.fibre_mask is not None and g.fibre_mask.any()
@@ -117,7 +117,7 @@ def test_geometry_roundtrips_through_exr(tmp_path):
         assert np.allclose(a, b, rtol=1e-6, atol=1e-9)  # float32 on disk
     d = _dir(10.0, 30.0)
     assert torch.equal(visibility(back, d), visibility(g, d))
-    from dualscale.dome.exr import write_exr
+    from dualscale.formats.exr import write_exr
 
     write_exr(tmp_path / "bad.exr", np.zeros((4, 4, 4)), ("height", "fibre_mask", "fibre_axis", "fibre_top"))
     with pytest.raises(ValueError, match="not a dualscale geometry file"):
@@ -128,7 +128,7 @@ def test_geometry_roundtrips_through_exr(tmp_path):
 
 def test_render_cli_casts_the_saved_shadows(tmp_path, capsys):
     from dualscale.cli import main
-    from dualscale.dome.exr import read_exr
+    from dualscale.formats.exr import read_exr
 
     maps = tmp_path / "t" / "maps"
     assert main(["synth", "twill", "-o", str(tmp_path / "t"), "--size", "48", "--texel-um", "4.5",

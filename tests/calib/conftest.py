@@ -4,7 +4,7 @@ import pytest
 @pytest.fixture(scope="session")
 def session_dir(tmp_path_factory):
     """A small synthetic session (4 LEDs, diffuse, back light) with a 3 deg analyser offset."""
-    from dualscale.calib.targets import Defects, SynthConfig, write_session
+    from dualscale.sim.targets import Defects, SynthConfig, write_session
 
     root = tmp_path_factory.mktemp("calib") / "captures"
     truth = write_session(root, SynthConfig(led_step=32), Defects(analyzer_offset_deg=3.0),
@@ -14,7 +14,7 @@ def session_dir(tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def calibration(session_dir):
-    from dualscale.calib.captures import read_captures
+    from dualscale.formats.captures import read_captures
     from dualscale.calib.pipeline import calibrate
 
     return calibrate(read_captures(session_dir[0]))

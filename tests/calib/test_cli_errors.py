@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from dualscale.cli import main
-from dualscale.dome.exr import read_exr, write_exr
+from dualscale.formats.exr import read_exr, write_exr
 
 
 def _copy(session_dir, tmp_path):
@@ -57,7 +57,7 @@ def test_mismatched_sizes(session_dir, tmp_path, capsys):
 
 
 def test_calibration_from_another_rig(session_dir, calibration, tmp_path, capsys):
-    from dualscale.calib.calfile import write_calibration
+    from dualscale.formats.calibration import write_calibration
 
     other = tmp_path / "other.json"
     write_calibration(other, {**calibration, "rig": {"id": "another-rig", "layout": calibration["rig"]["layout"]}})

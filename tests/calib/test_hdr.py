@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from dualscale.calib.errors import ImageSizeError, MissingBracketsError, SaturatedError
+from dualscale.errors import ImageSizeError, MissingBracketsError, SaturatedError
 from dualscale.calib.hdr import merge_debevec, plan_brackets, recover_response
 
 

@@ -3,7 +3,7 @@ import pytest
 
 from dualscale.calib import colourref as cr
 from dualscale.calib import evaluate as ev
-from dualscale.calib.captures import read_captures
+from dualscale.formats.captures import read_captures
 from dualscale.calib.pipeline import session_with
 
 

@@ -4,8 +4,8 @@ import pytest
 from dualscale.calib import colourref as cr
 from dualscale.calib import evaluate as ev
 from dualscale.calib.chart import ChartLayout, detect_chart, sample_patches
-from dualscale.calib.errors import ChartNotFoundError
-from dualscale.calib.targets import Defects, dot_albedo, dot_grid_truth
+from dualscale.errors import ChartNotFoundError
+from dualscale.sim.targets import Defects, dot_albedo, dot_grid_truth
 
 
 def test_sharpness_recovers_injected_blur():

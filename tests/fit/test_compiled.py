@@ -10,7 +10,7 @@ from dualscale.fit.metrics import map_errors
 from dualscale.fit.observations import load_observations
 from dualscale.fit.params import fit_components
 from dualscale.fit.presets import PRESETS, Preset
-from dualscale.materials.io import load_maps
+from dualscale.formats.maps import load_maps
 
 TWILL = fit_components(opaque=True, isotropic=False, tinted=True)
 
@@ -42,7 +42,7 @@ def test_compiled_preset_settings():
 def test_failed_compile_falls_back_to_eager_with_a_warning(monkeypatch):
     import dualscale.bsdf.model as model
     from dualscale.bsdf import evaluate
-    from dualscale.materials import generate
+    from dualscale.sim.materials import generate
 
     def broken(fn, **kw):
         def run(*a, **k):

@@ -19,7 +19,7 @@ from dualscale.fit.optimize import l1_loss
 from dualscale.fit.params import fit_components, pack, param_names
 from dualscale.fit.presets import PRESETS, Preset
 from dualscale.fit.pyramid import downsample, upsample_params
-from dualscale.materials.io import load_maps
+from dualscale.formats.maps import load_maps
 
 TWILL = fit_components(opaque=True, isotropic=False, tinted=True)
 SHEER = fit_components(opaque=False, isotropic=False, tinted=True)

@@ -54,7 +54,7 @@ def test_normal_angle_and_map_errors():
     a = torch.tensor([[0.0, 0.0, 1.0]])
     b = torch.tensor([[math.sin(math.radians(3)), 0.0, math.cos(math.radians(3))]])
     assert float(normal_angle_deg(a, b)) == pytest.approx(3.0, abs=1e-5)
-    from dualscale.materials import generate
+    from dualscale.sim.materials import generate
 
     gt = generate("twill", 16, 0.009).maps
     e = map_errors(gt, gt)
@@ -64,7 +64,7 @@ def test_normal_angle_and_map_errors():
 
 
 def test_albedo_opacity_error_sees_only_the_reflected_product():
-    from dualscale.materials import generate
+    from dualscale.sim.materials import generate
 
     gt = generate("sheer", 16, 0.009).maps
     gt.opacity = torch.where(gt.opacity > 0.5, 0.9, 0.0)

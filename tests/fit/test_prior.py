@@ -15,7 +15,7 @@ from dualscale.fit.observations import load_observations
 from dualscale.fit.params import fit_components, pack, param_names
 from dualscale.fit.presets import PRESETS, Preset
 from dualscale.fit.render import render_leds
-from dualscale.materials.io import load_maps
+from dualscale.formats.maps import load_maps
 
 TWILL = fit_components(opaque=True, isotropic=False, tinted=True)
 NAMES = param_names(TWILL)

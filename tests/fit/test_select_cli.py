@@ -6,12 +6,12 @@ import pytest
 import torch
 
 from dualscale.cli import main
-from dualscale.dome.cameras import micro_camera
-from dualscale.dome.render import Analyzer, LightState, render
+from dualscale.geometry.cameras import micro_camera
+from dualscale.sim.render import Analyzer, LightState, render
 from dualscale.fit.io import read_fit_attributes
 from dualscale.fit.observations import load_observations
 from dualscale.fit.select import select_components
-from dualscale.materials.io import load_maps
+from dualscale.formats.maps import load_maps
 
 
 def _with_backlight(root):
@@ -48,7 +48,8 @@ def test_override_is_recorded(datasets):
 
 def test_cli_fit_writes_exr_with_metadata(datasets, tmp_path, capsys):
     out = tmp_path / "maps"
-    rc = main(["fit", str(datasets("twill")), "-o", str(out), "--preset", "draft", "--no-previews"])
+    rc = main(["fit", str(datasets("twill")), "-o", str(out), "--preset", "draft", "--no-previews",
+               "--gt", str(datasets("twill") / "maps")])
     assert rc == 0
     attrs = read_fit_attributes(out / "albedo.exr")
     assert attrs["preset"] == "draft" and attrs["iterations"] == "11"
@@ -62,6 +63,17 @@ def test_cli_fit_writes_exr_with_metadata(datasets, tmp_path, capsys):
     assert maps.anisotropy is not None and maps.normal is not None
     assert not (out / "checkpoint.pt").exists()
     assert "vs ground truth" in capsys.readouterr().out
+    assert meta["texel_mm"] == pytest.approx(0.009) and meta["field_mm"] == pytest.approx([0.144, 0.144])
+
+
+def test_fit_takes_no_ground_truth_it_was_not_given(datasets, tmp_path):
+    """A material.json beside the dataset (here the synth ground truth, and a first fit's
+    output put there) is never taken as ground truth: evaluation needs an explicit --gt."""
+    ds = datasets("twill")
+    args = ["fit", str(ds), "--preset", "draft", "--no-previews", "--holdout-every", "0"]
+    assert main(args + ["-o", str(ds / "fit1")]) == 0
+    assert main(args + ["-o", str(tmp_path / "fit2")]) == 0
+    assert "ground_truth" not in json.loads((tmp_path / "fit2" / "fit.json").read_text())
 
 
 def test_cli_fit_override_and_resume(datasets, tmp_path):

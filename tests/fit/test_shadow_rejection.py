@@ -12,7 +12,7 @@ from dualscale.fit.metrics import map_errors
 from dualscale.fit.observations import Observations, load_observations
 from dualscale.fit.params import fit_components
 from dualscale.fit.presets import PRESETS, Preset
-from dualscale.materials.io import load_maps
+from dualscale.formats.maps import load_maps
 
 TWILL = fit_components(opaque=True, isotropic=False, tinted=True)
 

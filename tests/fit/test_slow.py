@@ -8,7 +8,7 @@ from dualscale.fit.observations import load_observations
 from dualscale.fit.presets import PRESETS
 from dualscale.fit.select import select_components
 from dualscale.fit.study import builtin_subsets, study_observations
-from dualscale.materials.io import load_maps
+from dualscale.formats.maps import load_maps
 
 pytestmark = pytest.mark.slow
 

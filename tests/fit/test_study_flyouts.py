@@ -18,7 +18,7 @@ from dualscale.fit.study import SUBSETS, parse_subset, recommend
 def test_subset_definitions_on_our_dome():
     sizes = {k: len(f()) for k, f in SUBSETS.items()}
     assert sizes == {"ALL": 127, "MOD2": 64, "MOD3": 43, "ROW2+4": 19, "ROW2+5": 22, "MINIMAL": 8}
-    from dualscale.dome.geometry import ring_layout
+    from dualscale.geometry.dome import ring_layout
 
     rows = {i: r for i, (r, _, _) in enumerate(ring_layout())}
     assert {rows[i] for i in SUBSETS["ROW2+4"]()} == {0, 2, 4}
@@ -40,7 +40,8 @@ def test_recommendation_prefers_fewest_lights_within_tolerance():
 def test_cli_study_lights(datasets, tmp_path, capsys):
     out = tmp_path / "study"
     rc = main(["study", "lights", str(datasets("leather", 12)), "-o", str(out), "--preset", "draft",
-               "--only", "ALL", "MINIMAL", "mine", "--subset", "mine=1-20"])
+               "--only", "ALL", "MINIMAL", "mine", "--subset", "mine=1-20",
+               "--gt", str(datasets("leather", 12) / "maps")])
     assert rc == 0
     rep = json.loads((out / "study.json").read_text())
     assert [r["subset"] for r in rep["rows"]] == ["ALL", "MINIMAL", "mine"]
@@ -114,7 +115,7 @@ def test_confidence_is_grazing_minus_orthogonal_in_specular_mode():
 def test_cli_flyouts_end_to_end(datasets, tmp_path):
     root = datasets("twill", 48)
     out = tmp_path / "fo"
-    assert main(["flyouts", str(root), "-o", str(out), "--tangent", str(root / "maps")]) == 0
+    assert main(["flyouts", str(root), "-o", str(out), "--tangent", str(root / "maps"), "--gt", str(root / "maps")]) == 0
     rep = json.loads((out / "flyouts.json").read_text())
     assert {"precision", "recall"} <= set(rep["score"]) and rep["min_length_px"] == pytest.approx(30.0)
     assert (out / "flyouts.svg").read_text().startswith("<svg") and (out / "flyout_mask.exr").is_file()
@@ -125,11 +126,11 @@ def test_cli_flyouts_end_to_end(datasets, tmp_path):
 def test_flyouts_found_on_shadowed_test_bed(material):
     """At the paper's 1.8 um pixels, with cast shadows and raised fibres, the detector finds
     the true fly-outs (chance level here is a precision of about 0.03)."""
-    from dualscale.dome.testbed import flyout_views
-    from dualscale.materials import generate
+    from dualscale.sim.testbed import flyout_views
+    from dualscale.sim.materials import generate
 
     mat = generate(material, 320, 0.0018, seed=0)
-    conf = confidence_map(flyout_views(mat, 1.8))
+    conf = confidence_map(Observations.relative_p0(*flyout_views(mat, 1.8), pixel_mm=0.0018))
     assert conf[mat.flyout_mask].mean() > 2 * conf[~mat.flyout_mask].mean()
     res = detect(conf, 0.0018, tangent=mat.maps.tangent[..., 0].double().numpy())
     s = score(res["mask"], mat.flyout_mask)

@@ -51,9 +51,9 @@ def test_fit_metadata_selects_maps(twill, tmp_path):
 
 def test_synthesised_diffuse(tmp_path):
     from dualscale.cli import main
-    from dualscale.dome.cameras import micro_camera
-    from dualscale.dome.render import Analyzer, LightState, render
-    from dualscale.materials.io import load_maps
+    from dualscale.geometry.cameras import micro_camera
+    from dualscale.sim.render import Analyzer, LightState, render
+    from dualscale.formats.maps import load_maps
 
     assert main(["synth", "leather", "-o", str(tmp_path / "l"), "--size", "16", "--dataset", "--no-previews"]) == 0
     s = load_source(tmp_path / "l")

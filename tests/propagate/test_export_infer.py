@@ -5,10 +5,10 @@ import pytest
 import torch
 
 from dualscale.cli import main
-from dualscale.dome.exr import read_exr, write_exr
+from dualscale.formats.exr import read_exr, write_exr
 from dualscale.propagate.export import export_model, onnx_paths
 from dualscale.propagate.infer import OnnxModel, _decode, _encode, run_tiled, tile_positions, window_1d
-from dualscale.propagate.io import load_model
+from dualscale.propagate.model import load_model
 
 
 @pytest.fixture(scope="module")
@@ -97,7 +97,7 @@ def test_cli_train_export_run(twill, tmp_path, capsys):
     assert main(["propagate", "run", str(model), str(path), "-o", str(tmp_path / "maps"), "--tile", "64",
                  "--overlap", "16",
                  "--no-progress"]) == 0
-    from dualscale.materials.io import load_maps
+    from dualscale.formats.maps import load_maps
 
     maps, _ = load_maps(tmp_path / "maps")
     assert maps.shape == (96, 80) and maps.tangent is not None

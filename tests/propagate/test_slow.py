@@ -15,11 +15,11 @@ WARM = Path(__file__).resolve().parents[2] / "models" / "warmstart_w16.dsp"
 
 
 def test_propagation_beats_mean_baseline(tmp_path):
-    from dualscale.dome.cameras import micro_camera
-    from dualscale.dome.exr import write_exr
-    from dualscale.dome.render import LightState, render
-    from dualscale.materials import generate
-    from dualscale.materials.io import load_maps
+    from dualscale.geometry.cameras import micro_camera
+    from dualscale.formats.exr import write_exr
+    from dualscale.sim.render import LightState, render
+    from dualscale.sim.materials import generate
+    from dualscale.formats.maps import load_maps
     from dualscale.propagate.metrics import compare
 
     assert main(["synth", "twill", "-o", str(tmp_path / "src"), "--size", "128", "--texel-um", "6", "--dataset",

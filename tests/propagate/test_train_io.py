@@ -2,7 +2,8 @@ import pytest
 import torch
 
 from dualscale.propagate.data import load_source, sample_batch
-from dualscale.propagate.io import load_model, read_model_file, save_model
+from dualscale.formats.model import read_model_file
+from dualscale.propagate.model import load_model, save_model
 from dualscale.propagate.train import TrainOptions, checkpoint_path, preset_with, train, warm_start
 from dualscale.propagate.unet import PropagationUNet, UNetConfig
 

@@ -9,7 +9,7 @@ import serial
 from dualscale.protocol import regmap as rm
 from dualscale.protocol.crc import rtu_frame
 from dualscale.rig.client import RigClient
-from dualscale.rig.sim import SimulatedRig
+from dualscale.rig.launcher import SimulatedRig
 
 TARGETS = ["posix", pytest.param("qemu", marks=pytest.mark.qemu)]
 

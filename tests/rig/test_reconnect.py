@@ -4,7 +4,7 @@ from __future__ import annotations
 from dualscale.protocol import regmap as rm
 from dualscale.rig.client import RigClient
 from dualscale.rig.sequence import Step
-from dualscale.rig.sim import SimulatedRig
+from dualscale.rig.launcher import SimulatedRig
 
 
 def test_serial_drop_mid_sequence_loses_no_event():

@@ -12,7 +12,7 @@ import pytest
 from dualscale.protocol import regmap as rm
 from dualscale.rig.client import RigClient
 from dualscale.rig.sequence import Step
-from dualscale.rig.sim import SimulatedRig
+from dualscale.rig.launcher import SimulatedRig
 
 
 class Side:

@@ -11,7 +11,7 @@ from dualscale.protocol import regmap as rm
 from dualscale.rig.client import RigClient
 from dualscale.rig.demo import run_demo
 from dualscale.rig.sequence import Step, schedule
-from dualscale.rig.sim import SimulatedRig
+from dualscale.rig.launcher import SimulatedRig
 
 
 def test_full_micro_capture_lands_exactly_on_schedule_in_virtual_time():

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from dualscale.rig.sim import SimulatedRig
+from dualscale.rig.launcher import SimulatedRig
 
 from .conftest import TARGETS, RawLink
 

@@ -1,7 +1,7 @@
 """Canonical SVBSDF map names, layouts and value conventions.
 
 In memory every map is a float tensor ``(H, W, C)`` (channel-last, like the terms).  On disk
-(see ``dualscale.materials.io``) each map is one EXR file ``<name>.exr`` with the same values.
+(see ``dualscale.formats.maps``) each map is one EXR file ``<name>.exr`` with the same values.
 
 =============== == ============================================================================
 name            C  meaning

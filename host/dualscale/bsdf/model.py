@@ -13,7 +13,7 @@ response (``1 - opacity`` is open area; the dome renderer adds light seen throug
 
 Polarisation enters through per-light weights: the specular Fresnel factor is
 ``w_s R_s + w_p R_p`` and the diffuse lobes are scaled by ``diffuse_weight`` (see
-``dualscale.dome.render`` for how LED polarisers and the analyser set them).
+``dualscale.sim.render`` for how LED polarisers and the analyser set them).
 """
 
 from __future__ import annotations

@@ -2,5 +2,5 @@
 radiometric calibration and white balance against a transmissive white sheet, CIEDE2000 colour
 correction, and sharpness / polarisation / collimation evaluation.  See docs/CALIBRATION.md."""
 
-from .errors import (CalibrationError, ChartNotFoundError, ImageSizeError, MissingBracketsError,  # noqa: F401
+from dualscale.errors import (CalibrationError, ChartNotFoundError, ImageSizeError, MissingBracketsError,  # noqa: F401
                      RigMismatchError, SaturatedError)

@@ -13,7 +13,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import colourref as cr
-from .errors import ChartNotFoundError
+from dualscale.errors import ChartNotFoundError
+
+
+# The micro camera's sharpness target: a grid of opaque dots (supplementary Sec. 3).
+DOT_PITCH_UM, DOT_DIAMETER_UM = 125.0, 62.5
 
 
 @dataclass(frozen=True)

@@ -15,6 +15,17 @@ from .chart import ChartLayout
 from .pipeline import Session, calibrated, light_kind, measure_patches
 
 
+def merges_needed(cs, camera: str = "micro") -> int:
+    """How many HDR merges a full device evaluation makes (the unit of its progress): the chart
+    and patch captures (colour), the first dot grid (sharpness), the polarisation sweep and the
+    white sheet under each LED (collimation) of ``camera``."""
+    n = sum(g.target in ("patch", "chart") for g in cs.groups)
+    n += min(1, len(cs.select(target="dot_grid")))
+    n += sum(g.target == "polarization" and g.camera == camera for g in cs.groups)
+    n += sum(g.target == "white_sheet" and g.camera == camera and g.light.startswith("led") for g in cs.groups)
+    return n
+
+
 # ---- colour ---------------------------------------------------------------------------------
 
 def colour_accuracy(s: Session) -> dict[str, dict[str, dict[str, list[float]]]]:
@@ -77,7 +88,7 @@ def ideal_dot_crop(sigma_px: float, phase: tuple[float, float] = (0.0, 0.0), pix
                    crop: int = 64, supersample: int = 8) -> np.ndarray:
     """A dark dot of the 125 um grid (62.5 um diameter) at ``phase`` px from the crop centre,
     blurred by a Gaussian ``sigma_px`` and integrated over pixels: the model of a capture."""
-    from .targets import DOT_DIAMETER_UM
+    from .chart import DOT_DIAMETER_UM
 
     n = crop * supersample
     coords = (np.arange(n) + 0.5) / supersample - 0.5 - (crop - 1) / 2
@@ -140,7 +151,7 @@ def fit_malus(angles_deg: np.ndarray, intensity: np.ndarray) -> tuple[float, flo
 def polarization(s: Session, camera: str = "micro") -> list[PolarizationResult]:
     """Per LED: mean luminance against absolute analyser angle, fitted max/min angles and the
     theoretical max (the LED polariser axis projected on the image plane)."""
-    from dualscale.dome.geometry import DomeGeometry
+    from dualscale.geometry.dome import DomeGeometry
 
     dome = DomeGeometry.from_regmap()
     cam = s.cs.camera(camera)
@@ -175,7 +186,7 @@ def collimation(s: Session, camera: str = "micro") -> dict[str, float]:
 
 def hemisphere_coords(lights: list[str]) -> dict[str, tuple[float, float]]:
     """``(theta_deg, phi_deg)`` of each LED key; the diffuse group sits at the centre."""
-    from dualscale.dome.geometry import DomeGeometry
+    from dualscale.geometry.dome import DomeGeometry
 
     tp = DomeGeometry.from_regmap().led_theta_phi_deg().numpy()
     out = {}

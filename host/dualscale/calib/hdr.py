@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import ImageSizeError, MissingBracketsError, SaturatedError
+from dualscale.errors import ImageSizeError, MissingBracketsError, SaturatedError
 
 
 def hat_weight(z: np.ndarray, z_min: float, z_max: float) -> np.ndarray:

@@ -2,6 +2,7 @@
 
 Order per group: HDR merge of the brackets with the dark model subtracted (DN/s), flat field,
 then ``r_c`` / anchor / white balance (:mod:`.radiometric`) and the CCMs (:mod:`.ccm`).
+The HDR merges are the long part: ``progress`` (:mod:`dualscale.progress`) counts them.
 """
 
 from __future__ import annotations
@@ -14,21 +15,27 @@ from typing import Any
 import numpy as np
 
 from . import colourref as cr
-from .captures import CaptureSet, Group
+from dualscale.formats.captures import CaptureSet, Group
 from .ccm import fit_and_validate, patch_mask
 from .chart import ChartLayout, detect_chart, orient_corners, sample_patches
-from .errors import CalibrationError, ImageSizeError
+from dualscale.errors import CalibrationError, ImageSizeError
 from .hdr import HDRResult, merge_debevec
 from .radiometric import (apply_flat_field, apply_white_balance, dark_at, fit_dark, fit_flat_field,
                           irradiance_value, micro_footprint_mask, white_sheet_reflectance)
+from dualscale.progress import Progress, Tracker, tracker
+
+CALIBRATION_TARGETS = ("white_sheet", "patch", "chart")
+"""Capture targets whose groups :func:`calibrate` merges (each one HDR merge)."""
 
 
 @dataclass
 class Session:
-    """A capture set with cached merges; ``calib`` holds what is known so far."""
+    """A capture set with cached merges; ``calib`` holds what is known so far; ``progress``
+    (a :class:`~dualscale.progress.Tracker`) counts each new HDR merge."""
 
     cs: CaptureSet
     calib: dict[str, Any] = field(default_factory=dict)
+    progress: Tracker | None = None
     _dark: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     _merged: dict[str, HDRResult] = field(default_factory=dict)
 
@@ -52,6 +59,8 @@ class Session:
                 raise ImageSizeError(f"group {g.id}: images are {imgs[0].shape}, dark frames {bias.shape}")
             self._merged[g.id] = merge_debevec(imgs, g.exposures_s, dark=[dark_at(bias, rate, t) for t in g.exposures_s],
                                                name=g.id)
+            if self.progress is not None:
+                self.progress.update(what=g.id)
         return self._merged[g.id]
 
     def image(self, g: Group) -> np.ndarray:
@@ -210,16 +219,19 @@ def fit_ccms(s: Session, patches: dict) -> None:
             s.calib["ccm"].setdefault(cam, {})[k] = fit.to_json()
 
 
-def calibrate(cs: CaptureSet) -> dict[str, Any]:
-    """The whole calibration as a dict ready for :func:`.calfile.write_calibration`; raises
-    before anything is written if any input is bad."""
-    s = Session(cs)
-    _check_sizes(s)
-    compute_flat_fields(s)
-    compute_anchor(s)
-    compute_r_c(s)
-    patches = measure_patches(s)
-    fit_ccms(s, patches)
+def calibrate(cs: CaptureSet, progress: Progress = None) -> dict[str, Any]:
+    """The whole calibration as a dict ready for
+    :func:`dualscale.formats.calibration.write_calibration`; raises before anything is written
+    if any input is bad.  ``progress``: one unit per HDR merge (:data:`CALIBRATION_TARGETS`)."""
+    total = sum(g.target in CALIBRATION_TARGETS for g in cs.groups)
+    with tracker(progress, total, "calibrate", "group") as bar:
+        s = Session(cs, progress=bar)
+        _check_sizes(s)
+        compute_flat_fields(s)
+        compute_anchor(s)
+        compute_r_c(s)
+        patches = measure_patches(s)
+        fit_ccms(s, patches)
     dates = sorted(g.date for g in cs.groups if g.date)
     sha = hashlib.sha256((cs.root / "captures.json").read_bytes()).hexdigest()
     from dualscale import __version__ as ver
@@ -236,7 +248,8 @@ def calibrate(cs: CaptureSet) -> dict[str, Any]:
             **s.calib}
 
 
-def session_with(cs: CaptureSet, calib: dict[str, Any]) -> Session:
-    """A session that applies an existing calibration (flat fields, r_c, r_ws, corners)."""
+def session_with(cs: CaptureSet, calib: dict[str, Any], progress: Tracker | None = None) -> Session:
+    """A session that applies an existing calibration (flat fields, r_c, r_ws, corners);
+    ``progress`` counts its HDR merges (the caller opens and closes it)."""
     keep = {k: calib[k] for k in ("flat_field", "r_c", "r_ws", "r_wp", "ccm") if k in calib}
-    return Session(cs, keep)
+    return Session(cs, keep, progress=progress)

@@ -15,10 +15,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from dualscale.dome.cameras import Camera
+from dualscale.geometry.cameras import Camera
 
 from . import colourref as cr
-from .errors import ImageSizeError
+from dualscale.errors import ImageSizeError
 
 
 def white_sheet_reflectance(i_ws: np.ndarray, i_wp: np.ndarray, r_wp: np.ndarray | None = None) -> np.ndarray:

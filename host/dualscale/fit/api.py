@@ -11,7 +11,7 @@ from dualscale.bsdf import Components
 from .core import FitResult, fit_observations, split_holdout
 from .io import save_fit
 from .metrics import map_errors
-from .observations import ground_truth_dir, load_observations
+from .observations import load_observations
 from .presets import Preset, get_preset
 from .select import select_components
 
@@ -19,16 +19,20 @@ from .select import select_components
 def fit_dataset(dataset: str | Path, out: str | Path, preset: str | Preset = "standard",
                 overrides: dict[str, bool | None] | None = None, holdout_every: int = 8, progress: bool = False,
                 checkpoint_every: int = 50, restart: bool = False, stop_after: int | None = None,
-                seed: int = 0, previews: bool = True, comps: Components | None = None) -> tuple[FitResult, dict]:
+                seed: int = 0, previews: bool = True, comps: Components | None = None,
+                gt: str | Path | None = None, obs=None) -> tuple[FitResult, dict]:
     """Fit a photometric dataset and write the maps to ``out``.
 
     Held-out LEDs (every ``holdout_every``-th, 0 = none) are kept out of the fit and used to
     report re-render SSIM.  Components are chosen from the data unless ``comps`` is given or
     ``overrides`` fixes them.  The checkpoint lives at ``out/checkpoint.pt`` and is removed
-    after a successful fit; ``restart`` discards an existing one.
+    after a successful fit; ``restart`` discards an existing one.  ``gt``: a ground-truth maps
+    folder to score against (only when given: nothing beside the dataset is taken as ground
+    truth).  ``obs``: observations already loaded and calibrated (then ``dataset`` is only
+    recorded).  The maps carry the dataset's texel size.
     """
     p = get_preset(preset) if isinstance(preset, str) else preset
-    obs = load_observations(dataset)
+    obs = load_observations(dataset) if obs is None else obs
     train, held = split_holdout(obs, holdout_every)
     out = Path(out)
     ck = out / "checkpoint.pt"
@@ -51,14 +55,14 @@ def fit_dataset(dataset: str | Path, out: str | Path, preset: str | Preset = "st
                            progress=progress, stop_after=stop_after, seed=seed)
     extra: dict[str, Any] = {"dataset": str(dataset), "lights": {"train_images": train.n,
                                                                   "heldout_images": 0 if held is None else held.n}}
-    gt_dir = ground_truth_dir(dataset)
-    if gt_dir is not None:
-        from dualscale.materials.io import load_maps
+    if gt is not None:
+        from dualscale.formats.maps import load_maps
 
-        gt, _ = load_maps(gt_dir)
-        if gt.shape == res.maps.shape:
-            extra["ground_truth"] = {"dir": str(gt_dir), "errors": map_errors(res.maps, gt, comps.ior)}
-    save_fit(out, res, sel, extra, previews)
+        gt_maps, _ = load_maps(gt)
+        if gt_maps.shape != res.maps.shape:
+            raise ValueError(f"--gt {gt}: maps are {gt_maps.shape}, the fit is {res.maps.shape}")
+        extra["ground_truth"] = {"dir": str(gt), "errors": map_errors(res.maps, gt_maps, comps.ior)}
+    save_fit(out, res, sel, extra, previews, texel_mm=obs.pixel_mm)
     if ck.is_file():
         ck.unlink()
     if sel_path.is_file():

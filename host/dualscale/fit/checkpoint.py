@@ -7,6 +7,8 @@ own state.  Resuming with a different fingerprint is refused.
 
 from __future__ import annotations
 
+from dualscale.errors import Interrupted
+
 import hashlib
 import json
 import os
@@ -17,7 +19,7 @@ from typing import Any
 import torch
 
 
-class FitInterrupted(RuntimeError):
+class FitInterrupted(Interrupted):
     """Raised when a fit stops early on request (``stop_after``); the checkpoint is saved."""
 
 

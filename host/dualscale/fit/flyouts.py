@@ -26,7 +26,6 @@ it of a detection.
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 from typing import Any
@@ -34,6 +33,8 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 from skimage.draw import line
+
+from dualscale.progress import Progress, iterate
 
 _DIRS = [(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)]  # (drow, dcol)
 
@@ -172,8 +173,9 @@ def _off_yarn(path: list[tuple[int, int]], along: np.ndarray, min_len: float) ->
 def detect(conf: np.ndarray, pixel_mm: float, seeds: int = 10000, min_length_mm: float = 0.27,
            tangent: np.ndarray | None = None, yarn_angle_deg: float = 15.0, stop_fraction: float = 0.35,
            seed: int = 0, max_gap_mm: float = 0.01, yarn_mm: float = 0.1, smooth_px: float = 1.0,
-           orient_px: float = 2.0) -> dict[str, Any]:
-    """Steps 2-7 on a confidence map ``(H, W)``: polylines ``[(row, col), ...]``, mask, counts."""
+           orient_px: float = 2.0, progress: Progress = None) -> dict[str, Any]:
+    """Steps 2-7 on a confidence map ``(H, W)``: polylines ``[(row, col), ...]``, mask, counts.
+    ``progress`` (:mod:`dualscale.progress`): one unit per seed traced."""
     h, w = conf.shape
     conf = np.clip(np.nan_to_num(conf), 0, None)
     min_len = min_length_mm / pixel_mm
@@ -193,7 +195,7 @@ def detect(conf: np.ndarray, pixel_mm: float, seeds: int = 10000, min_length_mm:
     jrr, jrc, jcc = (ndimage.gaussian_filter(a, orient_px) for a in (gr * gr, gr * gc, gc * gc))
     paths = []
     traced = np.zeros((h, w), bool)  # pixels of long paths already traced
-    for k in picks:
+    for k in iterate(progress, picks, "fly-out seeds", unit="seed"):
         r, c = divmod(int(k), w)
         if traced[r, c]:  # would only retrace a fibre already found (a duplicate, step 7)
             continue
@@ -257,23 +259,19 @@ def score(mask: np.ndarray, gt: np.ndarray, tol_px: int = 2) -> dict[str, float]
     return {"precision": precision, "recall": recall, "tolerance_px": tol_px}
 
 
-def _svg(paths: list[list[tuple[int, int]]], h: int, w: int) -> str:
-    body = "\n".join('<polyline fill="none" stroke="red" stroke-width="1" points="'
-                     + " ".join(f"{c + 0.5:.1f},{r + 0.5:.1f}" for r, c in p) + '"/>' for p in paths)
-    return (f'<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{h}" viewBox="0 0 {w} {h}">\n'
-            f'<rect width="{w}" height="{h}" fill="black"/>\n{body}\n</svg>\n')
-
-
 def detect_dataset(dataset: str | Path, out: str | Path, tangent_maps: str | Path | None = None, seeds: int = 10000,
-                   min_length_mm: float = 0.27, gt_dir: str | Path | None = None, seed: int = 0) -> dict[str, Any]:
-    """Run :func:`detect` on a dataset; write ``flyouts.json``, ``flyouts.svg``,
-    ``flyout_mask.exr``/``.png`` and ``confidence.exr`` to ``out``; score against ground truth
-    (``flyout_mask.exr`` in ``gt_dir`` or next to the dataset) when available."""
-    from dualscale.dome.exr import read_exr, write_exr, write_png_preview
+                   min_length_mm: float = 0.27, gt_dir: str | Path | None = None, seed: int = 0,
+                   obs=None, progress: Progress = None) -> dict[str, Any]:
+    """Run :func:`detect` on a dataset; write the fibres (:mod:`dualscale.formats.flyouts`) and
+    ``confidence.exr`` to ``out``; score against the ground truth in ``gt_dir`` (a folder with
+    ``flyout_mask.exr``) only when it is given.  ``obs``: observations already loaded (then
+    ``dataset`` is only recorded)."""
+    from dualscale.formats.exr import read_exr, write_exr
+    from dualscale.formats.flyouts import read_flyouts, write_flyouts
 
-    from .observations import ground_truth_dir, load_observations
+    from .observations import load_observations
 
-    obs = load_observations(dataset)
+    obs = load_observations(dataset) if obs is None else obs
     conf = confidence_map(obs)
     tan = None
     if tangent_maps is not None:
@@ -283,26 +281,13 @@ def detect_dataset(dataset: str | Path, out: str | Path, tangent_maps: str | Pat
         tan = read_exr(tpath, ("Y",))[..., 0].astype(np.float64)
         if tan.shape != conf.shape:
             raise ValueError(f"tangent map is {tan.shape}, images are {conf.shape}")
-    res = detect(conf, obs.pixel_mm, seeds, min_length_mm, tan, seed=seed)
-    h, w = conf.shape
+    res = detect(conf, obs.pixel_mm, seeds, min_length_mm, tan, seed=seed, progress=progress)
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-
-    def mm(r: float, c: float) -> list[float]:
-        return [(c + 0.5 - w / 2) * obs.pixel_mm, (h / 2 - r - 0.5) * obs.pixel_mm]
-
-    rep: dict[str, Any] = {"count": len(res["paths"]), "seeds": res["seeds"], "min_length_px": res["min_length_px"],
-                           "pixel_mm": obs.pixel_mm, "dropped": res["dropped"], "tangent_filter": tan is not None,
-                           "coordinates": "pixel [col, row] (row 0 at top); mm [x, y] macro frame",
-                           "polylines_px": [[[c, r] for r, c in p] for p in res["paths"]],
-                           "polylines_mm": [[mm(r, c) for r, c in p] for p in res["paths"]]}
-    gdir = Path(gt_dir) if gt_dir else ground_truth_dir(dataset)
-    if gdir is not None and (gdir / "flyout_mask.exr").is_file():
-        gt = read_exr(gdir / "flyout_mask.exr", ("Y",))[..., 0] > 0.5
+    rep: dict[str, Any] = {"seeds": res["seeds"], "min_length_px": res["min_length_px"], "pixel_mm": obs.pixel_mm,
+                           "dropped": res["dropped"], "tangent_filter": tan is not None}
+    if gt_dir is not None:
+        _, gt = read_flyouts(gt_dir)
         rep["score"] = score(res["mask"], gt)
-    (out / "flyouts.json").write_text(json.dumps(rep, indent=1))
-    (out / "flyouts.svg").write_text(_svg(res["paths"], h, w))
-    write_exr(out / "flyout_mask.exr", res["mask"].astype(np.float32), ("Y",))
-    write_png_preview(out / "flyout_mask.png", res["mask"].astype(np.float32), srgb=False)
     write_exr(out / "confidence.exr", conf.astype(np.float32), ("Y",))
-    return rep
+    write_flyouts(out, [[(c, r) for r, c in p] for p in res["paths"]], res["mask"], obs.pixel_mm, rep)
+    return {"count": len(res["paths"]), **rep}

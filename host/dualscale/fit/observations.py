@@ -12,7 +12,20 @@ intensity (``dualscale.bsdf.evaluate`` weights):
   by the orthographic micro camera.
 
 The back light (a uniform panel below the sample, unit radiance per unit intensity) gives
-``B = w_d (t * opacity + 1 - opacity)``.  Images are divided by their light's intensity.
+``B = w_d (t * opacity + 1 - opacity)``.
+
+Units: the fit reads only ``relative_radiance`` in ``linear_rec709`` (see
+:mod:`dualscale.formats.dataset`); each image is divided by its ``exposure_s`` and its light's
+intensity, so ``images`` are radiance per unit light intensity per second of exposure.  Raw
+sensor datasets (``dn_normalized``, ``camera_raw:*``) are refused with a
+:class:`~dualscale.errors.UnitsError` that says to apply a calibration first
+(:func:`dualscale.calib.apply.to_radiance`, or ``dualscale digitize --calibration CAL``).
+
+Valid samples: ``valid`` ``(N, H, W)`` (and ``back_valid`` ``(H, W)``) mark the samples the fit
+may use: not clipped (no channel at or above the image's ``saturation``) and inside the
+dataset's sample mask.  Every optimiser gives the others zero weight and the held-out metrics
+skip them; ``None`` means every sample is valid.  A pixel with no valid sample at all (outside
+the mask) is not fitted: it keeps its start values (:mod:`.init`), finite but meaningless.
 """
 
 from __future__ import annotations
@@ -25,13 +38,16 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from dualscale.dome.dataset import Dataset, read_dataset
+from dualscale.errors import InputError, UnitsError
+from dualscale.formats.dataset import CANONICAL_COLOUR_SPACE, CANONICAL_UNITS, Dataset, read_dataset
 
 
 @dataclass
 class Observations:
     """LED images ``(N, H, W, 3)`` with directions ``(N, 3)`` and weights ``(N,)``, plus an
-    optional back-lit image ``(H, W, 3)`` (``back_wd`` = its diffuse weight)."""
+    optional back-lit image ``(H, W, 3)`` (``back_wd`` = its diffuse weight); ``valid``
+    ``(N, H, W)`` bool and ``back_valid`` ``(H, W)`` bool mark the usable samples (module doc;
+    ``None`` = all)."""
 
     images: Tensor
     dirs: Tensor
@@ -43,10 +59,17 @@ class Observations:
     back_wd: float = 0.5
     pixel_mm: float = 0.0018
     view: Tensor | None = None
+    valid: Tensor | None = None
+    back_valid: Tensor | None = None
 
     def __post_init__(self) -> None:
         if self.view is None:
             self.view = torch.tensor([0.0, 0.0, 1.0], dtype=self.images.dtype)
+        if self.valid is not None and tuple(self.valid.shape) != tuple(self.images.shape[:3]):
+            raise ValueError(f"valid mask is {tuple(self.valid.shape)}, images are {tuple(self.images.shape[:3])}")
+        if self.back_valid is not None and (self.backlight is None
+                                            or tuple(self.back_valid.shape) != tuple(self.backlight.shape[:2])):
+            raise ValueError("back_valid needs a back-lit image of the same size")
 
     @property
     def n(self) -> int:
@@ -61,11 +84,28 @@ class Observations:
         """True when some images have the specular blocked (P90) and others pass it."""
         return bool((self.w_s < 1e-6).any()) and bool((self.w_s > 1e-6).any())
 
+    @classmethod
+    def relative_p0(cls, images: Tensor, dirs: Tensor, led_ids: list[int], pixel_mm: float) -> "Observations":
+        """LED images ``(N, H, W, 3)`` under the relative P0 analyser (specular passed, half the
+        diffuse), directions ``(N, 3)``, ``pixel_mm`` texel size in mm."""
+        n = len(led_ids)
+        return cls(images, dirs, torch.ones(n), torch.zeros(n), torch.full((n,), 0.5), torch.tensor(led_ids),
+                   pixel_mm=pixel_mm)
+
+    @property
+    def fitted_pixels(self) -> Tensor | None:
+        """``(H, W)`` bool: pixels with at least one valid sample (``None``: all of them)."""
+        if self.valid is None:
+            return None
+        any_led = self.valid.any(0)
+        return any_led if self.back_valid is None else any_led | self.back_valid
+
     def select(self, index: Tensor | list[int]) -> "Observations":
         """Subset of LED images (the back-lit image is kept)."""
         idx = torch.as_tensor(index, dtype=torch.long)
         return replace(self, images=self.images[idx], dirs=self.dirs[idx], w_s=self.w_s[idx], w_p=self.w_p[idx],
-                       w_d=self.w_d[idx], led_ids=self.led_ids[idx])
+                       w_d=self.w_d[idx], led_ids=self.led_ids[idx],
+                       valid=None if self.valid is None else self.valid[idx])
 
     def select_leds(self, leds: set[int] | list[int], keep: bool = True) -> "Observations":
         """Images of the given LED ids (``keep=False``: all the others)."""
@@ -75,16 +115,21 @@ class Observations:
 
     def crop(self, y0: int, y1: int, x0: int, x1: int) -> "Observations":
         back = None if self.backlight is None else self.backlight[y0:y1, x0:x1]
-        return replace(self, images=self.images[:, y0:y1, x0:x1], backlight=back)
+        return replace(self, images=self.images[:, y0:y1, x0:x1], backlight=back,
+                       valid=None if self.valid is None else self.valid[:, y0:y1, x0:x1],
+                       back_valid=None if self.back_valid is None else self.back_valid[y0:y1, x0:x1])
 
     def pixels(self, flat_index: Tensor) -> "Observations":
         """The chosen pixels (flat indices) laid out as a ``1 x M`` image (pixels are independent)."""
         n, h, w, c = self.images.shape
         imgs = self.images.reshape(n, h * w, c)[:, flat_index].unsqueeze(1)
         back = None if self.backlight is None else self.backlight.reshape(h * w, c)[flat_index].unsqueeze(0)
-        return replace(self, images=imgs, backlight=back)
+        valid = None if self.valid is None else self.valid.reshape(n, h * w)[:, flat_index].unsqueeze(1)
+        bv = None if self.back_valid is None else self.back_valid.reshape(h * w)[flat_index].unsqueeze(0)
+        return replace(self, images=imgs, backlight=back, valid=valid, back_valid=bv)
 
     def to(self, dtype: torch.dtype) -> "Observations":
+        """The same observations in floating type ``dtype`` (the masks stay bool)."""
         back = None if self.backlight is None else self.backlight.to(dtype)
         return replace(self, images=self.images.to(dtype), dirs=self.dirs.to(dtype), w_s=self.w_s.to(dtype),
                        w_p=self.w_p.to(dtype), w_d=self.w_d.to(dtype), backlight=back, view=self.view.to(dtype))
@@ -97,7 +142,7 @@ def analyzer_weights(analyzer_deg: float | None, relative: bool, direction: np.n
         return 1.0, 0.0, 1.0
     if relative:
         return math.cos(math.radians(analyzer_deg)) ** 2, 0.0, 0.5
-    from dualscale.dome.geometry import polarizer_axis
+    from dualscale.geometry.dome import polarizer_axis
 
     axis = polarizer_axis(torch.tensor(direction, dtype=torch.float64), polarizer).numpy()
     a = math.radians(analyzer_deg)
@@ -115,58 +160,84 @@ def _open(root: str | Path) -> Dataset:
     return read_dataset(root)
 
 
+def check_fit_units(ds: Dataset, camera: str | None = None) -> None:
+    """Refuse a dataset whose images (of ``camera``, or all) are not ``relative_radiance`` in
+    ``linear_rec709``, with a :class:`~dualscale.errors.UnitsError` naming the file, the field
+    and the way out (apply a calibration)."""
+    for rec in ds.records:
+        if camera is not None and rec.camera != camera:
+            continue
+        where = f"dataset {ds.root}: image {rec.file}"
+        how = ("apply a calibration first: `dualscale digitize DATASET --calibration CAL -o RUN`, or "
+               "dualscale.calib.apply.to_radiance(DATASET, OUT, CAL), which writes the calibrated "
+               "relative_radiance / linear_rec709 dataset the fit reads")
+        if rec.units != CANONICAL_UNITS:
+            raise UnitsError(f"{where}: units {rec.units!r} are raw sensor values, not radiance; {how}")
+        if rec.colour_space != CANONICAL_COLOUR_SPACE:
+            raise UnitsError(f"{where}: colour_space {rec.colour_space!r} is a camera's raw RGB, not "
+                             f"{CANONICAL_COLOUR_SPACE}; {how}")
+
+
 def load_observations(root: str | Path, camera: str = "micro", dtype: torch.dtype = torch.float32,
                       leds: set[int] | None = None) -> Observations:
-    """Read the ``camera`` images of a photometric dataset (``DIR`` or ``DIR/micro``).
+    """Read the ``camera`` images of a photometric dataset (``DIR`` or ``DIR/micro``) as
+    radiance per unit light intensity per second of exposure, with their valid-sample masks.
 
-    Raises ``FileNotFoundError`` / ``ValueError`` / ``OSError`` with the offending file named
-    when the manifest or an image is missing or corrupt.
+    Raises ``FileNotFoundError`` / ``OSError`` with the offending file named when the manifest
+    or an image is missing or corrupt, :class:`~dualscale.errors.UnitsError` for units or a
+    colour space the fit cannot read (module doc), and the dataset reader's
+    :class:`~dualscale.errors.InputError` subclasses for bad values.
     """
     ds = _open(root)
+    check_fit_units(ds, camera)
     polar = str(ds.manifest.get("dome", {}).get("polarizer", "s"))
-    imgs, dirs, ws, wp, wd, ids = [], [], [], [], [], []
-    back, back_wd = None, 0.5
+    imgs, dirs, ws, wp, wd, ids, valids = [], [], [], [], [], [], []
+    back, back_wd, back_valid = None, 0.5, None
     for i, rec in enumerate(ds.records):
-        if rec.camera != camera or rec.intensity <= 0:
+        if rec.camera != camera:
             continue
         if rec.light_kind == "led":
             if rec.direction is None or rec.light_id is None:
-                raise ValueError(f"{rec.file}: LED image without id or direction")
+                raise InputError(f"dataset {ds.root}: image {rec.file}: LED image without light.id or "
+                                 "light.direction")
             if leds is not None and rec.light_id not in leds:
                 continue
             s, p, d = analyzer_weights(rec.analyzer_deg, rec.analyzer_relative, np.asarray(rec.direction), polar)
-            imgs.append(_load(ds, i) / rec.intensity)
+            img, ok = _load(ds, i)
+            imgs.append(img)
+            valids.append(ok)
             dirs.append(rec.direction)
             ws.append(s)
             wp.append(p)
             wd.append(d)
             ids.append(rec.light_id)
         elif rec.light_kind == "backlight" and back is None:
-            back = _load(ds, i) / rec.intensity
+            back, back_valid = _load(ds, i)
             back_wd = 1.0 if rec.analyzer_deg is None else 0.5
     if not imgs:
-        raise ValueError(f"{ds.root}: no LED images for camera {camera!r}")
+        raise InputError(f"{ds.root}: no LED images for camera {camera!r}")
     cam = ds.manifest.get("cameras", {}).get(camera, {})
     pixel_mm = float(cam["field_mm"][0]) / float(cam["width"]) if "field_mm" in cam else 0.0018
     f = dict(dtype=dtype)
+    valid = None
+    if any(v is not None for v in valids):
+        valid = torch.from_numpy(np.stack([np.ones(imgs[0].shape[:2], bool) if v is None else v for v in valids]))
+    bv = None
+    if back is not None and (back_valid is not None or valid is not None):
+        bv = torch.from_numpy(np.ones(back.shape[:2], bool) if back_valid is None else back_valid)
     return Observations(images=torch.from_numpy(np.stack(imgs)).to(**f), dirs=torch.tensor(dirs, **f),
                         w_s=torch.tensor(ws, **f), w_p=torch.tensor(wp, **f), w_d=torch.tensor(wd, **f),
                         led_ids=torch.tensor(ids, dtype=torch.long),
                         backlight=None if back is None else torch.from_numpy(back).to(**f), back_wd=back_wd,
-                        pixel_mm=pixel_mm)
+                        pixel_mm=pixel_mm, valid=valid, back_valid=bv)
 
 
-def _load(ds: Dataset, index: int) -> np.ndarray:
+def _load(ds: Dataset, index: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """Image ``index`` divided by its exposure and light intensity, and its valid mask."""
+    rec = ds.records[index]
     try:
-        return ds.load(index)
+        img = ds.load(index)
     except (OSError, ValueError) as e:
-        raise type(e)(f"dataset {ds.root}: cannot use {ds.records[index].file}: {e}") from e
-
-
-def ground_truth_dir(root: str | Path) -> Path | None:
-    """``maps/`` next to a synthetic dataset (``synth -o DIR --dataset`` writes DIR/maps, DIR/micro)."""
-    root = Path(root)
-    for cand in (root / "maps", root.parent / "maps"):
-        if (cand / "material.json").is_file():
-            return cand
-    return None
+        raise type(e)(f"dataset {ds.root}: cannot use {rec.file}: {e}") from e
+    valid = ds.valid(index, img)
+    return img / np.float32(rec.exposure_s * rec.intensity), valid

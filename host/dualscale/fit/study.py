@@ -23,11 +23,11 @@ from pathlib import Path
 from typing import Any, Callable
 
 from dualscale.bsdf import MaterialMaps
-from dualscale.dome.geometry import ring_layout
+from dualscale.geometry.dome import ring_layout
 
 from .core import fit_observations, split_holdout
 from .metrics import map_errors
-from .observations import Observations, ground_truth_dir, load_observations
+from .observations import Observations, load_observations
 from .presets import get_preset
 from .select import select_components
 
@@ -175,9 +175,9 @@ def run_study(dataset: str | Path, out: str | Path, preset: str = "standard", cu
     subsets = builtin_subsets(custom, names)
     obs = load_observations(dataset)
     gt, material = None, None
-    gdir = Path(gt_dir) if gt_dir else ground_truth_dir(dataset)
+    gdir = Path(gt_dir) if gt_dir else None
     if gdir is not None:
-        from dualscale.materials.io import load_maps
+        from dualscale.formats.maps import load_maps
 
         gt, meta = load_maps(gdir)
         material = meta.get("material")

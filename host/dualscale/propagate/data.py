@@ -3,8 +3,8 @@
 Layout of one training source (``dualscale synth MAT -o DIR --dataset`` writes exactly this;
 ``dualscale fit`` output works as the maps folder)::
 
-    DIR/micro/manifest.json     photometric dataset (dualscale.dome.dataset format)
-    DIR/maps/material.json      maps in the dualscale-maps format (dualscale.materials.io),
+    DIR/micro/manifest.json     photometric dataset (dualscale.formats.dataset format)
+    DIR/maps/material.json      maps in the dualscale-maps format (dualscale.formats.maps),
     DIR/maps/<map>.exr          one EXR per map, same size as the micro images
 
 A source may also be given as the micro dataset folder itself; its maps are then looked up in
@@ -33,7 +33,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from dualscale.bsdf import MAP_CHANNELS, MAP_NAMES, Components
+from dualscale.bsdf import MAP_NAMES, Components
 
 MODES = 3  # P0, P90, mean
 
@@ -46,10 +46,17 @@ class Source:
     pairs: Tensor  # (L, 2, 3, H, W) float16: P0, P90 per light
     maps: dict[str, Tensor]  # name -> (C, H, W) float32
     light_names: list[str]
+    texel_mm: float | None = None  # pixel pitch on the sample (maps' texel_mm, else the dataset camera's)
 
     @property
     def size(self) -> tuple[int, int]:
         return int(self.pairs.shape[-2]), int(self.pairs.shape[-1])
+
+    def diffuse_image(self) -> Tensor:
+        """``(3, H, W)`` float32: the diffuse light's mean image, else the mean of every image."""
+        if "diffuse" in self.light_names:
+            return self.pairs[self.light_names.index("diffuse")].float().mean(0)
+        return self.pairs.float().mean((0, 1))
 
     def diffuse_mean(self) -> list[float]:
         """Mean linear RGB of the diffuse light's mean image (the exposure reference)."""
@@ -114,7 +121,7 @@ def _light_images(ds) -> dict[str, list]:
 
 def _synth_diffuse(ds, names: list[str], pairs: np.ndarray) -> np.ndarray | None:
     """Diffuse image from all dome LEDs (see module docstring), or None if LEDs are missing."""
-    from dualscale.dome.geometry import DomeGeometry
+    from dualscale.geometry.dome import DomeGeometry
 
     dome = DomeGeometry.from_regmap()
     idx = {n: k for k, n in enumerate(names)}
@@ -130,11 +137,11 @@ def _synth_diffuse(ds, names: list[str], pairs: np.ndarray) -> np.ndarray | None
 
 def load_source(path: str | Path, maps: str | Path | None = None) -> Source:
     """Read one training source (micro dataset + maps) into memory; clear errors on bad input."""
-    from dualscale.dome.dataset import read_dataset
-    from dualscale.materials.io import load_maps
+    from dualscale.formats.dataset import read_dataset
+    from dualscale.formats.maps import load_maps
 
     micro, maps_dir = resolve_source(path, maps)
-    mm, _ = load_maps(maps_dir)
+    mm, mmeta = load_maps(maps_dir)
     present = [n for n, _ in mm.items()]
     names = required_maps(maps_dir, present)
     ds = read_dataset(micro)
@@ -161,7 +168,23 @@ def load_source(path: str | Path, maps: str | Path | None = None) -> Source:
             pairs = np.concatenate([pairs, np.broadcast_to(d.astype(np.float16), (1, 2) + d.shape)], 0)
             light_names.append("diffuse")
     tmaps = {n: getattr(mm, n).permute(2, 0, 1).contiguous().float() for n in names}
-    return Source(str(path), torch.from_numpy(np.ascontiguousarray(pairs)), tmaps, light_names)
+    return Source(str(path), torch.from_numpy(np.ascontiguousarray(pairs)), tmaps, light_names,
+                  _texel_mm(ds, groups[light_names[0]][0], mmeta.get("texel_mm")))
+
+
+def _texel_mm(ds, index: int, maps_texel: float | None) -> float | None:
+    """Pixel pitch of the micro images: the maps' ``texel_mm``, else the camera's ``field_mm /
+    width`` from the dataset manifest; ``None`` when neither says.  A disagreement over 1 % is an
+    error (maps from another capture)."""
+    rec = ds.records[index]
+    cam = (ds.manifest.get("cameras") or {}).get(rec.camera) or {}
+    cam_texel = None
+    if cam.get("field_mm") and cam.get("width"):
+        cam_texel = float(cam["field_mm"][0]) / float(cam["width"])
+    if maps_texel and cam_texel and abs(maps_texel - cam_texel) > 0.01 * cam_texel:
+        raise ValueError(f"{ds.root}: the maps' texel_mm {maps_texel:g} disagrees with the micro camera's "
+                         f"{cam_texel:g} mm (field_mm / width in manifest.json)")
+    return float(maps_texel) if maps_texel else cam_texel
 
 
 def check_sources(sources: list[Source]) -> list[str]:
@@ -198,7 +221,3 @@ def sample_batch(sources: list[Source], batch: int, crop: int,
         for n in names:
             ys[n].append(s.maps[n][:, y:y + crop, x:x + crop])
     return torch.stack(xs), {n: torch.stack(v) for n, v in ys.items()}
-
-
-def map_channel_count(names: list[str]) -> int:
-    return sum(MAP_CHANNELS[n] for n in names)

@@ -15,18 +15,28 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .io import VERSION, load_model
+from dualscale.formats.model import VERSION
+
+from .model import load_model
 from .unet import MULTIPLE, PropagationUNet, map_slices
 
 OPSET = 17
 
 
 def export_onnx(model: PropagationUNet, path: str | Path, half: bool = False, meta: dict | None = None) -> Path:
-    """Write ``model`` as ONNX (legacy TorchScript exporter, opset 17; no onnxscript needed)."""
+    """Write ``model`` as ONNX (legacy TorchScript exporter, opset 17; no onnxscript needed),
+    atomically (a temporary file renamed into place)."""
+
+    from dualscale.formats.atomic import atomic_path
+
+    with atomic_path(path) as tmp:
+        _export_onnx(model, tmp, half, meta)
+    return Path(path)
+
+
+def _export_onnx(model: PropagationUNet, path: Path, half: bool, meta: dict | None) -> None:
     import onnx
 
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     m = copy.deepcopy(model).eval().cpu()  # never round the caller's weights
     m = m.half() if half else m.float()
     dtype = torch.float16 if half else torch.float32
@@ -46,7 +56,6 @@ def export_onnx(model: PropagationUNet, path: str | Path, half: bool = False, me
         e.key, e.value = k, str(v)
     onnx.checker.check_model(proto)
     onnx.save(proto, str(path))
-    return path
 
 
 def session(path: str | Path, threads: int | None = None):

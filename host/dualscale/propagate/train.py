@@ -21,7 +21,7 @@ import torch
 
 from .augment import BLUR_SIGMA, augment
 from .data import Source, check_sources, sample_batch
-from .io import load_model, save_model
+from .model import load_model, save_model
 from .losses import PropagationLoss
 from .unet import PropagationUNet, UNetConfig
 

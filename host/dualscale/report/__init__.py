@@ -10,11 +10,11 @@ not saturate silently), :mod:`.format` (numbers with units and goals, durations)
 from __future__ import annotations
 
 
-def write_run_report(run_dir):
+def write_run_report(run_dir, out=None):
     """See :func:`dualscale.report.run.write_run_report` (imported lazily: matplotlib, torch)."""
     from .run import write_run_report as _w
 
-    return _w(run_dir)
+    return _w(run_dir, out)
 
 
 __all__ = ["write_run_report"]

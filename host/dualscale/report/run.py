@@ -241,10 +241,11 @@ def _selection(sel: dict[str, Any] | None) -> dict[str, Any] | None:
 # ---------------------------------------------------------------------------------------------
 # the report
 
-def write_run_report(run_dir: str | Path) -> Path:
+def write_run_report(run_dir: str | Path, out: str | Path | None = None) -> Path:
     """Render ``RUN/report/index.html`` (images in ``RUN/report/assets/``) from the run folder
-    ``run_dir``; returns the page's path. Raises :class:`dualscale.errors.FormatError` when a
-    required artefact is missing."""
+    ``run_dir``; returns the page's path. ``out`` puts the page and its assets in another folder
+    (the pipeline renders into its work folder, then renames it to ``RUN/report``). Raises
+    :class:`dualscale.errors.FormatError` when a required artefact is missing."""
     run = Path(run_dir)
     if not run.is_dir():
         raise _Missing(f"run report: {run} is not a folder")
@@ -272,7 +273,7 @@ def write_run_report(run_dir: str | Path) -> Path:
         report_notes.append(w)
         all_warnings.append(w)
 
-    out_dir = run / "report"
+    out_dir = Path(out) if out is not None else run / "report"
     out_dir.mkdir(parents=True, exist_ok=True)
     if (out_dir / "assets").is_dir():
         shutil.rmtree(out_dir / "assets")
@@ -329,6 +330,8 @@ def write_run_report(run_dir: str | Path) -> Path:
          if fit_sum.get("heldout_ssim") is not None else "not computed"),
         ("fit time", fmt.duration(fit_sum.get("seconds"))),
     ]
+    shown = {"preset", "train_images", "heldout_images", "heldout_relative_l1", "heldout_ssim", "seconds", "texel_mm"}
+    fit_rows += fmt.rows({k: v for k, v in fit_sum.items() if k not in shown and k != "skipped"}, depth=0)
 
     ho_doc = _json(run, "fit/heldout/heldout.json", required=True, writer="fit stage")
     lights = [l for l in (ho_doc.get("lights") or []) if isinstance(l, dict)]
@@ -415,7 +418,7 @@ def write_run_report(run_dir: str | Path) -> Path:
         prop["rows"] += [(f"registration › {k}", v) for k, v in fmt.rows(ps.get("registration") or {})]
 
     # -- export
-    exp: dict[str, Any] = {"note": "", "table": None}
+    exp: dict[str, Any] = {"note": "", "table": None, "formats": ""}
     st = stages.get("export")
     if st is None or st.record is None:
         exp["note"] = "The maps were not exported."
@@ -433,6 +436,8 @@ def write_run_report(run_dir: str | Path) -> Path:
                 note(f"export lists {f}, which is not in the run folder")
         if rows:
             exp["table"] = Table(["file", "size"], rows, {1})
+        if st.summary.get("formats"):
+            exp["formats"] = fmt.value(st.summary["formats"])
 
     # -- time per stage
     timed = [s for s in stages.values() if s.record is not None]

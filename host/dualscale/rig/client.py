@@ -7,11 +7,15 @@ a drop and retries, so a run survives an unplugged cable without losing or repea
 """
 from __future__ import annotations
 
+from dualscale.errors import InputError, RigError
+
 import logging
 import struct
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from enum import IntEnum
+from pathlib import Path
 
 import serial
 from pymodbus import FramerType, ModbusException
@@ -21,12 +25,23 @@ from pymodbus.pdu import ModbusPDU
 
 from ..protocol import regmap as rm
 from .events import Event, decode_window
-from .sequence import Step, encode, seq_crc
+from .sequence import Step, encode, join_words, seq_crc
 
 log = logging.getLogger(__name__)
 
-EXCEPTION_NAMES = {1: "ILLEGAL FUNCTION", 2: "ILLEGAL DATA ADDRESS", 3: "ILLEGAL DATA VALUE",
-                   4: "SERVER DEVICE FAILURE", 6: "SERVER DEVICE BUSY"}
+
+
+class ExceptionCode(IntEnum):
+    """Modbus exception codes the firmware answers (Modbus Application Protocol v1.1b3, §7)."""
+
+    ILLEGAL_FUNCTION = 0x01
+    ILLEGAL_DATA_ADDRESS = 0x02
+    ILLEGAL_DATA_VALUE = 0x03  # also: START refused by the sequence validation (PROTOCOL.md §3)
+    SERVER_DEVICE_FAILURE = 0x04
+    SERVER_DEVICE_BUSY = 0x06
+
+
+EXCEPTION_NAMES = {int(c): c.name.replace("_", " ") for c in ExceptionCode}
 # Function code of each pymodbus call: RTU has no transaction id, so a reply that arrives after
 # its request timed out would otherwise be taken as the answer to the next request.
 FC_OF = {"read_coils": 0x01, "read_discrete_inputs": 0x02, "read_holding_registers": 0x03,
@@ -36,10 +51,27 @@ FC_OF = {"read_coils": 0x01, "read_discrete_inputs": 0x02, "read_holding_registe
 MAX_READ = 125
 MAX_WRITE = 123
 STEPS_PER_WRITE = MAX_WRITE // rm.STEP_WORDS  # 12 steps per FC 10
+WORD_MAX = 0xFFFF  # a Modbus register holds 16 bits
+_REGISTERS = {(r.space, r.name): r for r in rm.REGISTERS}
 
 
-class RigError(RuntimeError):
-    """Anything that goes wrong talking to the rig."""
+def register(space: str, name: str) -> rm.Register:
+    """The generated description of register ``name`` in ``space`` ("input" or "holding")."""
+    return _REGISTERS[(space, name)]
+
+
+class InputBlock:
+    """Input registers ``first..last`` read in one request; values looked up by register name."""
+
+    def __init__(self, client: RigClient, first: str, last: str) -> None:
+        a, b = register("input", first), register("input", last)
+        self.base = a.addr
+        self.words = client.read_input(a.addr, b.addr + b.words - a.addr)
+
+    def __getitem__(self, name: str) -> int:
+        r = register("input", name)
+        i = r.addr - self.base
+        return join_words(self.words[i:i + r.words])
 
 
 class DeviceException(RigError):
@@ -57,7 +89,7 @@ class SequenceRejected(RigError):
 
     def __init__(self, error: rm.Error, step: int):
         self.error, self.step = error, step
-        where = "" if step == 0xFFFF else f" at step {step}"
+        where = "" if step == rm.STEP_NONE else f" at step {step}"
         super().__init__(f"sequence rejected: {error.name}{where}")
 
 
@@ -160,21 +192,24 @@ class RigClient:
     def open(self) -> Identity:
         """Connect and negotiate (PROTOCOL.md §7). Raises IncompatibleDevice."""
         if not self._mb.connect():
+            if "://" not in self.port and not Path(self.port).exists():
+                raise InputError(f"cannot open serial port {self.port}: no such device")
             raise RigError(f"cannot open serial port {self.port}")
         self._flush()
-        w = self.read_input(rm.IR.MAGIC, 8)
-        if w[0] != rm.MAGIC:
-            raise IncompatibleDevice(f"{self.port}: MAGIC is 0x{w[0]:04X}, not a dualscale rig")
-        major, minor = w[1] >> 8, w[1] & 0xFF
+        w = InputBlock(self, "MAGIC", "FIFO_DEPTH")
+        if w["MAGIC"] != rm.MAGIC:
+            raise IncompatibleDevice(f"{self.port}: MAGIC is 0x{w['MAGIC']:04X}, not a dualscale rig")
+        major, minor = w["PROTO_VERSION"] >> 8, w["PROTO_VERSION"] & 0xFF
         if major != rm.PROTO_VERSION_MAJOR:
             raise IncompatibleDevice(f"device speaks protocol {major}.{minor}; this host speaks "
                                      f"{rm.PROTO_VERSION_MAJOR}.x")
-        if (w[4], w[5]) != (rm.N_LEDS, rm.N_BACKLIGHTS):
-            raise IncompatibleDevice(f"device has {w[4]} LEDs/{w[5]} back lights; rig.toml says "
-                                     f"{rm.N_LEDS}/{rm.N_BACKLIGHTS}")
+        if (w["N_LEDS"], w["N_BACKLIGHTS"]) != (rm.N_LEDS, rm.N_BACKLIGHTS):
+            raise IncompatibleDevice(f"device has {w['N_LEDS']} LEDs/{w['N_BACKLIGHTS']} back lights; rig.toml "
+                                     f"says {rm.N_LEDS}/{rm.N_BACKLIGHTS}")
         sid, running, text = self.report_server_id()
-        self.identity = Identity(w[0], (major, minor), (w[2] >> 8, w[2] & 0xFF, w[3]), w[4], w[5],
-                                 w[6], w[7], sid, running, text)
+        fw = w["FW_VERSION"]
+        self.identity = Identity(w["MAGIC"], (major, minor), (fw >> 8, fw & 0xFF, w["FW_PATCH"]), w["N_LEDS"],
+                                 w["N_BACKLIGHTS"], w["MAX_STEPS"], w["FIFO_DEPTH"], sid, running, text)
         return self.identity
 
     def close(self) -> None:
@@ -256,9 +291,9 @@ class RigClient:
 
     @staticmethod
     def _check_words(values: Sequence[int]) -> None:
-        bad = [v for v in values if not 0 <= int(v) <= 0xFFFF]
+        bad = [v for v in values if not 0 <= int(v) <= WORD_MAX]
         if bad:
-            raise ValueError(f"register values must be 0..65535, got {bad[0]}")
+            raise InputError(f"register values must be 0..{WORD_MAX}, got {bad[0]}")
 
     def write_register(self, addr: int, value: int) -> None:
         self._check_words([value])
@@ -289,19 +324,11 @@ class RigClient:
 
     # ---------------------------------------------------------------- state
     def status(self) -> Status:
-        w = self.read_input(rm.IR.STATE, rm.IR.SEQ_DURATION_US + 3 - rm.IR.STATE)
-
-        def at(reg: int) -> int:
-            return w[reg - rm.IR.STATE]
-
-        def u48(reg: int) -> int:
-            return (at(reg) << 32) | (at(reg + 1) << 16) | at(reg + 2)
-
-        return Status(rm.State(at(rm.IR.STATE)), rm.Error(at(rm.IR.ERROR)), at(rm.IR.ERROR_STEP),
-                      at(rm.IR.CUR_STEP), at(rm.IR.SEQ_CRC), u48(rm.IR.UPTIME_US),
-                      at(rm.IR.POLARIZER_NOW), at(rm.IR.EVT_COUNT), at(rm.IR.EVT_FIRST_SEQ),
-                      at(rm.IR.EVT_DROPPED), at(rm.IR.FRAMES_OK), at(rm.IR.FRAMES_BAD_CRC),
-                      at(rm.IR.FRAMES_BAD), at(rm.IR.WATCHDOG_TRIPS), u48(rm.IR.SEQ_DURATION_US))
+        w = InputBlock(self, "STATE", "SEQ_DURATION_US")
+        return Status(rm.State(w["STATE"]), rm.Error(w["ERROR"]), w["ERROR_STEP"], w["CUR_STEP"], w["SEQ_CRC"],
+                      w["UPTIME_US"], w["POLARIZER_NOW"], w["EVT_COUNT"], w["EVT_FIRST_SEQ"], w["EVT_DROPPED"],
+                      w["FRAMES_OK"], w["FRAMES_BAD_CRC"], w["FRAMES_BAD"], w["WATCHDOG_TRIPS"],
+                      w["SEQ_DURATION_US"])
 
     def command(self, cmd: rm.Command) -> None:
         self.write_register(rm.HR.COMMAND, int(cmd))
@@ -330,7 +357,7 @@ class RigClient:
                    rm.Source.BACKLIGHT: (rm.Coil.BACKLIGHT, rm.N_BACKLIGHTS),
                    rm.Source.DIFFUSE: (rm.Coil.DIFFUSE, rm.N_DIFFUSE)}[rm.Source(source)]
         if not 0 <= index < n:
-            raise ValueError(f"{rm.Source(source).name} index {index} outside 0..{n - 1}")
+            raise InputError(f"{rm.Source(source).name} index {index} outside 0..{n - 1}")
         return base + index
 
     def set_light(self, source: rm.Source, index: int, on: bool) -> None:
@@ -349,7 +376,7 @@ class RigClient:
     def upload(self, steps: Sequence[Step]) -> float:
         """Write the step table in FC 10 chunks, set SEQ_LEN and verify SEQ_CRC. Returns seconds."""
         if len(steps) > rm.MAX_STEPS:
-            raise ValueError(f"{len(steps)} steps; the device holds {rm.MAX_STEPS}")
+            raise InputError(f"{len(steps)} steps; the device holds {rm.MAX_STEPS}")
         t0 = time.perf_counter()
         words = encode(steps)
         per = STEPS_PER_WRITE * rm.STEP_WORDS
@@ -368,7 +395,7 @@ class RigClient:
         try:
             self.command(rm.Command.START)
         except DeviceException as e:
-            if e.code != 3:
+            if e.code != ExceptionCode.ILLEGAL_DATA_VALUE:  # the validation's refusal (PROTOCOL.md §3)
                 raise
             st = self.status()
             raise SequenceRejected(st.error, st.error_step) from e
@@ -391,7 +418,7 @@ class RigClient:
         events = [e for e in decode_window(words, rm.EVT_WINDOW_COUNT) if e.kind != rm.Event.NONE]
         fresh = []
         for e in events:
-            if self._last_seq is None or 0 < ((e.seq - self._last_seq) & 0xFFFF) < 0x8000:
+            if self._last_seq is None or 0 < ((e.seq - self._last_seq) & WORD_MAX) <= WORD_MAX // 2:
                 fresh.append(e)
                 self._last_seq = e.seq
         return fresh

@@ -5,6 +5,8 @@ import cmd
 import json
 from pathlib import Path
 
+from dualscale.errors import FormatError, InputError
+
 from ..protocol import regmap as rm
 from .client import RigClient, RigError
 from .sequence import CapturePlan, Step, schedule
@@ -18,13 +20,13 @@ def load_steps(path: Path) -> list[Step]:
     try:
         raw = json.loads(path.read_text())
     except FileNotFoundError:
-        raise RigError(f"no such sequence file: {path}") from None
+        raise InputError(f"no such sequence file: {path}") from None
     except OSError as e:
-        raise RigError(f"cannot read sequence file {path}: {e.strerror}") from None
+        raise InputError(f"cannot read sequence file {path}: {e.strerror}") from None
     except json.JSONDecodeError as e:
-        raise RigError(f"{path} is not valid JSON: {e}") from None
+        raise FormatError(f"{path} is not valid JSON: {e}") from None
     if not isinstance(raw, list):
-        raise RigError(f"{path}: expected a JSON list of steps")
+        raise FormatError(f"{path}: expected a JSON list of steps")
     steps = []
     for i, d in enumerate(raw):
         try:
@@ -32,7 +34,7 @@ def load_steps(path: Path) -> list[Step]:
             d["source"] = rm.Source[str(d["source"]).upper()]
             steps.append(Step(**d))
         except (KeyError, TypeError, ValueError) as e:
-            raise RigError(f"{path}: step {i} is malformed ({e})") from None
+            raise FormatError(f"{path}: step {i} is malformed ({e})") from None
     return steps
 
 

@@ -5,11 +5,12 @@ import statistics
 import time
 from dataclasses import dataclass
 
+from dualscale.errors import RigError
+
 from ..protocol import regmap as rm
 from .client import RigClient, RunResult
-from .events import Event
 from .sequence import CapturePlan, Step, schedule
-from .sim import SimulatedRig
+from .launcher import SimulatedRig
 
 
 @dataclass
@@ -64,7 +65,7 @@ def timing_report(steps: list[Step], res: RunResult, upload_s: float, rtt: list[
     ends = [e for e in res.events if e.kind == rm.Event.STEP_END]
     trig = [e for e in res.events if e.kind == rm.Event.TRIGGER]
     if not starts or not ends:
-        raise RuntimeError("the run produced no step events")
+        raise RigError("the run produced no step events")
     t0 = starts[0].ts_us
     dev = 0
     for e in starts:
@@ -100,7 +101,3 @@ def run_demo(target: str = "posix", speed: float = 10.0, out=print,
     out("timing report")
     out(rep.format())
     return rep
-
-
-def print_event(e: Event) -> None:  # pragma: no cover - console nicety
-    print(e)

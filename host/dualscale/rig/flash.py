@@ -6,6 +6,8 @@ USB DFU bootloader: hold BOOT0 high and reset).
 """
 from __future__ import annotations
 
+from dualscale.errors import ToolError
+
 import shlex
 import shutil
 import subprocess
@@ -13,15 +15,15 @@ from pathlib import Path
 
 from ..protocol import regmap as rm
 from .client import RigClient
-from .sim import REPO, build_dir
+from .launcher import REPO, build_dir
 
 TOOLS = ("pio", "openocd", "st-flash", "dfu-util")
 FLASH_BASE = 0x08000000
 DFU_ID = "0483:df11"  # STMicroelectronics DFU bootloader
 
 
-class FlashError(RuntimeError):
-    pass
+class FlashError(ToolError):
+    """No flashing tool, no firmware image, or the tool failed."""
 
 
 def flash_command(tool: str, elf: Path, binary: Path) -> list[str]:

@@ -6,51 +6,31 @@ import argparse
 import json
 from pathlib import Path
 
+from .common import add_output, add_work_options, apply_threads, want_progress
+
 _SWITCH = {"auto": None, "on": True, "off": False}
 
 
-def _threads(n: int | None) -> None:
-    if n:
-        import torch
-
-        torch.set_num_threads(n)
-
-
 def cmd_fit(args: argparse.Namespace) -> int:
-    import sys
-
     from dataclasses import replace
 
     from dualscale.fit.api import fit_dataset
-    from dualscale.fit.checkpoint import FitInterrupted
     from dualscale.fit.presets import get_preset
 
-    _threads(args.threads)
+    apply_threads(args)
     preset = get_preset(args.preset)
-    try:
-        if args.ior_prior is not None:
-            preset = replace(preset, ior_prior_sd=args.ior_prior)
-        if args.shadow_ratio is not None:
-            preset = replace(preset, shadow_ratio=args.shadow_ratio)
-        if args.compile:
-            preset = replace(preset, compiled=True)
-    except ValueError as e:
-        print(f"dualscale fit: {e}", file=sys.stderr)
-        return 2
+    if args.ior_prior is not None:
+        preset = replace(preset, ior_prior_sd=args.ior_prior)
+    if args.shadow_ratio is not None:
+        preset = replace(preset, shadow_ratio=args.shadow_ratio)
+    if args.compile:
+        preset = replace(preset, compiled=True)
     overrides = {"transmittance": _SWITCH[args.transmittance], "anisotropy": _SWITCH[args.anisotropy],
                  "tint": _SWITCH[args.tint]}
-    try:
-        res, extra = fit_dataset(args.dataset, args.output, preset, overrides, holdout_every=args.holdout_every,
-                                 progress=not args.no_progress and sys.stderr.isatty() or args.progress,
-                                 checkpoint_every=args.checkpoint_every, restart=args.restart,
-                                 stop_after=args.stop_after, seed=args.seed, previews=not args.no_previews)
-    except FitInterrupted as e:
-        print(f"dualscale fit: {e}; run the same command again to resume", file=sys.stderr)
-        return 3
-    except KeyboardInterrupt:
-        print("dualscale fit: interrupted; run the same command again to resume from the last checkpoint",
-              file=sys.stderr)
-        return 130
+    res, extra = fit_dataset(args.dataset, args.output, preset, overrides, holdout_every=args.holdout_every,
+                             progress=want_progress(args), checkpoint_every=args.checkpoint_every,
+                             restart=args.restart, stop_after=args.stop_after, seed=args.seed,
+                             previews=not args.no_previews, gt=args.gt)
     c = res.comps
     print(f"preset {res.preset.name}: {res.iterations} iterations in {res.seconds:.1f} s; components: "
           f"{'translucent' if not c.opaque else 'opaque'}, {'isotropic' if c.isotropic else 'anisotropic'}, "
@@ -65,10 +45,10 @@ def cmd_fit(args: argparse.Namespace) -> int:
 def cmd_study_lights(args: argparse.Namespace) -> int:
     from dualscale.fit.study import parse_subset, run_study
 
-    _threads(args.threads)
+    apply_threads(args)
     custom = dict(parse_subset(s) for s in args.subset or [])
     rep = run_study(args.dataset, args.output, preset=args.preset, custom=custom, names=args.only,
-                    gt_dir=args.gt, progress=args.progress)
+                    gt_dir=args.gt, progress=want_progress(args))
     print(rep["table_markdown"])
     print(f"recommendation ({rep['material_class']}): {rep['recommendation']['subset']} -- "
           f"{rep['recommendation']['reason']}")
@@ -79,8 +59,10 @@ def cmd_study_lights(args: argparse.Namespace) -> int:
 def cmd_flyouts(args: argparse.Namespace) -> int:
     from dualscale.fit.flyouts import detect_dataset
 
+    apply_threads(args)
     rep = detect_dataset(args.dataset, args.output, tangent_maps=args.tangent, seeds=args.seeds,
-                         min_length_mm=args.min_length_mm, gt_dir=args.gt, seed=args.seed)
+                         min_length_mm=args.min_length_mm, gt_dir=args.gt, seed=args.seed,
+                         progress=want_progress(args))
     print(f"{rep['count']} fly-outs (from {rep['seeds']} seeds, min length {rep['min_length_px']:.1f} px)")
     if "score" in rep:
         print("vs ground truth: " + json.dumps(rep["score"]))
@@ -94,7 +76,7 @@ def register(subparsers) -> None:
 
     f = subparsers.add_parser("fit", help="fit SVBSDF maps to a micro photometric dataset")
     f.add_argument("dataset", help="dataset directory (manifest.json), or a `synth` output with micro/")
-    f.add_argument("-o", "--output", required=True, help="output directory for the maps")
+    add_output(f, "output directory for the maps")
     f.add_argument("--preset", choices=sorted(PRESETS), default="standard")
     for comp in ("transmittance", "anisotropy", "tint"):
         f.add_argument(f"--{comp}", choices=sorted(_SWITCH), default="auto",
@@ -113,33 +95,33 @@ def register(subparsers) -> None:
     f.add_argument("--checkpoint-every", type=int, default=50, help="iterations between checkpoints")
     f.add_argument("--restart", action="store_true", help="ignore an existing checkpoint")
     f.add_argument("--stop-after", type=int, default=None, help=argparse.SUPPRESS)
+    f.add_argument("--gt", default=None, metavar="MAPS",
+                   help="ground-truth maps folder to score the fit against (evaluation only)")
     f.add_argument("--seed", type=int, default=0)
-    f.add_argument("--threads", type=int, default=None, help="torch CPU threads")
-    f.add_argument("--progress", action="store_true", help="force the progress bar")
-    f.add_argument("--no-progress", action="store_true")
     f.add_argument("--no-previews", action="store_true")
+    add_work_options(f)
     f.set_defaults(fn=cmd_fit)
 
     s = subparsers.add_parser("study", help="studies of the micro fit")
     ss = s.add_subparsers(dest="study", required=True)
     sl = ss.add_parser("lights", help="fit with each light subset (supplementary Sec. 6) and evaluate it")
     sl.add_argument("dataset")
-    sl.add_argument("-o", "--output", required=True)
+    add_output(sl, "output directory (study.json, study.png, one maps folder per subset)")
     sl.add_argument("--preset", choices=sorted(PRESETS), default="standard")
     sl.add_argument("--subset", action="append", metavar="NAME=IDS",
                     help="extra subset: LED ids and ranges, e.g. 'mine=0,3,10-20'")
     sl.add_argument("--only", nargs="*", default=None, help="run only these subsets")
-    sl.add_argument("--gt", default=None, help="ground-truth maps (default: DATASET/../maps when present)")
-    sl.add_argument("--threads", type=int, default=None)
-    sl.add_argument("--progress", action="store_true")
+    sl.add_argument("--gt", default=None, help="ground-truth maps folder to score against (evaluation only)")
+    add_work_options(sl)
     sl.set_defaults(fn=cmd_study_lights)
 
     fo = subparsers.add_parser("flyouts", help="detect fly-out fibres (supplementary Sec. 4.1)")
     fo.add_argument("dataset")
-    fo.add_argument("-o", "--output", required=True)
+    add_output(fo, "output directory (flyouts.json, flyouts.svg, flyout_mask.exr, confidence.exr)")
     fo.add_argument("--tangent", default=None, help="maps directory with tangent.exr (fitted or ground truth)")
     fo.add_argument("--seeds", type=int, default=10000, help="seeds for a 1 Mpx image (scaled with the image size)")
     fo.add_argument("--min-length-mm", type=float, default=0.27)
-    fo.add_argument("--gt", default=None, help="ground truth maps dir with flyout_mask.exr (default: auto)")
+    fo.add_argument("--gt", default=None, help="ground-truth folder with flyouts.json and flyout_mask.exr to score against")
     fo.add_argument("--seed", type=int, default=0)
+    add_work_options(fo)
     fo.set_defaults(fn=cmd_flyouts)

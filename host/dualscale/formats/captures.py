@@ -30,11 +30,11 @@ from typing import Any
 
 import numpy as np
 
-from dualscale.dome.cameras import Camera
-from dualscale.dome.exr import read_exr, write_exr
-from dualscale.manifest import read_versioned_json
+from dualscale.geometry.cameras import Camera
+from dualscale.formats.exr import read_exr, write_exr
+from dualscale.formats.versioned import read_versioned_json
 
-from .errors import CalibrationError, ImageSizeError, MissingBracketsError
+from dualscale.errors import CalibrationError, ImageSizeError, MissingBracketsError
 
 FORMAT = "dualscale-calib-captures"
 VERSION = 1

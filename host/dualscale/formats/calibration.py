@@ -15,8 +15,8 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from ..manifest import read_versioned_json
-from .errors import CalibrationError, RigMismatchError
+from .versioned import read_versioned_json
+from dualscale.errors import CalibrationError, RigMismatchError
 
 FORMAT = "dualscale-calibration"
 VERSION = 1

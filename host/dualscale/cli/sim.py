@@ -1,18 +1,21 @@
 """``dualscale synth`` and ``dualscale render``: synthetic ground truth and rendering to EXR.
 
-The lead wires :func:`register` into the ``dualscale`` CLI; each subcommand sets ``func``
-(called with the parsed namespace, returns an exit code).
+:func:`register` adds both to the ``dualscale`` parser; each subcommand sets ``fn`` (called
+with the parsed namespace, returns an exit code; errors are raised, see :mod:`dualscale.errors`).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import torch
 
+from dualscale.errors import FormatError, InputError
+from dualscale.progress import tracker
 from dualscale.protocol import regmap
+
+from .common import add_output, add_work_options, apply_threads, want_progress
 
 
 def _analyzers(text: str | None) -> list[float | None]:
@@ -23,7 +26,7 @@ def _analyzers(text: str | None) -> list[float | None]:
 
 def _write_capture(writer, img: torch.Tensor, cam, png_dir: Path | None, kind: str, lid: int | None, direction,
                    analyzer: float | None, relative: bool, exposure_s: float) -> None:
-    from dualscale.dome.exr import write_png_preview
+    from dualscale.formats.exr import write_png_preview
 
     rec = writer.add(img.detach().cpu().numpy(), cam, kind, lid, direction, 1.0, analyzer, relative, exposure_s)
     if png_dir is not None:
@@ -32,18 +35,21 @@ def _write_capture(writer, img: torch.Tensor, cam, png_dir: Path | None, kind: s
 
 def _capture_set(maps, cam, out: Path, lights: list[tuple[str, int | None]], analyzers: list[float | None],
                  relative: bool, texel_mm: float | None, sensor, previews: bool, extra: dict,
-                 geometry=None) -> Path:
-    from dualscale.dome.dataset import DatasetWriter
-    from dualscale.dome.geometry import DomeGeometry
-    from dualscale.dome.render import Analyzer, LightRealism, LightState, render
-    from dualscale.dome.sensor import capture
+                 geometry=None, progress=None) -> Path:
+    """Render (and optionally expose) one image per light x analyser into a dataset at ``out``;
+    ``progress`` as in :mod:`dualscale.progress` (one unit per image)."""
+    from dualscale.formats.dataset import DatasetWriter
+    from dualscale.geometry.dome import DomeGeometry
+    from dualscale.sim.render import Analyzer, LightRealism, LightState, render
+    from dualscale.sim.sensor import capture
 
     dome = DomeGeometry.from_regmap()
     units = "dn_normalized" if sensor is not None else "relative_radiance"
     space = f"camera_raw:{sensor.spectral_camera}" if sensor is not None and sensor.spectral_camera else "linear_rec709"
     png_dir = out / "previews" if previews else None
     with DatasetWriter(out, units=units, colour_space=space, extra=extra,
-                       dome={"source": dome.source, "polarizer": dome.polarizer, "radius_mm": dome.radius_mm}) as w:
+                       dome={"source": dome.source, "polarizer": dome.polarizer, "radius_mm": dome.radius_mm}) as w, \
+            tracker(progress, len(lights) * len(analyzers), f"render {out.name}", "image") as bar:
         for kind, lid in lights:
             state = {"led": LightState.led, "backlight": LightState.backlight}[kind](lid) if kind != "diffuse" \
                 else LightState.diffuse_group()
@@ -56,67 +62,82 @@ def _capture_set(maps, cam, out: Path, lights: list[tuple[str, int | None]], ana
                     img = capture(img, cam, sensor, seed=(lid or 0) * 1000 + int((a or 0) * 10))
                 _write_capture(w, img, cam, png_dir, kind, lid, direction, None if an is None else a,
                                relative and an is not None, sensor.exposure_s if sensor else 1.0)
+                bar.update(what=f"{kind} {'' if lid is None else lid}".strip())
     return out / "manifest.json"
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
-    from dualscale.dome.cameras import micro_camera, mid_camera
-    from dualscale.dome.sensor import SensorModel
-    from dualscale.materials import generate
-    from dualscale.materials.io import save_material
+    from dualscale.geometry.cameras import micro_camera, mid_camera
+    from dualscale.sim.sensor import SensorModel
+    from dualscale.sim.materials import generate
+    from dualscale.sim.materials.io import save_material
 
+    apply_threads(args)
+    progress = want_progress(args)
     out = Path(args.output)
     texel = args.texel_um / 1000.0
+    leds = _leds(args.lights)
     mat = generate(args.material, args.size, texel, args.seed)
     save_material(out / "maps", mat, previews=not args.no_previews)
     print(f"wrote ground-truth maps to {out / 'maps'}")
     sensor = SensorModel.realistic() if args.realistic else None
     if args.dataset:
-        leds = range(regmap.N_LEDS) if args.lights == "all" else range(0, regmap.N_LEDS, int(args.lights[3:]))
         # the rig always takes the back-lit image: it is how an opaque sample shows it is opaque
         lights: list[tuple[str, int | None]] = [("led", i) for i in leds] + [("backlight", 0)]
         path = _capture_set(mat.maps, micro_camera(args.size, args.texel_um), out / "micro", lights,
                             _analyzers(args.analyzers), True, None, sensor, not args.no_previews,
                             {"material": mat.meta, "shadows": bool(args.shadows)},
-                            mat.geometry if args.shadows else None)
+                            mat.geometry if args.shadows else None, progress)
         print(f"wrote micro photometric dataset {path}")
     if args.mid:
         mid_texel = 100.0 / args.mid_size
         coarse = generate(args.material, args.mid_size, mid_texel, args.seed)
         cam = mid_camera(args.mid_size)
         path = _capture_set(coarse.maps, cam, out / "mid", [("diffuse", None)], [None], False, mid_texel, sensor,
-                            not args.no_previews, {"material": coarse.meta})
+                            not args.no_previews, {"material": coarse.meta}, progress=progress)
         print(f"wrote mid-range guidance image {path}")
     return 0
 
 
+def _leds(spec: str) -> range:
+    """``all`` or ``modN`` (every N-th LED)."""
+    if spec == "all":
+        return range(regmap.N_LEDS)
+    step = spec[3:]
+    if not spec.startswith("mod") or not step.isdigit() or int(step) < 1:
+        raise InputError(f"--lights {spec!r}: use 'all' or 'modN' (every N-th LED, N >= 1)")
+    return range(0, regmap.N_LEDS, int(step))
+
+
 def _shadow_geometry(args: argparse.Namespace, shape: tuple[int, int]):
     """The relief saved beside the maps, checked against the micro camera it will shade."""
-    from dualscale.dome.shadow import load_geometry
+    from dualscale.formats.relief import load_geometry
 
     path = Path(args.maps) / "geometry.exr"
     if args.camera != "micro":
-        raise SystemExit("--shadows works on the map grid only: use --camera micro")
+        raise InputError("--shadows works on the map grid only: use --camera micro")
     if not path.is_file():
-        raise SystemExit(f"--shadows needs the relief {path} (written by 'dualscale synth')")
+        raise FormatError(f"--shadows needs the relief {path} (written by 'dualscale synth')")
     geom = load_geometry(path)
     if geom.shape != tuple(shape):
-        raise SystemExit(f"{path} is {geom.shape}, the maps are {tuple(shape)}")
+        raise FormatError(f"{path} is {geom.shape}, the maps are {tuple(shape)}")
     if abs(geom.texel_mm * 1000.0 - args.texel_um) > 1e-6 * args.texel_um:
-        raise SystemExit(f"--texel-um {args.texel_um} does not match the relief's {geom.texel_mm * 1000.0:g} um")
+        raise InputError(f"--texel-um {args.texel_um} does not match the relief's {geom.texel_mm * 1000.0:g} um "
+                         f"({path})")
     return geom
 
 
 def cmd_render(args: argparse.Namespace) -> int:
-    from dualscale.dome.cameras import micro_camera, mid_camera, polar_camera
-    from dualscale.dome.sensor import SensorModel
-    from dualscale.materials.io import load_maps
+    from dualscale.geometry.cameras import micro_camera, mid_camera, polar_camera
+    from dualscale.sim.sensor import SensorModel
+    from dualscale.formats.maps import load_maps
 
+    apply_threads(args)
     maps, meta = load_maps(args.maps, dtype=torch.float64 if args.float64 else torch.float32)
     h, w = maps.shape
     if args.camera == "micro":
         if h != w:
-            raise SystemExit("the micro camera needs square maps")
+            raise InputError(f"{args.maps}: the micro camera needs square maps, these are {h}x{w}")
         cam = micro_camera(w, args.texel_um)
         texel = None
     else:
@@ -128,26 +149,29 @@ def cmd_render(args: argparse.Namespace) -> int:
     if args.diffuse:
         lights.append(("diffuse", None))
     if not lights:
-        raise SystemExit("choose at least one light: --led ID, --backlight ID or --diffuse")
+        raise InputError("choose at least one light: --led ID, --backlight ID or --diffuse")
     bad = [i for k, i in lights if k == "led" and not 0 <= i < regmap.N_LEDS]
     if bad:
-        raise SystemExit(f"LED ids out of range 0..{regmap.N_LEDS - 1}: {bad}")
+        raise InputError(f"--led: LED ids out of range 0..{regmap.N_LEDS - 1}: {bad}")
+    bad = [i for k, i in lights if k == "backlight" and not 0 <= i < regmap.N_BACKLIGHTS]
+    if bad:
+        raise InputError(f"--backlight: ids out of range 0..{regmap.N_BACKLIGHTS - 1}: {bad}")
     sensor = SensorModel.realistic() if args.realistic else None
     geometry = _shadow_geometry(args, maps.shape) if args.shadows else None
     path = _capture_set(maps, cam, Path(args.output), lights, _analyzers(args.analyzer), args.relative, texel,
                         sensor, True, {"maps": str(args.maps), "material": meta, "shadows": bool(args.shadows)},
-                        geometry)
+                        geometry, want_progress(args))
     print(f"wrote {path}")
     return 0
 
 
 def register(subparsers) -> None:
     """Add ``synth`` and ``render`` to an ``argparse`` subparsers object."""
-    from dualscale.materials import MATERIALS
+    from dualscale.sim.materials import MATERIALS
 
     p = subparsers.add_parser("synth", help="write ground-truth maps (and optionally captures) of a synthetic material")
     p.add_argument("material", choices=sorted(MATERIALS))
-    p.add_argument("-o", "--output", required=True, help="output directory")
+    add_output(p, "output directory (maps/, micro/, mid/)")
     p.add_argument("--size", type=int, default=512, help="map size in texels (square)")
     p.add_argument("--texel-um", type=float, default=1.8, help="texel (= micro pixel) size in micrometres")
     p.add_argument("--seed", type=int, default=0)
@@ -160,11 +184,12 @@ def register(subparsers) -> None:
     p.add_argument("--shadows", action="store_true",
                    help="cast shadows of the relief and of the raised fly-out fibres in the dataset")
     p.add_argument("--no-previews", action="store_true")
+    add_work_options(p)
     p.set_defaults(fn=cmd_synth)
 
     r = subparsers.add_parser("render", help="render maps under chosen lights/analyser to EXR + PNG previews")
     r.add_argument("maps", help="directory written by 'synth' (its maps/ folder) or save_maps")
-    r.add_argument("-o", "--output", required=True)
+    add_output(r, "output dataset directory (EXR + manifest.json, previews/)")
     r.add_argument("--camera", choices=list(regmap.CAMERA_NAMES), default="micro")
     r.add_argument("--led", type=int, nargs="*", help="LED ids (one image each)")
     r.add_argument("--backlight", type=int, nargs="*", help="back-light ids")
@@ -177,4 +202,5 @@ def register(subparsers) -> None:
     r.add_argument("--float64", action="store_true")
     r.add_argument("--shadows", action="store_true",
                    help="cast the shadows of the relief saved with the maps (geometry.exr; micro camera only)")
+    add_work_options(r)
     r.set_defaults(fn=cmd_render)

@@ -9,7 +9,7 @@ import torch
 from scipy import ndimage
 
 from dualscale.bsdf import MaterialMaps
-from dualscale.dome.shadow import SurfaceGeometry
+from dualscale.formats.relief import SurfaceGeometry
 
 
 @dataclass

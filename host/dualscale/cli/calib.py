@@ -3,34 +3,39 @@
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
 
+from dualscale.formats.atomic import write_json
+
+from .common import add_output, add_work_options, apply_threads, want_progress
+
 
 def cmd_synth_targets(a: argparse.Namespace) -> int:
-    from .calib.targets import Defects, SynthConfig, write_session
+    from dualscale.sim.targets import Defects, SynthConfig, write_session
 
+    apply_threads(a)
     cfg = SynthConfig(led_step=a.led_step, micro_px=a.micro_px, other_px=a.other_px, rig_id=a.rig_id)
     d = Defects(led_gain_sigma=a.led_gain_sigma, collimation_max=a.collimation, analyzer_offset_deg=a.analyzer_offset,
                 blur_sigma_um=(a.blur_um[0], a.blur_um[1]), vignetting=a.vignetting, seed=a.seed)
     parts = tuple(a.parts.split(","))
-    write_session(a.out, cfg, d, parts)
-    print(Path(a.out) / "captures.json")
+    write_session(a.output, cfg, d, parts, progress=want_progress(a))
+    print(Path(a.output) / "captures.json")
     return 0
 
 
 def cmd_calibrate(a: argparse.Namespace) -> int:
-    from .calib.calfile import read_calibration, write_calibration
-    from .calib.captures import read_captures
-    from .calib.pipeline import calibrate
+    from dualscale.formats.calibration import read_calibration, write_calibration
+    from dualscale.formats.captures import read_captures
+    from dualscale.calib.pipeline import calibrate
 
+    apply_threads(a)
     cs = read_captures(a.captures)
-    out = Path(a.out)
+    out = Path(a.output)
     if out.exists() and not a.force:  # never silently replace another rig's calibration
         read_calibration(out, rig_id=cs.rig["id"])
-    data = calibrate(cs)
+    data = calibrate(cs, progress=want_progress(a))
     write_calibration(out, data)
     for cam, kinds in data["ccm"].items():
         for kind, f in kinds.items():
@@ -43,15 +48,19 @@ def cmd_calibrate(a: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(a: argparse.Namespace) -> int:
-    from .calib import evaluate as ev
-    from .calib.calfile import read_calibration
-    from .calib.captures import read_captures
-    from .calib.pipeline import session_with
-    from .calib.report import write_report
+    from dualscale.calib import evaluate as ev
+    from dualscale.formats.calibration import read_calibration
+    from dualscale.formats.captures import read_captures
+    from dualscale.calib.pipeline import session_with
+    from dualscale.calib.report import write_report
 
+    from dualscale.progress import tracker
+
+    apply_threads(a)
     cs = read_captures(a.captures)
     calib = read_calibration(a.calibration, rig_id=cs.rig["id"], layout=cs.rig.get("layout"))
-    s = session_with(cs, calib)
+    bar = tracker(want_progress(a), ev.merges_needed(cs), "evaluate-device", "group")
+    s = session_with(cs, calib, progress=bar)
     res: dict = {"colour": ev.colour_accuracy(s)}
     summary: dict = {}
     for cam, d in res["colour"].items():
@@ -72,10 +81,11 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
     res["collimation"] = ev.collimation(s)
     if res["collimation"]:
         summary["collimation_std_max"] = max(res["collimation"].values())
+    bar.close()
     res["summary"] = summary
-    out = Path(a.out)
+    out = Path(a.output)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "results.json").write_text(json.dumps(res, indent=1))
+    write_json(out / "results.json", res)
     print(write_report(out, res, calib))
     return 0
 
@@ -83,7 +93,7 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
 def register(sub) -> None:
     """Add the calibration subcommands to the `dualscale` parser."""
     s = sub.add_parser("synth-targets", help="write synthetic calibration captures of the virtual dome")
-    s.add_argument("-o", "--out", required=True)
+    add_output(s, "capture-set directory to write (captures.json + EXRs)")
     s.add_argument("--led-step", type=int, default=8, help="use every N-th LED")
     s.add_argument("--micro-px", type=int, default=16)
     s.add_argument("--other-px", type=int, default=48)
@@ -95,16 +105,19 @@ def register(sub) -> None:
     s.add_argument("--blur-um", type=float, nargs=2, default=(2.0, 8.0), help="PSF sigma at centre and corner [um]")
     s.add_argument("--vignetting", type=float, default=0.25)
     s.add_argument("--seed", type=int, default=0)
+    add_work_options(s)
     s.set_defaults(fn=cmd_synth_targets)
 
     c = sub.add_parser("calibrate", help="compute the calibration file from a capture set")
     c.add_argument("captures", help="directory with captures.json")
-    c.add_argument("-o", "--out", required=True, help="calibration file (JSON, written atomically)")
+    add_output(c, "calibration file (JSON, written atomically)")
     c.add_argument("--force", action="store_true", help="replace an existing file even from another rig")
+    add_work_options(c)
     c.set_defaults(fn=cmd_calibrate)
 
     e = sub.add_parser("evaluate-device", help="colour, sharpness, polarisation and collimation report")
     e.add_argument("captures", help="directory with captures.json")
     e.add_argument("--calibration", required=True)
-    e.add_argument("-o", "--out", required=True, help="report directory (report.html, PNG/SVG, results.json)")
+    add_output(e, "report directory (report.html, PNG/SVG, results.json)")
+    add_work_options(e)
     e.set_defaults(fn=cmd_evaluate)

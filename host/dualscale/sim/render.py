@@ -28,8 +28,8 @@ from torch import Tensor
 from dualscale.bsdf import MaterialMaps, evaluate
 from dualscale.bsdf.maps import Components
 
-from .cameras import Camera
-from .geometry import DomeGeometry, polarizer_axis
+from dualscale.geometry.cameras import Camera
+from dualscale.geometry.dome import DomeGeometry, polarizer_axis
 from .shadow import SurfaceGeometry, visibility
 
 

@@ -14,7 +14,7 @@ import torch
 from scipy import ndimage
 from skimage.draw import line
 
-from dualscale.dome.shadow import SurfaceGeometry
+from dualscale.formats.relief import SurfaceGeometry
 
 from .common import SyntheticMaterial, normals_from_height, pixel_grid_mm, smooth_noise, to_maps
 
@@ -66,7 +66,9 @@ def woven(kind: str, size: int = 512, texel_mm: float = 0.0018, seed: int = 0, p
     across = np.where(warp_vis, u, w) / (width / 2)
     tang = np.where(warp_vis, np.pi / 2, 0.0) + np.radians(twist_deg) * np.clip(across, -1, 1)
     (c_warp, c_weft) = [np.array(c) for c in COLOURS[kind]]
-    yarn_var = rng.uniform(0.85, 1.15, size=(2, 4096))
+    rng.uniform(size=(2, 4096))  # drawn as before, so the fly-outs drawn after it stay put
+    # per-yarn shade from its own stream: the same sample at every size and texel (micro vs mid)
+    yarn_var = np.random.default_rng((seed, 1)).uniform(0.85, 1.15, size=(2, 4096))
     var = np.where(warp_vis, yarn_var[0][i % 4096], yarn_var[1][j % 4096])
     shade = (1 + 0.08 * fibre) * var
     albedo = np.where(warp_vis[..., None], c_warp, c_weft) * shade[..., None]
@@ -102,7 +104,8 @@ def rib_knit(size: int = 512, texel_mm: float = 0.0018, seed: int = 0, wale_mm: 
     fibre = smooth_noise(rng, (size, size), 1.5)
     height = 0.2 * wale_mm * loop * ridge * (1 + 0.05 * fibre)
     tang = np.pi / 2 - leg * math.atan(0.2 * wale_mm / course_mm * 2.5)
-    colour = np.array([0.12, 0.35, 0.45]) * rng.uniform(0.9, 1.1)
+    rng.uniform(0.9, 1.1)  # drawn as before (fly-outs); the colour is the same at every size and texel:
+    colour = np.array([0.12, 0.35, 0.45]) * np.random.default_rng((seed, 1)).uniform(0.9, 1.1)
     albedo = colour * ((0.5 + 0.5 * loop) * (1 + 0.08 * fibre))[..., None]
     maps = dict(albedo=np.clip(albedo, 0, 1), roughness=np.clip(0.55 + 0.05 * fibre, 0, 1),
                 anisotropy=np.where(loop > 0, 0.7, 0.1), tangent=np.remainder(tang, np.pi) / np.pi,

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import torch
 
-from .cameras import micro_camera
-from .geometry import DomeGeometry
+from dualscale.geometry.cameras import micro_camera
+from dualscale.geometry.dome import DomeGeometry
 from .render import Analyzer, LightRealism, LightState, render
 
 
@@ -21,18 +21,15 @@ def flyout_leds(dome: DomeGeometry) -> list[int]:
     return [int(torch.argmax(z))] + [i for i in range(dome.n_leds) if z[i] <= z.min() + 1e-3]
 
 
-def flyout_views(mat, texel_um: float, shadows: bool = True):
-    """:class:`~dualscale.fit.observations.Observations` of ``mat`` (a ``SyntheticMaterial`` with
-    square maps of ``texel_um`` micrometre texels) under :func:`flyout_leds` at relative P0,
-    noiseless; ``shadows`` casts the shadows of ``mat.geometry``."""
-    from dualscale.fit.observations import Observations
-
+def flyout_views(mat, texel_um: float, shadows: bool = True) -> tuple[torch.Tensor, torch.Tensor, list[int]]:
+    """``(images (N, H, W, 3), directions (N, 3), LED ids)`` of ``mat`` (a ``SyntheticMaterial``
+    with square maps of ``texel_um`` micrometre texels) under :func:`flyout_leds` at relative P0
+    (specular passed, diffuse halved), noiseless; ``shadows`` casts the shadows of
+    ``mat.geometry``.  ``dualscale.fit.observations.Observations.relative_p0`` wraps them."""
     size = mat.maps.shape[0]
     dome, cam = DomeGeometry.from_regmap(), micro_camera(size, texel_um)
     ids = flyout_leds(dome)
     real = LightRealism(shadows=shadows)
     imgs = torch.stack([render(mat.maps, cam, LightState.led(i), dome, Analyzer(0.0, True), realism=real,
                                geometry=mat.geometry if shadows else None) for i in ids])
-    n = len(ids)
-    return Observations(imgs, dome.led_dirs[ids].float(), torch.ones(n), torch.zeros(n), torch.full((n,), 0.5),
-                        torch.tensor(ids), pixel_mm=texel_um / 1000)
+    return imgs, dome.led_dirs[ids].float(), ids

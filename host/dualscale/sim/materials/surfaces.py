@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from dualscale.dome.shadow import SurfaceGeometry
+from dualscale.formats.relief import SurfaceGeometry
 
 from .common import SyntheticMaterial, normals_from_height, smooth_noise, to_maps
 

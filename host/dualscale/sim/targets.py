@@ -1,7 +1,7 @@
 """Synthetic calibration captures on the virtual dome, with known truth and injected defects.
 
 Every capture is physically composed: per-pixel geometry factors come from the dome renderer
-(:func:`dualscale.dome.render.render`, a grey matte/glossy surface with albedo 1 and 0, so the
+(:func:`dualscale.sim.render.render`, a grey matte/glossy surface with albedo 1 and 0, so the
 diffuse part ``G_d`` and the white specular part ``G_s`` are separated), and colour comes from
 spectral reflectances x the light's spectrum x the camera's spectral sensitivities
 (colour-science), never from RGB: ``raw(x) = sum_k [label(x) = k] raw_k G_d(x) + raw_white
@@ -25,16 +25,17 @@ import torch
 from scipy.ndimage import gaussian_filter
 
 from dualscale.bsdf import MaterialMaps
-from dualscale.dome.cameras import Camera, micro_camera, mid_camera, polar_camera
-from dualscale.dome.geometry import DomeGeometry
-from dualscale.dome.render import Analyzer, LightState, render
-from dualscale.dome.sensor import SensorModel, capture, vignetting_map
+from dualscale.geometry.cameras import Camera, micro_camera, mid_camera, polar_camera
+from dualscale.geometry.dome import DomeGeometry
+from dualscale.sim.render import Analyzer, LightState, render
+from dualscale.sim.sensor import SensorModel, capture, vignetting_map
 
-from . import colourref as cr
-from .captures import CaptureWriter, light_key
-from .chart import ChartLayout
-from .hdr import meter, plan_brackets
-from .radiometric import micro_footprint_mask
+from dualscale.calib import colourref as cr
+from dualscale.formats.captures import CaptureWriter, light_key
+from dualscale.calib.chart import DOT_DIAMETER_UM, DOT_PITCH_UM, ChartLayout
+from dualscale.calib.hdr import meter, plan_brackets
+from dualscale.calib.radiometric import micro_footprint_mask
+from dualscale.progress import Progress, Tracker, tracker
 
 MICRO_FIELD_MM = 0.9216  # 512 px x 1.8 um
 SHEET_R = (0.55, 0.60)  # white diffuser reflectance at 400 / 700 nm
@@ -42,7 +43,6 @@ SHEET_T = (0.37, 0.43)  # and transmittance (the spec's 38/40/42 % in R, G, B)
 HOLDER_R = 0.05
 CHART_BODY_R = 0.03
 DOT_R, DOT_BG_R = 0.04, 0.85
-DOT_PITCH_UM, DOT_DIAMETER_UM = 125.0, 62.5
 
 
 @dataclass(frozen=True)
@@ -309,14 +309,26 @@ class Truth:
 
 
 def write_session(root: str | Path, cfg: SynthConfig = SynthConfig(), defects: Defects = Defects(),
-                  parts: tuple[str, ...] = ("white_sheet", "chart", "dot_grid", "polarization")) -> Truth:
+                  parts: tuple[str, ...] = ("white_sheet", "chart", "dot_grid", "polarization"),
+                  progress: Progress = None) -> Truth:
     """Write a complete synthetic calibration session (``captures.json`` + EXRs) and return the
     truth.  Parts: white sheet (all cameras, lights; micro P0 and P90), ColorChecker (micro:
-    one capture per patch, P0 + P90; others: the whole chart), dot grid, polarisation sweep."""
+    one capture per patch, P0 + P90; others: the whole chart), dot grid, polarisation sweep.
+    ``progress`` (:mod:`dualscale.progress`): one unit per camera and light, the dot grid, and
+    each LED of the polarisation sweep."""
     dome = DomeGeometry.from_regmap()
     layout = ChartLayout()
     cams = rig_cameras(cfg)
-    w = CaptureWriter(Path(root), rig={"id": cfg.rig_id, "layout": dome_signature(dome)})
+    n_leds = sum(k == "led" for k, _ in lights(cfg, dome))
+    total = len(cams) * len(lights(cfg, dome)) + ("dot_grid" in parts) \
+        + (n_leds if "polarization" in parts and "micro" in cams else 0)
+    with tracker(progress, total, "synth-targets", "step") as bar:
+        return _write_session(Path(root), cfg, defects, parts, dome, layout, cams, bar)
+
+
+def _write_session(root: Path, cfg: SynthConfig, defects: Defects, parts: tuple[str, ...], dome: DomeGeometry,
+                   layout: ChartLayout, cams: dict[str, Camera], bar: Tracker) -> Truth:
+    w = CaptureWriter(root, rig={"id": cfg.rig_id, "layout": dome_signature(dome)})
     truth = Truth(analyzer_offset_deg=defects.analyzer_offset_deg)
     gains = led_gains(dome.n_leds, defects)
     seed = 0
@@ -361,14 +373,16 @@ def write_session(root: str | Path, cfg: SynthConfig = SynthConfig(), defects: D
                     rad = true_radiance("chart", cam, kind, lid, cfg, defects, dome, layout)
                     t, imgs = bracket(ex, rad * jitter, dark_pixels_ignore=0.0)
                     w.add("chart", cam, kind, lid, t, imgs)
+            bar.update(what=f"{name} {light_key(kind, lid)}")
         if name != "mid":
             w.chart.setdefault("corners", {})[name] = chart_corners(cam, layout).tolist()
     w.chart["layout"] = {"rows": layout.rows, "cols": layout.cols, "pitch_mm": layout.pitch_mm,
                          "patch_mm": layout.patch_mm}
     if "dot_grid" in parts:
         _dot_grid(w, cfg, defects, dome, truth)
+        bar.update(what="dot grid")
     if "polarization" in parts and "micro" in cams:
-        _polarization(w, cams["micro"], cfg, defects, dome)
+        _polarization(w, cams["micro"], cfg, defects, dome, bar)
     w.extra["truth"] = truth.to_json()
     w.extra["synthetic"] = {"config": repr(cfg), "defects": repr(defects)}
     w.close()
@@ -416,7 +430,8 @@ def _dot_grid(w: CaptureWriter, cfg: SynthConfig, defects: Defects, dome: DomeGe
     truth.dot_sigma_px = sig(pts[:, 0], pts[:, 1]).tolist()
 
 
-def _polarization(w: CaptureWriter, cam: Camera, cfg: SynthConfig, defects: Defects, dome: DomeGeometry) -> None:
+def _polarization(w: CaptureWriter, cam: Camera, cfg: SynthConfig, defects: Defects, dome: DomeGeometry,
+                  bar: Tracker) -> None:
     """Absolute analyser sweep per LED on a glossy dark target; the analyser's physical axis is
     off by ``defects.analyzer_offset_deg`` from the recorded angle."""
     ex = Exposer(cam, cfg, defects, 77)
@@ -437,3 +452,4 @@ def _polarization(w: CaptureWriter, cam: Camera, cfg: SynthConfig, defects: Defe
         t = 0.8 * t0 / max(float(mshot.max()), 1e-6)
         for a, rad in zip(angles, rads):
             w.add("polarization", cam, "led", lid, [t], [ex(rad, t)], analyzer_deg=float(a), analyzer_relative=False)
+        bar.update(what=f"polarisation led{lid}")

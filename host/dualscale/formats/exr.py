@@ -1,4 +1,9 @@
-"""Image I/O through OpenImageIO: float EXR (data) and 8-bit sRGB PNG (previews only)."""
+"""Image I/O through OpenImageIO: float EXR (data) and 8-bit sRGB PNG (previews only).
+
+Every write is atomic (:mod:`.atomic`).  :func:`read_exr` refuses images whose data window is
+not the display window at the origin (``oiiotool --origin`` / ``--crop`` shifted or cropped
+files), since a shifted image would be fitted misaligned; pass ``allow_window=True`` only where
+the caller handles the offset itself."""
 
 from __future__ import annotations
 
@@ -6,6 +11,10 @@ from pathlib import Path
 from typing import Sequence
 
 import numpy as np
+
+from dualscale.errors import GeometryError
+
+from .atomic import atomic_path
 
 _DEFAULT_NAMES = {1: ("Y",), 2: ("X", "Y"), 3: ("R", "G", "B"), 4: ("R", "G", "B", "A")}
 
@@ -28,20 +37,23 @@ def write_exr(path: str | Path, image: np.ndarray, channels: Sequence[str] | Non
     spec.attribute("compression", "zip")
     for k, v in (attributes or {}).items():
         spec.attribute(k, str(v))
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    out = oiio.ImageOutput.create(str(path))
-    if out is None or not out.open(str(path), spec):
-        raise OSError(f"cannot write {path}: {oiio.geterror()}")
-    try:
-        if not out.write_image(np.ascontiguousarray(img)):
-            raise OSError(f"cannot write {path}: {out.geterror()}")
-    finally:
-        out.close()
+    with atomic_path(path) as tmp:
+        out = oiio.ImageOutput.create(str(tmp))
+        if out is None or not out.open(str(tmp), spec):
+            raise OSError(f"cannot write {path}: {oiio.geterror()}")
+        try:
+            if not out.write_image(np.ascontiguousarray(img)):
+                raise OSError(f"cannot write {path}: {out.geterror()}")
+        finally:
+            out.close()
 
 
-def read_exr(path: str | Path, channels: Sequence[str] | None = None) -> np.ndarray:
-    """Read an image as float32 ``(H, W, C)``; ``channels`` selects by name (EXR reorders them)."""
+def read_exr(path: str | Path, channels: Sequence[str] | None = None, allow_window: bool = False) -> np.ndarray:
+    """Read an image as float32 ``(H, W, C)``; ``channels`` selects by name (EXR reorders them).
+
+    Raises :class:`~dualscale.errors.GeometryError` when the data window is not the display
+    window with its origin at (0, 0) (unless ``allow_window``), ``FileNotFoundError`` and
+    ``OSError`` for missing or unreadable files, ``ValueError`` for a missing channel."""
     import OpenImageIO as oiio
 
     path = Path(path)
@@ -52,6 +64,8 @@ def read_exr(path: str | Path, channels: Sequence[str] | None = None) -> np.ndar
         raise OSError(f"cannot read {path}: {oiio.geterror()}")
     try:
         spec = inp.spec()
+        if not allow_window:
+            check_window(path, spec)
         data = inp.read_image(0, 0, 0, spec.nchannels, "float")
     finally:
         inp.close()
@@ -67,6 +81,18 @@ def read_exr(path: str | Path, channels: Sequence[str] | None = None) -> np.ndar
             raise ValueError(f"{path}: no channel {c!r} (has {list(spec.channelnames)})")
         idx.append(i)
     return data[..., idx]
+
+
+def check_window(path: str | Path, spec) -> None:
+    """Refuse an image whose data window is shifted or differs from its display window."""
+    data = (spec.x, spec.y, spec.width, spec.height)
+    full = (spec.full_x, spec.full_y, spec.full_width, spec.full_height)
+    if data != full or spec.x != 0 or spec.y != 0:
+        raise GeometryError(
+            f"{path}: data window origin ({spec.x}, {spec.y}) size {spec.width}x{spec.height} differs from the "
+            f"display window origin ({spec.full_x}, {spec.full_y}) size {spec.full_width}x{spec.full_height}; "
+            "dualscale reads only images whose pixels start at (0, 0) and fill the display window "
+            "(reset with: oiiotool IN --origin +0+0 --fullpixels -o OUT, after checking the alignment)")
 
 
 def read_exr_attributes(path: str | Path, prefix: str = "dualscale:") -> dict[str, str]:
@@ -103,13 +129,12 @@ def write_png_preview(path: str | Path, image: np.ndarray, srgb: bool = True, ex
         img = np.concatenate([img, np.zeros_like(img[..., :1])], -1)
     img = srgb_encode(img) if srgb else np.clip(img, 0, 1)
     u8 = np.ascontiguousarray(np.round(img * 255).astype(np.uint8))
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    out = oiio.ImageOutput.create(str(path))
     spec = oiio.ImageSpec(u8.shape[1], u8.shape[0], u8.shape[2], "uint8")
-    if out is None or not out.open(str(path), spec):
-        raise OSError(f"cannot write {path}: {oiio.geterror()}")
-    try:
-        out.write_image(u8)
-    finally:
-        out.close()
+    with atomic_path(path) as tmp:
+        out = oiio.ImageOutput.create(str(tmp))
+        if out is None or not out.open(str(tmp), spec):
+            raise OSError(f"cannot write {path}: {oiio.geterror()}")
+        try:
+            out.write_image(u8)
+        finally:
+            out.close()

@@ -6,6 +6,10 @@ import argparse
 import json
 from pathlib import Path
 
+from dualscale.errors import FormatError, InputError
+
+from .common import add_output, add_work_options, apply_threads, want_progress
+
 
 def cmd_train(args: argparse.Namespace) -> int:
     from dualscale.propagate.data import load_source
@@ -13,17 +17,14 @@ def cmd_train(args: argparse.Namespace) -> int:
 
     maps = args.maps or []
     if maps and len(maps) != len(args.datasets):
-        raise ValueError(f"--maps given {len(maps)} times for {len(args.datasets)} datasets; pair them one to one")
-    if args.threads:
-        import torch
-
-        torch.set_num_threads(args.threads)
+        raise InputError(f"--maps given {len(maps)} times for {len(args.datasets)} datasets; pair them one to one")
+    apply_threads(args)
     sources = [load_source(d, maps[i] if maps else None) for i, d in enumerate(args.datasets)]
     preset = preset_with(args.preset, iterations=args.iterations, batch=args.batch, lr=args.lr, crop=args.crop)
     sigma = (0.1, args.blur_sigma_max)
     opts = TrainOptions(width=args.width, perceptual=args.perceptual, amp=not args.no_amp, blur_sigma=sigma,
                         seed=args.seed, checkpoint_every=args.checkpoint_every, resume=args.resume, init=args.init,
-                        progress=not args.no_progress, device=args.device)
+                        progress=want_progress(args), device=args.device)
     res = train(sources, preset, args.output, opts)
     print(f"wrote {args.output} ({res.iterations} iterations, {res.seconds:.1f} s this run, "
           f"final loss {res.history[-1]['loss']:.4f})")
@@ -36,7 +37,9 @@ def cmd_export(args: argparse.Namespace) -> int:
     out = export_model(args.model, check=not args.no_check)
     print(json.dumps(out, indent=1))
     if "parity_fp32" in out and max(out["parity_fp32"].values()) >= 1e-4:
-        print("error: fp32 ONNX parity is worse than 1e-4")
+        import sys
+
+        print("dualscale propagate export: check failed: fp32 ONNX parity is worse than 1e-4", file=sys.stderr)
         return 1
     return 0
 
@@ -60,30 +63,36 @@ def _onnx_for(model: Path, precision: str) -> Path:
 def _guidance_file(path: Path) -> Path:
     """An image file, or the diffuse (else only) image of a photometric dataset folder."""
     if path.is_dir():
-        from dualscale.dome.dataset import read_dataset
+        from dualscale.formats.dataset import read_dataset
 
         ds = read_dataset(path)
         pick = ds.select(light_kind="diffuse") or (list(range(len(ds.records))) if len(ds.records) == 1 else [])
         if not pick:
-            raise ValueError(f"{path}: no diffuse image to use as guidance")
+            raise FormatError(f"{path}: no diffuse image to use as guidance")
         return path / ds.records[pick[0]].file
     return path
 
 
 def cmd_run(args: argparse.Namespace) -> int:
     from dualscale.propagate.infer import OnnxModel, run_tiled
-    from dualscale.propagate.io import read_model_file
+    from dualscale.formats.model import read_model_file
 
+    threads = apply_threads(args)
     model = Path(args.model)
+    if not model.is_file():
+        raise InputError(f"model file not found: {model}")
     guidance = _guidance_file(Path(args.guidance))
     if not guidance.is_file():
-        raise FileNotFoundError(f"guidance image not found: {guidance}")
+        raise InputError(f"guidance image not found: {guidance}")
     if model.suffix != ".onnx":
         read_model_file(model)  # clear error for foreign/incompatible files before exporting
     onnx = _onnx_for(model, args.precision)
-    exposure = args.exposure if args.exposure == "auto" else float(args.exposure)
-    summary = run_tiled(OnnxModel.open(onnx, args.threads), guidance, args.output,
-                        args.tile, args.overlap, exposure, args.batch, not args.no_progress)
+    try:
+        exposure = args.exposure if args.exposure == "auto" else float(args.exposure)
+    except ValueError:
+        raise InputError(f"--exposure {args.exposure!r}: use 'auto' or a positive gain") from None
+    summary = run_tiled(OnnxModel.open(onnx, threads), guidance, args.output,
+                        args.tile, args.overlap, exposure, args.batch, want_progress(args))
     print(f"wrote {', '.join(summary['maps'])} ({summary['width']}x{summary['height']}, {summary['tiles']} tiles, "
           f"{summary['precision']}) to {args.output}")
     return 0
@@ -100,7 +109,7 @@ def register(subparsers) -> None:
     t = sub.add_parser("train", help="train on micro datasets with fitted maps")
     t.add_argument("datasets", nargs="+", metavar="DATASET",
                    help="folder with micro/ and maps/ (as 'dualscale synth --dataset' writes), or a micro dataset")
-    t.add_argument("-o", "--output", required=True, help="model file to write (checkpoints go to OUTPUT.ckpt)")
+    add_output(t, "model file to write (checkpoints go to OUTPUT.ckpt)")
     t.add_argument("--maps", action="append", help="maps folder for each DATASET, in order (repeat)")
     t.add_argument("--preset", choices=sorted(PRESETS), default="fast")
     t.add_argument("--iterations", type=int, help="override the preset's iteration count")
@@ -117,9 +126,7 @@ def register(subparsers) -> None:
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--no-amp", action="store_true", help="train in float32")
     t.add_argument("--device", default="cpu")
-    t.add_argument("--threads", type=int, help="torch intra-op threads (on busy shared cores, set "
-                   "OMP_WAIT_POLICY=PASSIVE or use 1)")
-    t.add_argument("--no-progress", action="store_true")
+    add_work_options(t, "torch intra-op threads (on busy shared cores, set OMP_WAIT_POLICY=PASSIVE or use 1)")
     t.set_defaults(fn=cmd_train)
 
     e = sub.add_parser("export", help="export a model to ONNX fp32 and fp16 and check parity")
@@ -130,13 +137,12 @@ def register(subparsers) -> None:
     r = sub.add_parser("run", help="propagate maps over a guidance image (tiled, onnxruntime) to EXR")
     r.add_argument("model", help="model file or exported .onnx")
     r.add_argument("guidance", help="RGB image (EXR) or a photometric dataset folder with a diffuse image")
-    r.add_argument("-o", "--output", required=True, help="output maps folder")
+    add_output(r, "output maps folder")
     r.add_argument("--tile", type=int, default=512)
     r.add_argument("--overlap", type=int, default=64)
     r.add_argument("--batch", type=int, default=1, help="tiles per onnxruntime call")
     r.add_argument("--precision", choices=("auto", "fp32", "fp16"), default="auto",
                    help="auto: fp16 on CUDA, fp32 on CPU")
     r.add_argument("--exposure", default="auto", help="'auto' (match the training diffuse mean) or a gain")
-    r.add_argument("--threads", type=int, help="onnxruntime intra-op threads")
-    r.add_argument("--no-progress", action="store_true")
+    add_work_options(r, "onnxruntime (and torch/OpenCV) intra-op threads")
     r.set_defaults(fn=cmd_run)

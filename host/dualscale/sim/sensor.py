@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .cameras import Camera
+from dualscale.geometry.cameras import Camera
 
 
 @functools.lru_cache(maxsize=8)

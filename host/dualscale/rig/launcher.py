@@ -6,6 +6,8 @@ the DUALSCALE_FIRMWARE_BUILD environment variable).
 """
 from __future__ import annotations
 
+from dualscale.errors import InputError, RigError, ToolError
+
 import os
 import re
 import select
@@ -23,6 +25,8 @@ TARGETS = ("posix", "qemu")
 # bytes reach the guest with gaps longer than t3.5 and the frame splits. The launcher raises the
 # guest's FRAME_TIMEOUT_US to this (µs) by broadcast, which is neither answered nor counted.
 QEMU_FRAME_TIMEOUT_US = 20000
+BROADCAST_ADDRESS = 0  # Modbus: every server acts on it and none answers
+FC_WRITE_REGISTER = 0x06  # Modbus function code "write single register"
 
 
 def build_dir() -> Path:
@@ -46,8 +50,12 @@ def _raise_priority() -> None:
         pass
 
 
-class SimError(RuntimeError):
-    """The simulated rig could not be started."""
+class SimError(RigError):
+    """The simulated rig could not be started, or died."""
+
+
+class SimNotBuilt(ToolError):
+    """The simulator's binary (or QEMU) is missing: an environment problem, exit code 4."""
 
 
 def qemu_command(elf: Path, icount: str | None = None) -> list[str]:
@@ -67,7 +75,7 @@ class SimulatedRig:
                  icount: str | None = None, startup_s: float = 10.0,
                  frame_timeout_us: int | None = None):
         if target not in TARGETS:
-            raise ValueError(f"target must be one of {TARGETS}, not {target!r}")
+            raise InputError(f"target must be one of {TARGETS}, not {target!r}")
         self.target, self.speed = target, speed
         self.link = Path(link) if link else None
         self.hw_socket = Path(hw_socket) if hw_socket else None
@@ -85,7 +93,7 @@ class SimulatedRig:
         if self.target == "posix":
             exe = sim_binary()
             if not exe.exists():
-                raise SimError(f"{exe} is missing: build it with `make -C firmware posix`")
+                raise SimNotBuilt(f"{exe} is missing: build it with `make -C firmware posix`")
             cmd = [str(exe), "--speed", repr(float(self.speed))]
             if self.hw_socket:
                 cmd += ["--hw-socket", str(self.hw_socket)]
@@ -95,9 +103,9 @@ class SimulatedRig:
         else:
             elf = firmware_elf()
             if not elf.exists():
-                raise SimError(f"{elf} is missing: build it with `make firmware`")
+                raise SimNotBuilt(f"{elf} is missing: build it with `make firmware`")
             if not shutil.which("qemu-system-arm"):
-                raise SimError("qemu-system-arm is not installed (apt-get install qemu-system-arm)")
+                raise SimNotBuilt("qemu-system-arm is not installed (apt-get install qemu-system-arm)")
             # QEMU 7.2 prints "char device redirected to /dev/pts/N" on stdout: read both
             self.proc = subprocess.Popen(qemu_command(elf, self.icount), stdin=subprocess.DEVNULL,
                                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
@@ -128,11 +136,15 @@ class SimulatedRig:
         time.sleep(1.2)
         termios.tcflush(self._hold, termios.TCIOFLUSH)
         if self.frame_timeout_us:
+            import struct
+
             from ..protocol.crc import rtu_frame
             from ..protocol.regmap import HR
 
-            t = self.frame_timeout_us
-            os.write(self._hold, rtu_frame(bytes([0, 0x06, 0, HR.FRAME_TIMEOUT_US, t >> 8, t & 0xFF])))
+            # FC 06 (write single register) to the broadcast address: big-endian address, value
+            pdu = struct.pack(">BBHH", BROADCAST_ADDRESS, FC_WRITE_REGISTER, HR.FRAME_TIMEOUT_US,
+                              self.frame_timeout_us)
+            os.write(self._hold, rtu_frame(pdu))
             time.sleep(0.1)
 
     def _read_line(self, stream, want) -> str:

@@ -1,0 +1,180 @@
+"""The `dualscale` command line.
+
+Every subcommand raises on failure; :func:`main` is the one place where an error meets the
+user: one line on stderr (``dualscale CMD: error: ...``) and the exit code of
+:func:`exit_code` (the table is :data:`dualscale.errors.EXIT_CODES`), never a traceback
+(``DUALSCALE_DEBUG=1`` shows it).  Long commands share ``-o/--output``, ``--threads N`` and
+``--progress/--no-progress`` (:mod:`.common`).
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import sys
+import time
+
+from dualscale.errors import EXIT_CODES, DualscaleError, Interrupted
+from dualscale.rig.client import RigClient
+from dualscale.rig.launcher import SimError, SimulatedRig
+
+
+def cmd_sim(a: argparse.Namespace) -> int:
+    stop = {"now": False}
+
+    def handler(_signum, _frame):
+        stop["now"] = True
+
+    # before the device line goes out: a caller may signal as soon as it has read it
+    signal.signal(signal.SIGINT, handler)
+    signal.signal(signal.SIGTERM, handler)
+    rig = SimulatedRig(a.target, link=a.link, speed=a.speed, hw_socket=a.hw_socket, icount=a.icount)
+    rig.start()
+    print(rig.port, flush=True)
+    if a.link:
+        print(f"linked {a.link} -> {rig.port}", file=sys.stderr)
+    try:
+        while not stop["now"] and rig.alive():
+            time.sleep(0.1)
+    finally:
+        died = not rig.alive()
+        rig.stop()
+    if died and not stop["now"]:
+        raise SimError(f"the {a.target} simulator exited unexpectedly")
+    return 0
+
+
+def cmd_console(a: argparse.Namespace) -> int:
+    from dualscale.rig.console import Console, run_script
+
+    with RigClient(a.port, address=a.address) as rig:
+        con = Console(rig)
+        if a.c is not None:
+            return run_script(con, a.c)
+        con.cmdloop()
+    return 0
+
+
+def cmd_flash(a: argparse.Namespace) -> int:
+    from dualscale.rig.flash import flash
+
+    return flash(a.tool, dry_run=a.dry_run, port=a.port)
+
+
+def cmd_demo(a: argparse.Namespace) -> int:
+    from dualscale.rig.demo import run_demo
+
+    rep = run_demo(a.target, speed=a.speed, on_event=print if a.events else None)
+    return 0 if rep.state == "DONE" and rep.dropped == 0 else 1
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with the house's one-line errors: ``dualscale CMD: error: ... (see --help)``,
+    exit code 2 (subparsers inherit the class)."""
+
+    def error(self, message: str):  # noqa: D102 - argparse's hook
+        self.exit(EXIT_CODES["input"], f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = _Parser(prog="dualscale", description=__doc__.split("\n\n")[0],
+                formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="cmd", required=True)
+
+    s = sub.add_parser("sim", help="start the simulated rig (prints its serial device first)")
+    s.add_argument("--target", choices=("posix", "qemu"), default="posix")
+    s.add_argument("--link", help="make a symlink to the serial device at this path")
+    s.add_argument("--speed", type=float, default=1.0,
+                   help="posix: 1 = real time, >1 accelerated virtual time, 0 = as fast as possible")
+    s.add_argument("--hw-socket", help="posix: Unix socket for the simulated hardware side channel")
+    s.add_argument("--icount", help="qemu: -icount option, e.g. shift=4")
+    s.set_defaults(fn=cmd_sim)
+
+    c = sub.add_parser("console", help="interactive serial console")
+    c.add_argument("--port", required=True, help="serial device or pyserial URL")
+    c.add_argument("--address", type=int, default=1)
+    c.add_argument("-c", metavar="CMDS", help='run ";"-separated commands and exit')
+    c.set_defaults(fn=cmd_console)
+
+    f = sub.add_parser("flash", help="build and flash the STM32F405 firmware")
+    f.add_argument("--tool", choices=("auto", "pio", "openocd", "st-flash", "dfu-util"), default="auto")
+    f.add_argument("--dry-run", action="store_true", help="print the exact commands only")
+    f.add_argument("--port", help="serial port to check the firmware version on afterwards")
+    f.set_defaults(fn=cmd_flash)
+
+    d = sub.add_parser("demo", help="run the full micro-capture sequence on the simulated rig")
+    d.add_argument("--target", choices=("posix", "qemu"), default="posix")
+    d.add_argument("--speed", type=float, default=10.0, help="posix simulator speed (see sim)")
+    d.add_argument("--events", action="store_true", help="print every event")
+    d.set_defaults(fn=cmd_demo)
+
+    from .sim import register as register_appearance
+
+    register_appearance(sub)
+    from .calib import register as register_calib
+
+    register_calib(sub)
+    from .fit import register as register_fit
+
+    register_fit(sub)
+    from .propagate import register as register_propagate
+
+    register_propagate(sub)
+    from .digitize import register as register_digitize
+
+    register_digitize(sub)
+    return p
+
+
+def exit_code(e: BaseException) -> int:
+    """The one mapping from errors to exit codes (the table is :data:`dualscale.errors.EXIT_CODES`):
+    an error of the tree carries its own; Ctrl-C is ``interrupted``; a foreign ``ValueError``
+    or a missing/unreadable file is bad ``input``; another ``OSError`` (disk full, no device)
+    is the environment (``tool``); anything else is ``internal``."""
+    if isinstance(e, DualscaleError):
+        return e.exit_code
+    if isinstance(e, KeyboardInterrupt):
+        return EXIT_CODES["interrupted"]
+    if isinstance(e, (ValueError, FileNotFoundError, NotADirectoryError, IsADirectoryError, PermissionError)):
+        return EXIT_CODES["input"]
+    if isinstance(e, OSError):
+        return EXIT_CODES["tool"]
+    return EXIT_CODES["internal"]
+
+
+def _one_line(e: BaseException) -> str:
+    """The error's message on one line (an ``OSError`` as 'reason: file')."""
+    if isinstance(e, OSError) and not isinstance(e, DualscaleError) and e.strerror:
+        msg = f"{e.strerror}: {e.filename}" if e.filename is not None else e.strerror
+    else:
+        msg = str(e) or type(e).__name__
+    return "; ".join(ln.strip() for ln in msg.splitlines() if ln.strip())
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run ``dualscale ARGV`` and return its exit code; every error becomes one line on stderr
+    and the code of :func:`exit_code` (no traceback; ``DUALSCALE_DEBUG=1`` re-raises)."""
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as e:  # --help (0) or a usage error (2, already printed on one line)
+        return e.code if isinstance(e.code, int) else EXIT_CODES["input"]
+    cmd = " ".join(x for x in (args.cmd, getattr(args, "propagate_cmd", None), getattr(args, "study", None)) if x)
+    try:
+        return args.fn(args)
+    except (Exception, KeyboardInterrupt) as e:  # noqa: BLE001 -- the one place errors meet the user
+        if os.environ.get("DUALSCALE_DEBUG"):
+            raise
+        code = exit_code(e)
+        if code == EXIT_CODES["interrupted"]:
+            msg = _one_line(e) if str(e) else "interrupted"
+            print(f"dualscale {cmd}: {msg}; run the same command again to resume", file=sys.stderr)
+        elif code == EXIT_CODES["internal"] and not isinstance(e, DualscaleError):
+            print(f"dualscale {cmd}: internal error: {type(e).__name__}: {_one_line(e)} "
+                  "(rerun with DUALSCALE_DEBUG=1 for the traceback, and please report it)", file=sys.stderr)
+        else:
+            print(f"dualscale {cmd}: error: {_one_line(e)}", file=sys.stderr)
+        return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,65 @@
+"""``dualscale digitize INPUT -o RUN``: the whole job, resumable (see :mod:`dualscale.pipeline`)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+
+def _line(st) -> str:
+    rec, s = st.record, st.record.get("summary", {})
+    state = "up to date" if st.skipped else f"{rec['seconds']:.1f} s"
+    if "skipped" in s:
+        state += f" (skipped: {s['skipped']})"
+    warn = f", {len(rec['warnings'])} warning(s)" if rec.get("warnings") else ""
+    return f"  {st.name:<10s} {state}{warn}"
+
+
+def cmd_digitize(a: argparse.Namespace) -> int:
+    from dualscale.pipeline import DigitizeOptions, digitize
+
+    opts = DigitizeOptions(input=a.input, run=a.output, calibration=a.calibration, guidance=a.guidance,
+                           guidance_transfer=a.transfer, guidance_texel_mm=a.guidance_texel_mm, quality=a.quality,
+                           until=a.until, threads=a.threads,
+                           progress=a.progress if a.progress is not None else sys.stderr.isatty(), seed=a.seed)
+    print(f"digitize {opts.input} -> {opts.run} (quality {opts.quality})")
+    res = digitize(opts, on_stage=lambda st: print(_line(st), flush=True))
+    run = Path(a.output)
+    fit = res.record("fit")
+    if fit is not None:
+        s = fit["summary"]
+        rel = s.get("heldout_relative_l1")
+        print(f"fit: preset {s['preset']}, held-out relative L1 "
+              f"{'n/a' if rel is None else f'{rel:.3f}'} over {s['heldout_images']} held-out images")
+    if res.record("export") is not None:
+        print(f"maps:   {run / 'export'}")
+    if res.record("report") is not None:
+        print(f"report: {run / 'report' / 'index.html'}")
+    return 0
+
+
+def register(sub) -> None:
+    """Add ``digitize`` to an argparse subparsers object."""
+    from dualscale.pipeline import QUALITIES, STAGES
+
+    d = sub.add_parser("digitize", help="the whole job: calibrate, fit, fly-outs, propagate, export, report "
+                                        "(resumable: rerun the same command to continue)")
+    d.add_argument("input", help="photometric dataset folder (manifest.json), or a folder holding micro/")
+    d.add_argument("-o", "--output", required=True, metavar="RUN", help="run folder (created; reused to resume)")
+    d.add_argument("--calibration", default=None, metavar="CAL",
+                   help="calibration file (`dualscale calibrate`); required for datasets in sensor units")
+    d.add_argument("--guidance", default=None, metavar="IMAGE",
+                   help="mid-range image of the whole sample (image file or dataset folder) to propagate to")
+    d.add_argument("--transfer", default=None, metavar="srgb|linear|gamma:G",
+                   help="transfer function of a display-encoded guidance image (PNG/JPEG/TIFF)")
+    d.add_argument("--guidance-texel-mm", type=float, default=None, metavar="MM",
+                   help="texel size of the guidance image (default: from its dataset, else the mid camera)")
+    d.add_argument("--quality", choices=sorted(QUALITIES), default="standard",
+                   help="coherent presets across stages (docs/DIGITIZE.md measures them)")
+    d.add_argument("--until", choices=STAGES, default=None, help="stop after this stage")
+    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    d.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
+                   help="progress bars on stderr (default: when stderr is a terminal)")
+    d.set_defaults(fn=cmd_digitize)

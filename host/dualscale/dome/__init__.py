@@ -1,1 +1,0 @@
-"""Virtual dome: LED geometry, cameras, polarised rendering, sensor realism, dataset format."""

@@ -1,0 +1,88 @@
+"""One error tree for the whole package; the command line maps it to exit codes in one place
+(:data:`EXIT_CODES`, used by :func:`dualscale.cli.main`).
+
+Every error a user can cause derives from :class:`DualscaleError`.  Errors about the *input*
+(a file, a value, a unit the stage cannot interpret) also derive from :class:`ValueError`, so
+library callers that expect ``ValueError`` keep working.  Nothing is written when one is raised
+(every artefact goes through a temporary file and a rename; see ``dualscale.formats.atomic``).
+
+Exit codes (``dualscale ...``): 0 success, 1 a run that finished but failed its own check,
+2 bad input (:class:`InputError`), 3 the rig or its simulator (:class:`RigError`), 4 missing
+tools or environment (:class:`ToolError`), 5 an internal failure, 130 interrupted (Ctrl-C;
+resumable).
+"""
+
+from __future__ import annotations
+
+
+class DualscaleError(Exception):
+    """Base of every error this package raises on purpose."""
+
+    exit_code = 5
+
+
+class InputError(DualscaleError, ValueError):
+    """An input cannot be interpreted (format, units, colour space, geometry, values); the
+    message names the file and the field."""
+
+    exit_code = 2
+
+
+class FormatError(InputError):
+    """A file is not in the expected on-disk format or version."""
+
+
+class UnitsError(InputError):
+    """Radiometric units, exposure or colour space that the stage cannot interpret."""
+
+
+class GeometryError(InputError):
+    """Directions, normals or windows that are physically impossible or unsupported."""
+
+
+class CalibrationError(InputError):
+    """A calibration input is unusable; nothing is written."""
+
+
+class MissingBracketsError(CalibrationError):
+    """An exposure bracket is missing, or the brackets do not cover every pixel."""
+
+
+class SaturatedError(CalibrationError):
+    """Every capture of a group is saturated."""
+
+
+class ChartNotFoundError(CalibrationError):
+    """No ColorChecker could be located in an image."""
+
+
+class ImageSizeError(CalibrationError):
+    """Images that must share a size do not."""
+
+
+class RigMismatchError(CalibrationError):
+    """A calibration file belongs to another rig."""
+
+
+class RigError(DualscaleError, RuntimeError):
+    """The rig (or its simulator) did not do what was asked."""
+
+    exit_code = 3
+
+
+class ToolError(DualscaleError, RuntimeError):
+    """An external tool or environment requirement is missing (a flasher, a compiler, a browser)."""
+
+    exit_code = 4
+
+
+class Interrupted(DualscaleError, RuntimeError):
+    """A long command stopped before the end (Ctrl-C, a stop request); its state is saved and a
+    rerun resumes it."""
+
+    exit_code = 130
+
+
+EXIT_CODES = {"ok": 0, "check_failed": 1, "input": InputError.exit_code, "rig": RigError.exit_code,
+              "tool": ToolError.exit_code, "internal": DualscaleError.exit_code,
+              "interrupted": Interrupted.exit_code}

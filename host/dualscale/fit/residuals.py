@@ -1,0 +1,75 @@
+"""What a fit leaves unexplained: per-pixel residual maps over the training lights and renders
+under held-out lights beside their captures (the evidence the digitize report shows).
+
+Conventions: images are linear radiance ``(N, H, W, 3)`` as in :mod:`.observations`, renders
+are clamped at 2 like the fit (:mod:`.render`, supplementary Sec. 4).  The relative L1 error of
+a set of images is ``sum |render - capture| / sum capture`` over valid samples (unclipped, inside
+the sample mask when the observations carry one).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from dualscale.bsdf import Components, MaterialMaps
+
+from .observations import Observations
+from .render import clamp_images, render_leds
+
+EPS = 1e-6
+
+
+def _valid(obs: Observations) -> Tensor:
+    v = getattr(obs, "valid", None)
+    return torch.ones(obs.images.shape[:3], dtype=torch.bool) if v is None else v.bool()
+
+
+def residual_map(maps: MaterialMaps, comps: Components, obs: Observations) -> Tensor:
+    """``(H, W)`` float: per pixel, mean over lights and channels of ``|render - capture|``
+    divided by the mean capture there (relative, unitless; NaN-free: pixels with no valid
+    sample are 0)."""
+    with torch.no_grad():
+        pred = render_leds(maps.to(obs.images.dtype), comps, obs)
+    cap = clamp_images(obs.images)
+    w = _valid(obs).unsqueeze(-1).to(cap.dtype)
+    err = ((pred - cap).abs() * w).sum((0, 3))
+    ref = (cap * w).sum((0, 3))
+    return torch.where(ref > EPS, err / ref.clamp_min(EPS), torch.zeros_like(ref))
+
+
+def relative_l1(pred: Tensor, cap: Tensor, valid: Tensor | None = None) -> float:
+    """``sum |pred - cap| / sum cap`` over valid samples (``valid``: ``(..., H, W)`` bool)."""
+    w = torch.ones_like(cap) if valid is None else valid.unsqueeze(-1).to(cap.dtype).expand_as(cap)
+    den = float((cap.clamp_min(0) * w).sum())
+    return float(((pred - cap).abs() * w).sum()) / max(den, EPS)
+
+
+@dataclass
+class HeldOutView:
+    """One held-out light: its LED id, direction ``(3,)``, capture and render ``(H, W, 3)``, and
+    the relative L1 error of the render."""
+
+    led_id: int
+    direction: list[float]
+    capture: Tensor
+    render: Tensor
+    relative_l1: float
+
+
+def heldout_views(maps: MaterialMaps, comps: Components, held: Observations) -> list[HeldOutView]:
+    """For every held-out LED, the image that passes the most specular (P0 when polarised)
+    beside its render."""
+    with torch.no_grad():
+        pred = render_leds(maps.to(held.images.dtype), comps, held)
+    cap = clamp_images(held.images)
+    valid = _valid(held)
+    out: list[HeldOutView] = []
+    for led in sorted(set(held.led_ids.tolist())):
+        idx = [k for k, i in enumerate(held.led_ids.tolist()) if i == led]
+        k = max(idx, key=lambda j: float(held.w_s[j]))
+        out.append(HeldOutView(led, [float(x) for x in held.dirs[k]], cap[k], pred[k],
+                               relative_l1(pred[k], cap[k], valid[k])))
+    return out

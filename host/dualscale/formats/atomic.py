@@ -1,0 +1,61 @@
+"""Atomic writes: every artefact is written to a temporary file in its final folder and renamed
+into place (``os.replace``, atomic on POSIX), so an interrupted run (Ctrl-C, ``kill -9``) never
+leaves a half-written file under a final name.  Temporary names start with ``.tmp-``; a rerun
+removes stale ones with :func:`clean_stale`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any, Iterator
+
+TMP_PREFIX = ".tmp-"
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """Yield a temporary path next to ``path`` (same suffix, so writers that choose a format by
+    extension still work); on a clean exit rename it to ``path``, on an error delete it."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f"{TMP_PREFIX}{path.stem}-", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    tmp_path = Path(tmp)
+    try:
+        yield tmp_path
+        os.replace(tmp_path, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            tmp_path.unlink()
+        raise
+
+
+def write_text(path: str | Path, text: str) -> Path:
+    """Write ``text`` (UTF-8) atomically; returns ``path``."""
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+    return path
+
+
+def write_json(path: str | Path, data: Any, indent: int | None = 1) -> Path:
+    """Write ``data`` as JSON atomically (``default=str`` for paths and the like)."""
+    return write_text(path, json.dumps(data, indent=indent, default=str) + "\n")
+
+
+def clean_stale(folder: str | Path) -> int:
+    """Remove temporary files left by an interrupted writer under ``folder`` (recursively);
+    returns how many were removed."""
+    n = 0
+    folder = Path(folder)
+    if not folder.is_dir():
+        return 0
+    for p in folder.rglob(f"{TMP_PREFIX}*"):
+        if p.is_file():
+            p.unlink()
+            n += 1
+    return n

@@ -1,0 +1,144 @@
+"""Photographs from other rigs and ordinary cameras: PNG, JPEG, TIFF (8 or 16 bit) and EXR,
+read through OpenImageIO and linearised through colour-science.
+
+Integer images are display-encoded: their transfer function is never guessed.  The caller
+states it (``transfer``), one of :data:`TRANSFERS`:
+
+* ``"srgb"`` -- IEC 61966-2-1 (``colour.cctf_decoding(..., function="sRGB")``);
+* ``"linear"`` -- code values proportional to radiance (raw-developed linear TIFFs);
+* ``"gamma:G"`` -- a pure power law ``V = L ** (1 / G)`` (e.g. ``gamma:2.2``).
+
+EXR files hold linear values already and must be read with ``transfer="linear"`` (anything else
+is refused).  The result is linear RGB on Rec.709/sRGB primaries (the primaries are assumed, as
+no camera profile is given), float32 ``(H, W, 3)`` in [0, 1] for integer inputs, plus a boolean
+``(H, W)`` mask of *clipped* pixels (any channel at the top code value, or above ``clip`` for
+float inputs), which no stage fits as valid.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from dualscale.errors import GeometryError, UnitsError
+
+from .exr import check_window
+
+SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr")
+TRANSFERS = ("srgb", "linear", "gamma:G")
+
+
+@dataclass(frozen=True)
+class Photo:
+    """A linearised photograph: ``rgb`` float32 ``(H, W, 3)``, ``clipped`` bool ``(H, W)``,
+    ``bits`` (8, 16, or 32 for float), ``transfer`` as stated."""
+
+    rgb: np.ndarray
+    clipped: np.ndarray
+    bits: int
+    transfer: str
+
+
+def parse_transfer(transfer: str | None) -> tuple[str, float | None]:
+    """``("srgb" | "linear" | "gamma", G or None)``; :class:`~dualscale.errors.UnitsError`
+    for anything else."""
+    if transfer is None:
+        raise UnitsError("the transfer function of display-encoded images must be stated: "
+                         "--transfer srgb|linear|gamma:G (dualscale never guesses it)")
+    t = transfer.strip().lower()
+    if t in ("srgb", "linear"):
+        return t, None
+    if t.startswith("gamma:"):
+        try:
+            g = float(t[6:])
+        except ValueError:
+            g = float("nan")
+        if not (np.isfinite(g) and 0.2 <= g <= 5.0):
+            raise UnitsError(f"transfer {transfer!r}: the gamma must be a number between 0.2 and 5")
+        return "gamma", g
+    raise UnitsError(f"unknown transfer function {transfer!r}; use one of {', '.join(TRANSFERS)}")
+
+
+def decode(code: np.ndarray, transfer: str) -> np.ndarray:
+    """Normalised code values in [0, 1] to linear values, by the stated ``transfer``."""
+    kind, g = parse_transfer(transfer)
+    x = np.clip(np.asarray(code, np.float64), 0.0, 1.0)
+    if kind == "linear":
+        return x
+    if kind == "gamma":
+        return x ** g
+    import colour
+
+    return np.asarray(colour.cctf_decoding(x, function="sRGB"), np.float64)
+
+
+def read_photo(path: str | Path, transfer: str | None, clip: float = 1.0) -> Photo:
+    """Read and linearise one photograph (see the module docstring).
+
+    Greyscale images are expanded to RGB; an alpha channel is ignored.  Raises
+    ``FileNotFoundError``, ``OSError`` (unreadable), :class:`~dualscale.errors.UnitsError`
+    (transfer missing or not applicable), :class:`~dualscale.errors.GeometryError` (a shifted
+    data window), ``ValueError`` (non-finite pixels in a float image).
+    """
+    import OpenImageIO as oiio
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"image not found: {path}")
+    if path.suffix.lower() not in SUFFIXES:
+        raise UnitsError(f"{path}: unsupported image type {path.suffix!r} (use {', '.join(SUFFIXES)})")
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise OSError(f"cannot read {path}: {oiio.geterror()}")
+    try:
+        spec = inp.spec()
+        check_window(path, spec)
+        fmt = str(spec.format)
+        native = inp.read_image(0, 0, 0, spec.nchannels, "float")
+    finally:
+        inp.close()
+    if native is None:
+        raise OSError(f"cannot read pixels of {path}")
+    data = np.asarray(native, np.float32).reshape(spec.height, spec.width, spec.nchannels)
+    alpha = spec.alpha_channel
+    colour_idx = [i for i in range(spec.nchannels) if i != alpha][:3]
+    data = data[..., colour_idx]
+    if data.shape[-1] == 1:
+        data = np.repeat(data, 3, axis=-1)
+    elif data.shape[-1] != 3:
+        raise UnitsError(f"{path}: {data.shape[-1]} colour channels; need 1 (grey) or 3 (RGB)")
+    is_float = fmt in ("half", "float", "double")
+    if is_float:
+        if transfer is not None and parse_transfer(transfer)[0] != "linear":
+            raise UnitsError(f"{path}: a floating-point image is linear already; use --transfer linear")
+        if not np.isfinite(data).all():
+            raise ValueError(f"{path}: {int((~np.isfinite(data)).any(-1).sum())} pixels are NaN or Inf")
+        clipped = (data >= clip).any(-1)
+        return Photo(data.astype(np.float32), clipped, 32, "linear")
+    bits = 16 if fmt in ("uint16", "int16") else 8
+    clipped = (data >= 1.0 - 0.5 / (2 ** bits - 1)).any(-1)
+    rgb = decode(data, transfer)  # type: ignore[arg-type]
+    return Photo(rgb.astype(np.float32), clipped, bits, str(transfer))
+
+
+def read_mask(path: str | Path, shape: tuple[int, int] | None = None) -> np.ndarray:
+    """A binary mask image (any bit depth; values above half scale are in), not decoded by any
+    transfer function; ``shape`` (H, W) must match when given."""
+    import OpenImageIO as oiio
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"mask not found: {path}")
+    buf = oiio.ImageBuf(str(path))
+    if buf.has_error:
+        raise OSError(f"cannot read {path}: {buf.geterror()}")
+    check_window(path, buf.spec())
+    arr = np.asarray(buf.get_pixels(oiio.FLOAT), np.float32).reshape(buf.spec().height, buf.spec().width, -1)
+    mask = arr[..., 0] > 0.5
+    if shape is not None and mask.shape != tuple(shape):
+        raise GeometryError(f"{path}: mask is {mask.shape[1]}x{mask.shape[0]}, the images are {shape[1]}x{shape[0]}")
+    if not mask.any():
+        raise ValueError(f"{path}: the mask is empty")
+    return mask

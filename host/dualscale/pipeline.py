@@ -1,0 +1,385 @@
+"""``dualscale digitize``: one pipeline from a photometric dataset to a material.
+
+Stages, in order (:data:`STAGES`; each imports only the stages before it):
+
+1. ``calibrate`` -- the units boundary: the input dataset (any documented units, colour space
+   and exposure) becomes calibrated linear radiance through the calibration file
+   (:func:`dualscale.calib.apply.to_radiance`; supplementary Sec. 2-3);
+2. ``fit`` -- the per-pixel SVBSDF fit of the micro capture, with component selection, held-out
+   lights, residual maps and held-out renders (Sec. 4-6);
+3. ``flyouts`` -- fly-out fibres from the grazing lights and the fitted tangent (Sec. 4.1);
+   skipped, with the reason, on data without the polarised grazing captures it needs;
+4. ``propagate`` -- train the U-Net on the micro capture and its fitted maps, locate the micro
+   field in the mid-range guidance image and run over the whole guidance (Sec. 7); skipped
+   without ``--guidance``;
+5. ``export`` -- the maps users load (EXR maps and previews, with their texel size);
+6. ``report`` -- ``RUN/report/index.html``, self-contained.
+
+Every stage writes into ``RUN/work/<stage>/``, which is renamed to ``RUN/<stage>/`` when the
+stage is complete, and then its record ``RUN/stages/<stage>.json`` (:mod:`dualscale.formats.run`:
+inputs' fingerprints, parameters, versions, time, warnings, summary).  A rerun skips every stage
+whose record matches its inputs and parameters and whose outputs are intact; an interrupted
+stage resumes from its work folder (the fit and the training checkpoint there).  ``Ctrl-C`` or
+``kill -9`` at any moment leaves no half-written artefact under a final name.
+
+Quality presets (:data:`QUALITIES`) choose coherent presets across stages; docs/DIGITIZE.md
+measures them.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import sys
+import time
+import warnings
+from dataclasses import asdict, dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, Callable
+
+from dualscale.errors import InputError
+from dualscale.formats.atomic import clean_stale, write_text
+from dualscale.formats.run import (file_sha256, json_sha256, read_stage, stage_path, tree_sha256, write_run,
+                                   write_stage)
+
+STAGES = ("calibrate", "fit", "flyouts", "propagate", "export", "report")
+# rough share of a run's time per stage, for the overall ETA (measured in docs/DIGITIZE.md)
+_WEIGHTS = {"calibrate": 1.0, "fit": 10.0, "flyouts": 1.0, "propagate": 8.0, "export": 0.5, "report": 1.0}
+
+
+@dataclass(frozen=True)
+class Quality:
+    """Presets of every stage that belong together: the fit preset (``dualscale.fit.PRESETS``),
+    the propagation training preset (``dualscale.propagate.train.PRESETS``), every how-many-th
+    LED is held out to measure the fit, and whether fly-outs are detected."""
+
+    name: str
+    fit_preset: str
+    propagate_preset: str
+    holdout_every: int = 8
+    flyouts: bool = True
+
+
+QUALITIES: dict[str, Quality] = {
+    "draft": Quality("draft", "draft", "quick"),
+    "standard": Quality("standard", "standard", "fast"),
+    "paper": Quality("paper", "paper", "paper"),
+}
+
+
+@dataclass
+class DigitizeOptions:
+    """What ``dualscale digitize`` was asked.  ``input``: a photometric dataset folder (or a
+    folder holding ``micro/``); ``calibration``: a calibration file (required for datasets in
+    sensor units); ``guidance``: the mid-range image (an image file or a dataset folder whose
+    diffuse capture is used); ``guidance_transfer``: its transfer function when display-encoded
+    (``srgb``, ``linear``, ``gamma:G``); ``until``: the last stage to run."""
+
+    input: Path
+    run: Path
+    calibration: Path | None = None
+    guidance: Path | None = None
+    guidance_transfer: str | None = None
+    guidance_texel_mm: float | None = None
+    quality: str = "standard"
+    until: str | None = None
+    threads: int | None = None
+    progress: bool = False
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        self.input, self.run = Path(self.input), Path(self.run)
+        self.calibration = None if self.calibration is None else Path(self.calibration)
+        self.guidance = None if self.guidance is None else Path(self.guidance)
+        if self.quality not in QUALITIES:
+            raise InputError(f"--quality {self.quality!r}: choose one of {', '.join(QUALITIES)}")
+        if self.until is not None and self.until not in STAGES:
+            raise InputError(f"--until {self.until!r}: choose one of {', '.join(STAGES)}")
+
+
+@dataclass
+class StageResult:
+    """What one stage did: its record and whether it was skipped (up to date)."""
+
+    name: str
+    record: dict[str, Any]
+    skipped: bool
+
+
+@dataclass
+class RunResult:
+    """The stages run or skipped, in order, and the run folder."""
+
+    run: Path
+    stages: list[StageResult] = field(default_factory=list)
+
+    def record(self, name: str) -> dict[str, Any] | None:
+        return next((s.record for s in self.stages if s.name == name), None)
+
+
+def versions() -> dict[str, str]:
+    """Versions of dualscale and the libraries whose results the stages depend on."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = {}
+    for pkg in ("dualscale", "torch", "numpy", "OpenImageIO", "colour-science", "onnxruntime", "opencv-python"):
+        try:
+            out[pkg] = version(pkg)
+        except PackageNotFoundError:
+            pass
+    return out
+
+
+def input_dataset(path: Path) -> Path:
+    """The dataset folder of ``path``: itself (``manifest.json``) or its ``micro/``."""
+    if not path.exists():
+        raise FileNotFoundError(f"input not found: {path}")
+    if (path / "manifest.json").is_file():
+        return path
+    if (path / "micro" / "manifest.json").is_file():
+        return path / "micro"
+    raise InputError(f"{path}: not a photometric dataset (no manifest.json, nor micro/manifest.json); "
+                     "make one with `dualscale import` (photographs) or `dualscale synth --dataset`")
+
+
+class _Progress:
+    """One progress view over the stages (weighted by their usual share of the time, so the ETA
+    means something); each stage's own bars appear beneath it."""
+
+    def __init__(self, stages: list[str], enabled: bool) -> None:
+        from tqdm import tqdm
+
+        self.bar = tqdm(total=sum(_WEIGHTS[s] for s in stages), disable=not enabled, position=0, leave=True,
+                        file=sys.stderr, unit="", bar_format="{desc} {percentage:3.0f}%|{bar}| [{elapsed}<{remaining}]")
+
+    def start(self, stage: str, index: int, count: int) -> None:
+        self.bar.set_description_str(f"digitize {index}/{count} {stage}")
+        self.bar.refresh()
+
+    def done(self, stage: str) -> None:
+        self.bar.update(_WEIGHTS[stage])
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+class Digitizer:
+    """Runs the stages of one run folder (see the module docstring)."""
+
+    def __init__(self, opts: DigitizeOptions) -> None:
+        self.opts = opts
+        self.run = opts.run
+        self.quality = QUALITIES[opts.quality]
+        self.dataset_in = input_dataset(opts.input)
+        if opts.calibration is not None and not opts.calibration.is_file():
+            raise FileNotFoundError(f"calibration file not found: {opts.calibration}")
+        if opts.guidance is not None and not opts.guidance.exists():
+            raise FileNotFoundError(f"guidance image not found: {opts.guidance}")
+        self.versions = versions()
+
+    # -- paths of the finished stages
+    def out(self, stage: str) -> Path:
+        return self.run / stage
+
+    @property
+    def dataset(self) -> Path:
+        return self.out("calibrate") / "dataset"
+
+    # -- the stage runner
+    def _stage(self, name: str, inputs: dict[str, str | None], params: dict[str, Any],
+               fn: Callable[[Path], dict[str, Any]]) -> StageResult:
+        key = json_sha256({"stage": name, "inputs": inputs, "params": params, "versions": self.versions})
+        final = self.out(name)
+        rec = read_stage(self.run, name)
+        if rec is not None and rec.get("key") == key and final.is_dir() \
+                and tree_sha256(final) == rec.get("outputs_sha256"):
+            return StageResult(name, rec, True)
+        work = self.run / "work" / name
+        key_file = work / ".stage-key"
+        if work.is_dir() and (not key_file.is_file() or key_file.read_text().strip() != key):
+            shutil.rmtree(work)  # left by a run with other inputs or parameters: not resumable
+        work.mkdir(parents=True, exist_ok=True)
+        clean_stale(work)
+        write_text(key_file, key)
+        t0 = time.perf_counter()
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            summary = fn(work)
+        stage_warnings = list(summary.pop("warnings", []))
+        stage_warnings += sorted({f"{w.category.__name__}: {w.message}" for w in caught
+                                  if not issubclass(w.category, (DeprecationWarning, PendingDeprecationWarning))})
+        key_file.unlink()
+        stage_path(self.run, name).unlink(missing_ok=True)
+        if final.exists():
+            shutil.rmtree(final)
+        os.replace(work, final)
+        outputs = sorted(str(p.relative_to(self.run)) for p in final.rglob("*") if p.is_file())
+        record = {"key": key, "inputs": inputs, "params": params, "versions": self.versions,
+                  "seconds": round(time.perf_counter() - t0, 3),
+                  "finished": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                  "warnings": stage_warnings, "outputs": outputs, "outputs_sha256": tree_sha256(final),
+                  "summary": summary}
+        write_stage(self.run, name, record)
+        return StageResult(name, record, False)
+
+    def _prev(self, name: str) -> str:
+        rec = read_stage(self.run, name)
+        if rec is None:
+            raise RuntimeError(f"stage {name} has no record")  # the runner guarantees the order
+        return rec["outputs_sha256"]
+
+    # -- the stages
+    def calibrate(self) -> StageResult:
+        from dualscale.calib.apply import to_radiance
+
+        inputs = {"dataset": tree_sha256(self.dataset_in),
+                  "calibration": None if self.opts.calibration is None else file_sha256(self.opts.calibration)}
+        return self._stage("calibrate", inputs, {}, lambda work: to_radiance(
+            self.dataset_in, work / "dataset", self.opts.calibration, progress=self.opts.progress))
+
+    def fit(self) -> StageResult:
+        params = {"preset": self.quality.fit_preset, "holdout_every": self.quality.holdout_every,
+                  "seed": self.opts.seed}
+        return self._stage("fit", {"calibrate": self._prev("calibrate")}, params, self._fit)
+
+    def _fit(self, work: Path) -> dict[str, Any]:
+        import numpy as np
+
+        from dualscale.fit.api import fit_dataset
+        from dualscale.fit.core import split_holdout
+        from dualscale.fit.observations import load_observations
+        from dualscale.fit.residuals import heldout_views, relative_l1, residual_map
+        from dualscale.formats.atomic import write_json
+        from dualscale.formats.exr import write_exr
+
+        obs = load_observations(self.dataset)
+        res, extra = fit_dataset(self.dataset, work / "maps", self.quality.fit_preset,
+                                 holdout_every=self.quality.holdout_every, progress=self.opts.progress,
+                                 seed=self.opts.seed, obs=obs)
+        train, held = split_holdout(obs, self.quality.holdout_every)
+        write_exr(work / "residual.exr", residual_map(res.maps, res.comps, train).numpy()[..., None], ("Y",))
+        summary: dict[str, Any] = {
+            "preset": res.preset.name, "seconds": res.seconds, "components": asdict(res.comps),
+            "train_images": train.n, "heldout_images": 0 if held is None else held.n,
+            "heldout_relative_l1": None, "heldout_ssim": res.losses.get("heldout_ssim"),
+            "texel_mm": obs.pixel_mm, "size_px": list(obs.shape)}
+        if held is not None:
+            views = heldout_views(res.maps, res.comps, held)
+            lights = []
+            for v in views:
+                cap, ren = f"capture_{v.led_id:03d}.exr", f"render_{v.led_id:03d}.exr"
+                write_exr(work / "heldout" / cap, v.capture.numpy())
+                write_exr(work / "heldout" / ren, v.render.numpy())
+                lights.append({"led_id": v.led_id, "direction": v.direction, "capture": cap, "render": ren,
+                               "relative_l1": v.relative_l1})
+            write_json(work / "heldout" / "heldout.json", {"lights": lights})
+            from dualscale.fit.render import render_leds
+
+            pred = render_leds(res.maps.to(held.images.dtype), res.comps, held)
+            valid = getattr(held, "valid", None)
+            summary["heldout_relative_l1"] = relative_l1(pred, held.images.clamp(max=2.0), valid)
+            summary["heldout_per_light_median"] = float(np.median([v.relative_l1 for v in views]))
+        return summary
+
+    def flyouts(self) -> StageResult:
+        params = {"enabled": self.quality.flyouts, "seed": self.opts.seed}
+        return self._stage("flyouts", {"calibrate": self._prev("calibrate"), "fit": self._prev("fit")}, params,
+                           self._flyouts)
+
+    def _flyouts(self, work: Path) -> dict[str, Any]:
+        from dualscale.fit.flyouts import detect_dataset
+        from dualscale.fit.observations import load_observations
+
+        if not self.quality.flyouts:
+            return {"skipped": f"quality {self.quality.name} does not detect fly-outs"}
+        obs = load_observations(self.dataset)
+        if not obs.has_polarisation:
+            return {"skipped": "fly-out detection needs captures with the specular passed and blocked "
+                               "(polarised LEDs with the P0/P90 analyser); this dataset has none"}
+        if float(obs.dirs[:, 2].min()) > 0.5:
+            return {"skipped": "fly-out detection needs grazing LEDs (elevation under 30 deg); the lowest "
+                               f"light here is at {90 - float(obs.dirs[:, 2].min().acos().rad2deg()):.0f} deg"}
+        rep = detect_dataset(self.dataset, work, tangent_maps=self.out("fit") / "maps", obs=obs, seed=self.opts.seed)
+        return {"count": rep["count"], "tangent_filter": rep["tangent_filter"], "pixel_mm": rep["pixel_mm"]}
+
+    def propagate(self) -> StageResult:
+        g = self.opts.guidance
+        inputs = {"calibrate": self._prev("calibrate"), "fit": self._prev("fit"),
+                  "guidance": None if g is None else tree_sha256(g)}
+        params = {"preset": self.quality.propagate_preset, "transfer": self.opts.guidance_transfer,
+                  "texel_mm": self.opts.guidance_texel_mm, "seed": self.opts.seed}
+        return self._stage("propagate", inputs, params, self._propagate)
+
+    def _propagate(self, work: Path) -> dict[str, Any]:
+        if self.opts.guidance is None:
+            return {"skipped": "no guidance image (--guidance): the maps cover the micro field only"}
+        from dualscale.propagate.stage import run_propagation
+
+        return run_propagation(self.dataset, self.out("fit") / "maps", self.opts.guidance, work,
+                               preset=self.quality.propagate_preset, texel_mm_guidance=self.opts.guidance_texel_mm,
+                               transfer=self.opts.guidance_transfer, threads=self.opts.threads,
+                               progress=self.opts.progress)
+
+    def export(self) -> StageResult:
+        inputs = {"fit": self._prev("fit"), "propagate": self._prev("propagate")}
+        return self._stage("export", inputs, {}, self._export)
+
+    def _export(self, work: Path) -> dict[str, Any]:
+        from dualscale.formats.maps import load_maps, save_maps
+
+        files = []
+        sources = {"micro": self.out("fit") / "maps", "mesoscale": self.out("propagate") / "maps"}
+        for name, src in sources.items():
+            if not (src / "material.json").is_file():
+                continue
+            maps, meta = load_maps(src)
+            save_maps(work / name, maps, {k: v for k, v in meta.items() if k not in ("texel_mm", "field_mm")},
+                      texel_mm=meta.get("texel_mm"))
+            files += sorted(str(p.relative_to(work)) for p in (work / name).iterdir())
+        return {"files": files, "formats": ["OpenEXR maps (dualscale-maps)", "PNG previews"]}
+
+    def report(self) -> StageResult:
+        inputs = {s: self._prev(s) for s in STAGES[:-1]}
+        return self._stage("report", inputs, {}, self._report)
+
+    def _report(self, work: Path) -> dict[str, Any]:
+        from dualscale.report.run import write_run_report
+
+        index = write_run_report(self.run, out=work)
+        return {"index": str(Path("report") / index.relative_to(work))}
+
+    def digitize(self, on_stage: Callable[[StageResult], None] | None = None) -> RunResult:
+        """Run (or skip) every stage up to ``until``; returns what each did."""
+        self.run.mkdir(parents=True, exist_ok=True)
+        names = list(STAGES if self.opts.until is None else STAGES[:STAGES.index(self.opts.until) + 1])
+        write_run(self.run, {"input": str(self.opts.input), "options": _options_json(self.opts),
+                             "stages": names})
+        result = RunResult(self.run)
+        bar = _Progress(names, self.opts.progress)
+        try:
+            for i, name in enumerate(names, 1):
+                bar.start(name, i, len(names))
+                st = getattr(self, name)()
+                result.stages.append(st)
+                bar.done(name)
+                if on_stage is not None:
+                    on_stage(st)
+        finally:
+            bar.close()
+        return result
+
+
+def _options_json(o: DigitizeOptions) -> dict[str, Any]:
+    return {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(o).items() if k not in ("run",)}
+
+
+def digitize(opts: DigitizeOptions, on_stage: Callable[[StageResult], None] | None = None) -> RunResult:
+    """Run ``dualscale digitize`` (see the module docstring); ``on_stage`` is called after each
+    stage.  Raises :class:`~dualscale.errors.InputError` (and subclasses) for input a stage
+    cannot interpret, before anything of that stage is written."""
+    if opts.threads:
+        import torch
+
+        torch.set_num_threads(opts.threads)
+    return Digitizer(opts).digitize(on_stage)
