@@ -110,7 +110,7 @@ def write_report(out: str | Path, results: dict[str, Any], calib: dict[str, Any]
             ax.set_ylabel("ΔE00")
             ax.set_title(f"{cam}: {len(leds)} directional LEDs, after the CCM", loc="left")
             ax.set_xticks(range(1, cr.N_PATCHES + 1), [] if ax is not axes[-1] else cr.patch_names(),
-                          rotation=55, ha="right", fontsize=7)
+                          rotation=90, fontsize=7)
             ax.legend(loc="upper right", fontsize=7)
         axes[-1].set_xlabel("ColorChecker patch")
         add("colour", f, "colour_boxplots",
@@ -169,7 +169,7 @@ def write_report(out: str | Path, results: dict[str, Any], calib: dict[str, Any]
     colm = results.get("collimation")
     if colm:
         f, cap, _ = plots.hemisphere_figure([_hemi_panels(colm, "white-sheet luminance std per LED")],
-                                            label="std of normalised luminance (unitless)",
+                                            label="luminance std / mean (unitless)",
                                             goal=COLLIMATION_STD_GOAL, goal_text="goal <", size=(5.0, 3.8))
         add("collimation", f, "collimation", cap, "Collimation")
 
