@@ -64,9 +64,23 @@ test-slow: deps
 	$(MAKE) -C firmware all
 	$(PY) -m pytest -m slow -q
 
+# The main job on the simulated rig: the capture sequence on the firmware simulator, then a
+# synthetic twill captured by the virtual rig's sensor (camera counts), the calibration targets
+# and their calibration, and `dualscale digitize` on them.  Each step is skipped when its output
+# exists, and digitize resumes by itself: rerunning `make demo` continues where it stopped.
+DEMO ?= $(BUILD)/demo
+DEMO_SIZE ?= 128
+DEMO_QUALITY ?= standard
+DS := $(VENV)/bin/dualscale
 demo: deps
 	$(MAKE) -C firmware posix
-	$(VENV)/bin/dualscale demo
+	$(DS) demo
+	@test -f $(DEMO)/targets/captures.json || $(DS) synth-targets -o $(DEMO)/targets --threads 2
+	@test -f $(DEMO)/calibration.json || $(DS) calibrate $(DEMO)/targets -o $(DEMO)/calibration.json --threads 2
+	@test -f $(DEMO)/sample/mid/manifest.json || $(DS) synth twill -o $(DEMO)/sample --size $(DEMO_SIZE) \
+	    --dataset --mid --realistic --threads 2
+	$(DS) digitize $(DEMO)/sample/micro -o $(DEMO)/run --calibration $(DEMO)/calibration.json \
+	    --guidance $(DEMO)/sample/mid --quality $(DEMO_QUALITY) --threads 2
 
 # Every benchmark prints a markdown table for the doc it belongs to (see each script's docstring).
 bench: deps

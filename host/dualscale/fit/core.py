@@ -20,7 +20,7 @@ from .observations import Observations
 from .optimize import run_adam
 from .params import to_maps
 from .presets import Preset
-from .pyramid import coarse_start, fine_preset
+from .pyramid import coarse_preset, downsample, fine_preset, start_from_coarse
 
 
 @dataclass
@@ -80,7 +80,8 @@ def fit_observations(obs: Observations, preset: Preset, comps: Components, *, he
                       checkpoint_every)
     resume = ck.load()
     if init is None and resume is None and preset.coarse_factor > 1:  # a resumed fit is past the coarse level
-        init = coarse_start(obs, preset, comps, seed)
+        coarse = fit_observations(downsample(obs, preset.coarse_factor), coarse_preset(preset), comps, seed=seed)
+        init = start_from_coarse(coarse.maps, obs, preset, comps)
     params = {k: v.clone() for k, v in (init if init is not None else initial_params(obs, comps)).items()}
     loop = Loop(fine_preset(preset), comps, ck, progress=progress, stop_after=stop_after)
     done0 = 0

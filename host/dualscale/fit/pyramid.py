@@ -49,11 +49,24 @@ def _pool(x: Tensor, factor: int) -> Tensor:
 
 def downsample(obs: Observations, factor: int) -> Observations:
     """The observations with LED and back-lit images box-averaged over ``factor x factor`` pixels
-    (radiance per unit light intensity is preserved); lights and weights are unchanged."""
+    (radiance per unit light intensity is preserved); lights and weights are unchanged.  With
+    valid-sample masks, a block averages its valid pixels only and is valid if it has any."""
     if factor <= 1:
         return obs
-    back = None if obs.backlight is None else _pool(obs.backlight, factor)
-    return replace(obs, images=_pool(obs.images, factor), backlight=back, pixel_mm=obs.pixel_mm * factor)
+    if obs.valid is None and obs.back_valid is None:
+        back = None if obs.backlight is None else _pool(obs.backlight, factor)
+        return replace(obs, images=_pool(obs.images, factor), backlight=back, pixel_mm=obs.pixel_mm * factor)
+    imgs, valid = _pool_valid(obs.images, obs.valid, factor)
+    back, bv = (None, None) if obs.backlight is None else _pool_valid(obs.backlight, obs.back_valid, factor)
+    return replace(obs, images=imgs, backlight=back, pixel_mm=obs.pixel_mm * factor, valid=valid, back_valid=bv)
+
+
+def _pool_valid(x: Tensor, valid: Tensor | None, factor: int) -> tuple[Tensor, Tensor]:
+    """Box mean of ``(..., H, W, C)`` over the valid pixels of each block, and the blocks'
+    validity ``(..., h, w)`` (any valid pixel)."""
+    v = torch.ones(x.shape[:-1], dtype=x.dtype) if valid is None else valid.to(x.dtype)
+    num, den = _pool(x * v.unsqueeze(-1), factor), _pool(v.unsqueeze(-1), factor)
+    return torch.where(den > 0, num / den.clamp(min=1e-12), torch.zeros_like(num)), den[..., 0] > 0
 
 
 def _bilinear(x: Tensor, factor: int, shape: tuple[int, int]) -> Tensor:
@@ -96,13 +109,12 @@ def fine_preset(preset: Preset) -> Preset:
     return replace(preset, grid_init=False, coarse_factor=1)
 
 
-def coarse_start(obs: Observations, preset: Preset, comps: Components, seed: int = 0) -> dict[str, Tensor]:
-    """Starting parameters for the full-resolution fit (see the module docstring)."""
-    from .core import fit_observations  # core imports this module
-
+def start_from_coarse(coarse_maps, obs: Observations, preset: Preset, comps: Components) -> dict[str, Tensor]:
+    """Starting parameters for the full-resolution fit from the maps of the coarse fit
+    (``fit_observations(downsample(obs, f), coarse_preset(preset), ...)``; see the module
+    docstring)."""
     f = preset.coarse_factor
-    coarse = fit_observations(downsample(obs, f), coarse_preset(preset), comps, seed=seed)
-    cp = params_from_maps(coarse.maps, comps)
+    cp = params_from_maps(coarse_maps, comps)
     base = initial_params(obs, comps)
     cands = [upsample_params(cp, f, obs.shape)] + [_nearest(cp, f, obs.shape, dy, dx) for dy in (0, 1) for dx in (0, 1)]
     cands = [{k: (c[k] if k in STEP_FITS["specular"] else base[k]) for k in base} for c in cands]
