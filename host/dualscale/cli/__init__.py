@@ -123,6 +123,12 @@ def build_parser() -> argparse.ArgumentParser:
     from .digitize import register as register_digitize
 
     register_digitize(sub)
+    from .lights import register as register_lights
+
+    register_lights(sub)
+    from .importer import register as register_import
+
+    register_import(sub)
     return p
 
 

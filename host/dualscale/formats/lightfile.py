@@ -38,6 +38,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable
 
+from dualscale.errors import GeometryError  # a ValueError: below-horizon directions
+
 FORMAT = "dualscale-lights"
 VERSION = 1
 FRAME = "camera"
@@ -78,7 +80,7 @@ def _unit(d: Iterable[Any], where: str) -> tuple[float, float, float]:
         raise ValueError(f"{where}: direction {v} is not unit (norm {n:.6g}; tolerance {UNIT_TOL})")
     v = [c / n for c in v]
     if v[2] <= 0.0:
-        raise ValueError(f"{where}: direction {v} is at or below the horizon (z = {v[2]:.6g} <= 0)")
+        raise GeometryError(f"{where}: direction {v} is at or below the horizon (z = {v[2]:.6g} <= 0)")
     return (v[0], v[1], v[2])
 
 

@@ -1,0 +1,317 @@
+"""Import photographs from other rigs (RTI domes, relight, lab light stages, a camera and a lamp)
+into our photometric dataset (:mod:`dualscale.formats.dataset`), as ``dualscale import`` runs it.
+
+Input: a folder of images (PNG, JPEG, TIFF 8/16 bit, EXR), one per light, and a light file
+(``.lp`` or our ``.json``, :mod:`dualscale.formats.lightfile`) naming each image and its light
+direction (+x image right, +y image up, +z towards the camera; unit, from the object towards the
+light).  Output: a dataset of one orthographic camera ``"photo"``, one unpolarised LED record
+per image (``analyzer_deg`` None), linear Rec.709 radiance.
+
+Radiometry.
+  * Integer images are decoded by the *stated* transfer function (``srgb``, ``linear``,
+    ``gamma:G``; :func:`dualscale.formats.photo.read_photo`); it is never guessed.  EXR is
+    linear already.
+  * ``saturation`` = 1.0 for integer images (the top code value decodes to 1.0): pixels with a
+    channel at the top code are clipped and never fitted.  EXR images have no known clip level
+    (``null``).
+  * **Light intensity.**  ``relative_radiance`` means an LED of intensity 1 gives unit
+    irradiance; the power of another rig's lights (and its exposure) is unknown, and only the
+    product ``albedo x intensity`` is observable.  The importer therefore sets every image's
+    ``light.intensity`` to ``E x rel_k`` (``rel_k`` the light file's relative intensity, 1 when
+    absent) with ``E`` chosen so that the 99th percentile of the Lambertian albedo over the
+    sample (Woodham's least squares, brightest channel) is :data:`TARGET_ALBEDO`; readers
+    divide by it.  Without this, 8-bit photographs read as radiance under unit irradiance
+    imply albedos above 1, which the fit's [0, 1] box clips, and the fit then bends normals
+    towards the lights to make up the brightness (docs/PHOTOS.md).  ``scale=`` a number sets
+    ``E`` instead (e.g. 1 for images that are relative radiance already).
+  * The images' pixels are stored as decoded (linear, not divided by ``E``), so
+    ``saturation`` stays in their units.
+
+Matching: each light-file name is matched to a file in the folder by its base name (folder
+prefixes such as ``images/`` or ``C:\\captures\\`` are ignored), exactly, else ignoring case;
+when no name matches (lights recovered from ``chrome.3.png`` for an object shot as
+``cat.3.png``), by the numbers in the names if they pair the two sets one-to-one.  Images in
+the folder that the light file does not name are refused, except mask images (a ``mask`` in the
+name).
+
+Refusals (nothing is written: the dataset is built in a temporary folder beside ``out`` and
+renamed into place): a light file that cannot be read (:class:`FormatError`) or has a light at
+or below the horizon (:class:`GeometryError`); images missing from the folder or not in the
+light file (:class:`FormatError`, naming them); integer images without a stated transfer
+(:class:`UnitsError`); images of different sizes, a mask of another size
+(:class:`GeometryError`); an output folder that exists and is not a dataset.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+import shutil
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path, PureWindowsPath
+from typing import Any
+
+import numpy as np
+
+from dualscale.errors import FormatError, GeometryError, InputError
+from dualscale.formats.lightfile import LightRecord, read_lights
+from dualscale.formats.photo import SUFFIXES, Photo, read_mask, read_photo
+
+#: the 99th percentile of the imported sample's Lambertian albedo (max channel) with ``scale="auto"``
+TARGET_ALBEDO = 0.8
+CAMERA = "photo"
+#: how light-file names are matched to the images (:func:`match_images`)
+MATCHES = ("auto", "name", "number")
+
+
+@dataclass
+class ImportReport:
+    """What :func:`import_photos` did: the dataset folder, the matched files in light order,
+    the size ``(H, W)``, the light scale ``E`` and how it was chosen, the mask's source, the
+    clipped pixel count per image (inside the mask when there is one), and notes."""
+
+    dataset: Path
+    files: list[str]
+    size: tuple[int, int]
+    scale: float
+    scale_source: str
+    mask: str | None
+    clipped: list[int]
+    bits: int
+    transfer: str | None
+    notes: list[str] = field(default_factory=list)
+
+    def as_json(self) -> dict[str, Any]:
+        return {"dataset": str(self.dataset), "files": self.files, "size_hw": list(self.size), "scale": self.scale,
+                "scale_source": self.scale_source, "mask": self.mask, "clipped_pixels": self.clipped,
+                "bits": self.bits, "transfer": self.transfer, "notes": self.notes}
+
+
+def _base(name: str) -> str:
+    return PureWindowsPath(name).name if "\\" in name else Path(name).name
+
+
+def read_light_records(path: str | Path) -> list[LightRecord]:
+    """The light file's records; :class:`FormatError` for an unreadable file,
+    :class:`GeometryError` for a light at or below the horizon (names the file and line)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"light file not found: {path}")
+    try:
+        return read_lights(path)
+    except GeometryError:
+        raise
+    except ValueError as e:
+        raise FormatError(str(e)) from e
+
+
+def _numbers(name: str) -> tuple[int, ...]:
+    return tuple(int(t) for t in re.findall(r"\d+", Path(name).stem))
+
+
+def _by_number(files: list[Path], records: list[LightRecord]) -> list[Path] | None:
+    """The images matched to the records by the numbers in their names (``chrome.3.png`` ->
+    ``cat.3.png``, ``L07.jpg`` -> ``IMG_0007.JPG``), when that is one-to-one; else None."""
+    keys = [_numbers(_base(r.file)) for r in records]
+    by_key: dict[tuple[int, ...], Path] = {}
+    for p in files:
+        k = _numbers(p.name)
+        if not k or k in by_key:
+            return None
+        by_key[k] = p
+    if len(files) != len(records) or len(set(keys)) != len(keys) or set(keys) != set(by_key):
+        return None
+    return [by_key[k] for k in keys]
+
+
+def match_images(folder: Path, records: list[LightRecord], match: str = "auto"
+                 ) -> tuple[list[Path], list[Path], str]:
+    """``(images in light order, mask candidates, how they were matched)``.
+
+    ``match="name"``: each record's base name in ``folder`` (exactly, else ignoring case);
+    ``"number"``: by the numbers in the names (a light file recovered from ``chrome.3.png``
+    for an object shot as ``cat.3.png``); ``"auto"``: by name, and by number when *no* name
+    matches and the numbers pair the two sets one-to-one.  :class:`FormatError` names the
+    missing and the extra images."""
+    if match not in MATCHES:
+        raise InputError(f"--match {match!r}: choose one of {', '.join(MATCHES)}")
+    files = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in SUFFIXES
+                   and not p.name.startswith("."))
+    masks = [p for p in files if "mask" in p.name.lower()]
+    images = [p for p in files if p not in masks]
+    by_name = {p.name: p for p in files}
+    by_lower: dict[str, list[Path]] = {}
+    for p in files:
+        by_lower.setdefault(p.name.lower(), []).append(p)
+    out, missing = [], []
+    for r in records:
+        b = _base(r.file)
+        p = by_name.get(b)
+        if p is None and len(by_lower.get(b.lower(), [])) == 1:
+            p = by_lower[b.lower()][0]
+        if p is None:
+            missing.append(r.file)
+        else:
+            out.append(p)
+    how = "by name"
+    if match == "number" or (match == "auto" and not out):
+        numbered = _by_number(images, records)
+        if numbered is not None:
+            return numbered, masks, "by the numbers in the names"
+        if match == "number":
+            raise FormatError(f"{folder}: the numbers in the image names do not pair the {len(images)} images "
+                              f"with the {len(records)} lights of the light file one-to-one")
+    if len(set(out)) != len(out):
+        dup = sorted({p.name for p in out if out.count(p) > 1})
+        raise FormatError(f"{folder}: several lights name the same image {dup}")
+    extra = [p.name for p in images if p not in out]
+    if missing or extra:
+        msg = [f"{folder}: the images and the light file do not match"]
+        if missing:
+            msg.append(f"{len(missing)} named in the light file but not in the folder: {', '.join(missing[:12])}"
+                       + (" ..." if len(missing) > 12 else ""))
+        if extra:
+            msg.append(f"{len(extra)} in the folder but not in the light file: {', '.join(extra[:12])}"
+                       + (" ..." if len(extra) > 12 else ""))
+        raise FormatError("; ".join(msg))
+    return out, masks, how
+
+
+def _mask(folder: Path, mask: str | Path | None, candidates: list[Path], shape: tuple[int, int]
+          ) -> tuple[np.ndarray | None, str | None]:
+    if mask is None or (isinstance(mask, str) and mask == "none"):
+        return None, None
+    if isinstance(mask, str) and mask == "auto":
+        if len(candidates) > 1:
+            raise FormatError(f"{folder}: several mask images {[p.name for p in candidates]}; pass --mask MASK "
+                              "(or --mask none)")
+        if not candidates:
+            return None, None
+        mask = candidates[0]
+    path = Path(mask)
+    return read_mask(path, shape), str(path)
+
+
+def light_scale(photos: list[Photo], dirs: np.ndarray, rel: np.ndarray, mask: np.ndarray | None,
+                target: float = TARGET_ALBEDO) -> float:
+    """``E`` such that the 99th percentile over the sample (the mask, or the whole image) of the
+    Lambertian albedo of ``image_k / (E rel_k)`` is ``target``: per pixel, Woodham's least
+    squares ``Y_k = g . l_k`` on the brightest channel over all lights, albedo ``pi |g|`` (in the
+    sense of :mod:`dualscale.bsdf`; the classic estimate, shadows and clipping included, which
+    the 99th percentile does not mind)."""
+    h, w = photos[0].rgb.shape[:2]
+    sel = np.flatnonzero(mask.ravel()) if mask is not None else np.arange(h * w)
+    if sel.size > 200_000:  # the percentile needs no more
+        sel = np.random.default_rng(0).choice(sel, 200_000, replace=False)
+    y = np.stack([p.rgb.reshape(-1, 3)[sel].max(-1) / r for p, r in zip(photos, rel)]).astype(np.float64)
+    if np.linalg.matrix_rank(dirs) < 3:
+        raise GeometryError("the light directions are coplanar: they cannot fix a normal (photometric stereo "
+                            "needs 3 non-coplanar lights)")
+    g = np.linalg.lstsq(dirs, y, rcond=None)[0]  # (3, P)
+    p99 = float(np.percentile(math.pi * np.linalg.norm(g, axis=0), 99))
+    if not (math.isfinite(p99) and p99 > 0):
+        raise InputError("the images are black over the sample: cannot set the light scale; pass --scale")
+    return p99 / target
+
+
+def _prepare_out(out: Path) -> None:
+    if out.exists():
+        if not out.is_dir():
+            raise FileExistsError(f"{out} exists and is not a folder")
+        if any(out.iterdir()) and not (out / "manifest.json").is_file():
+            raise FileExistsError(f"{out} exists, is not empty and is not a dataset; choose another -o")
+
+
+def import_photos(images: str | Path, lights: str | Path, out: str | Path, transfer: str | None,
+                  mask: str | Path | None = "auto", texel_mm: float | None = None,
+                  scale: float | str = "auto", match: str = "auto", progress: bool = False) -> ImportReport:
+    """Import the photographs in folder ``images`` lit as ``lights`` says into the dataset
+    folder ``out`` (module doc).  ``mask``: a mask image, ``"auto"`` (the folder's one image
+    with ``mask`` in its name, if any) or ``None``/``"none"``; ``texel_mm``: the pixel pitch on
+    the object (unknown: the camera's field is recorded as 1 mm per pixel and
+    ``extra.texel_mm_known`` is false); ``scale``: ``"auto"`` or the light scale ``E``;
+    ``match``: how light-file names find the images (:func:`match_images`).
+    An existing dataset at ``out`` is replaced only once the new one is complete."""
+    folder, out = Path(images), Path(out)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"not a folder of images: {folder}")
+    if texel_mm is not None and not (math.isfinite(texel_mm) and texel_mm > 0):
+        raise InputError(f"--texel-mm {texel_mm}: must be a finite number > 0")
+    if scale != "auto" and not (isinstance(scale, (int, float)) and math.isfinite(scale) and scale > 0):
+        raise InputError(f"--scale {scale!r}: must be 'auto' or a finite number > 0")
+    _prepare_out(out)
+    records = read_light_records(lights)
+    if not records:
+        raise FormatError(f"{lights}: the light file lists no images")
+    paths, mask_candidates, how = match_images(folder, records, match)
+    photos: list[Photo] = []
+    from tqdm import tqdm
+
+    for p in tqdm(paths, desc="import: reading", disable=not progress, leave=False):
+        photos.append(read_photo(p, transfer))
+    sizes = {ph.rgb.shape[:2] for ph in photos}
+    if len(sizes) != 1:
+        first = photos[0].rgb.shape[:2]
+        odd = [f"{p.name} ({ph.rgb.shape[1]}x{ph.rgb.shape[0]})" for p, ph in zip(paths, photos)
+               if ph.rgb.shape[:2] != first]
+        raise GeometryError(f"{folder}: images of different sizes: {paths[0].name} is {first[1]}x{first[0]}, "
+                            f"but {', '.join(odd)}")
+    h, w = photos[0].rgb.shape[:2]
+    m, mask_src = _mask(folder, mask, mask_candidates, (h, w))
+    dirs = np.array([r.direction for r in records], np.float64)
+    rel = np.array([1.0 if r.intensity is None else r.intensity for r in records], np.float64)
+    if (rel <= 0).any():
+        bad = [r.file for r in records if r.intensity is not None and r.intensity <= 0]
+        raise InputError(f"{lights}: lights {bad} have intensity 0; a dataset light needs intensity > 0")
+    if scale == "auto":
+        e = light_scale(photos, dirs, rel, m)
+        source = (f"auto: 99th percentile of the Lambertian albedo (max channel) over the "
+                  f"{'mask' if m is not None else 'image'} set to {TARGET_ALBEDO}")
+    else:
+        e, source = float(scale), "given (--scale)"
+    is_float = {ph.bits == 32 for ph in photos}
+    notes = [] if how == "by name" else [f"images matched to the light file {how}"]
+    if texel_mm is None:
+        notes.append("texel size unknown: the camera's field is recorded as 1 mm per pixel")
+    clipped = [int((ph.clipped & m).sum()) if m is not None else int(ph.clipped.sum()) for ph in photos]
+    if max(clipped) > 0:
+        notes.append(f"{sum(clipped)} clipped pixels{' in the mask' if m is not None else ''} "
+                     "(masked out by the images' saturation level)")
+    from dualscale.formats.dataset import DatasetWriter
+    from dualscale.geometry.cameras import Camera
+
+    t = 1.0 if texel_mm is None else float(texel_mm)
+    cam = Camera(CAMERA, "orthographic", w, h, (w * t, h * t), has_analyzer=False)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".tmp-{out.name}-", dir=out.parent))
+    report = ImportReport(out, [p.name for p in paths], (h, w), e, source, mask_src, clipped,
+                          max(ph.bits for ph in photos), None if is_float == {True} else transfer, notes)
+    try:
+        extra = {"import": {"images": str(folder.resolve()), "lights": str(Path(lights).resolve()),
+                            "sources": [{"id": k, "file": p.name, "light_file_name": r.file,
+                                         "relative_intensity": r.intensity}
+                                        for k, (p, r) in enumerate(zip(paths, records))],
+                            "light_scale": e, "light_scale_source": source, "target_albedo": TARGET_ALBEDO,
+                            "texel_mm": texel_mm, "texel_mm_known": texel_mm is not None,
+                            "polarisation": "none (unpolarised lights, no analyser)", "notes": notes}}
+        writer = DatasetWriter(tmp, units="relative_radiance", colour_space="linear_rec709",
+                               dome={"source": str(lights), "polarizer": "none"}, extra=extra, mask=m,
+                               transfer=report.transfer, rig={"id": "photos", "layout": "light file"})
+        with writer:
+            for k, (ph, r) in enumerate(tqdm(list(zip(photos, records)), desc="import: writing",
+                                             disable=not progress, leave=False)):
+                writer.add(ph.rgb, cam, "led", light_id=k, direction=list(r.direction), intensity=e * rel[k],
+                           analyzer_deg=None, exposure_s=1.0, saturation=None if ph.bits == 32 else 1.0)
+        old = None
+        if out.exists():
+            old = Path(tempfile.mkdtemp(prefix=f".tmp-old-{out.name}-", dir=out.parent))
+            os.replace(out, old / "d")
+        os.replace(tmp, out)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return report
