@@ -25,6 +25,10 @@ against ``sum c |r|`` (L1) or ``k (x - m)^2 / sd^2`` against ``sum c r^2`` (L2).
 data pin the map down barely feels it; one whose data do not (a fly-out fibre seen by few LEDs,
 a dark or clipped pixel) stays near ``m`` instead of following the noise.
 
+Invalid samples: a capture sample that is clipped or outside the sample mask
+(``Observations.valid``, :func:`.render.valid_rows`) has zero weight in every cost, step,
+accept test and likelihood scale; a pixel with no valid sample keeps its start values.
+
 Cast shadows: the model is local, so a texel in the shadow of its neighbours under a grazing
 LED is an outlier that no parameter can fit.  With ``Loss.shadow_ratio``, each iteration sets
 aside (zero weight, in the step and in its accept test alike) the captures of every LED whose
@@ -46,7 +50,7 @@ from .loop import Loop, StepData
 from .observations import Observations
 from .params import BOX, PARAM_CHANNELS, pack, project, to_maps, unpack
 from .presets import Preset
-from .render import pixel_rows, render_back, render_leds
+from .render import pixel_rows, render_back, render_leds, valid_rows
 
 FD_STEP = 3e-4
 ROW_PIXELS = 4096  # pixels per Jacobian chunk
@@ -100,22 +104,26 @@ class Loss:
         return (c / r.abs().clamp(min=self.eps)).sqrt()
 
     def keep(self, r: Tensor, d: "StepData") -> Tensor | None:
-        """``(h, w, K)`` 1/0 row mask: with ``shadow_ratio`` > 0, the rows of an LED whose
-        capture is below ``shadow_ratio`` x its render (a cast shadow, which the model cannot
-        produce) are dropped for this iteration; ``None`` keeps every row.
+        """``(h, w, K)`` 1/0 row mask: the rows of invalid samples (clipped, outside the mask:
+        :func:`.render.valid_rows`) are always dropped; with ``shadow_ratio`` > 0, so are the
+        rows of an LED whose capture is below ``shadow_ratio`` x its render (a cast shadow,
+        which the model cannot produce) for this iteration; ``None`` keeps every row.
 
         A shadow darkens the diffuse reflection, so where the LED has a diffuse-only capture
         (the crossed analyser, P90) the test is made on it, in luminance, and applies to all the
         LED's captures; a model that merely predicts a specular highlight the data lack (over an
         open gap, say) is then never mistaken for a shadow.  Without one, each capture is tested
         on its own."""
-        if self.shadow_ratio <= 0:
-            return None
         o = d.obs
         n = o.n
+        base = valid_rows(o, r.shape[-1] > 3 * n, r.dtype)
+        if self.shadow_ratio <= 0:
+            return base
         img = d.images.mean(-1).permute(1, 2, 0)  # (h, w, n) luminance
         render = r[..., :3 * n].reshape(*r.shape[:2], n, 3).mean(-1) + img
         dark = (img < self.shadow_ratio * render) & (render > SHADOW_FLOOR)  # (h, w, n)
+        if o.valid is not None:
+            dark = dark & o.valid.permute(1, 2, 0)  # an invalid sample tells nothing
         diffuse = (o.w_s < 1e-6) & (o.w_p < 1e-6)
         same = (o.led_ids.reshape(-1, 1) == o.led_ids.reshape(1, -1)) & diffuse.reshape(1, -1)  # image i <- P90 j
         via_p90 = torch.einsum("hwj,ij->hwi", dark.to(r.dtype), same.to(r.dtype)) > 0
@@ -127,13 +135,19 @@ class Loss:
         if bool(near.any()):
             off = (dark & near).to(r.dtype).sum(-1, keepdim=True) > 0.5 * float(near.sum())
             drop = drop & ~off
-        out = torch.ones_like(r)
-        out[..., :3 * n] = (~drop).to(r.dtype).repeat_interleave(3, -1)
+        out = torch.ones_like(r) if base is None else base
+        out[..., :3 * n] = out[..., :3 * n] * (~drop).to(r.dtype).repeat_interleave(3, -1)
         return out
 
-    def scale(self, r: Tensor) -> Tensor:
-        """Per-pixel likelihood scale ``k`` of residuals ``r (..., K)`` (module doc)."""
-        m = r.abs().median(-1).values.clamp(min=self.eps)
+    def scale(self, r: Tensor, keep: Tensor | None = None) -> Tensor:
+        """Per-pixel likelihood scale ``k`` of residuals ``r (..., K)`` (module doc), over the
+        rows ``keep`` > 0 when given (``eps`` where none is kept)."""
+        a = r.abs()
+        if keep is None:
+            m = a.median(-1).values
+        else:
+            m = torch.nan_to_num(a.masked_fill(keep <= 0, float("nan")).nanmedian(-1).values, nan=self.eps)
+        m = m.clamp(min=self.eps)
         return m / math.log(2.0) if self.kind == "l1" else (1.4826 * m) ** 2
 
     def prior_terms(self, x: Tensor, names: tuple[str, ...], k: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -199,13 +213,16 @@ def _chunks(h: int, w: int) -> list[tuple[int, int]]:
 def cost(x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor], comps: Components, d: StepData,
          loss: Loss, scale: Tensor | None = None, keep: Tensor | None = None) -> Tensor:
     """Per-pixel cost ``(H, W)`` (see :class:`Loss`); with the likelihood ``scale`` ``(H, W)``,
-    plus the priors; with ``keep`` ``(H, W, K)``, over the kept rows only."""
+    plus the priors; with ``keep`` ``(H, W, K)``, over the kept rows only, else over the valid
+    samples."""
     out = []
     for y0, y1 in _chunks(*x.shape[:2]):
         fx = {k: v[y0:y1] for k, v in fixed.items()}
-        r = _residual(x[y0:y1], names, fx, comps, _block(d, y0, y1))
+        db = _block(d, y0, y1)
+        r = _residual(x[y0:y1], names, fx, comps, db)
         cw = _row_weights(d, loss, r)
-        out.append(loss.cost(r, cw if keep is None else cw * keep[y0:y1]))
+        kb = keep[y0:y1] if keep is not None else valid_rows(db.obs, db.back is not None, r.dtype)
+        out.append(loss.cost(r, cw if kb is None else cw * kb))
     c = torch.cat(out, 0)
     return c if scale is None else c + loss.prior_terms(x, names, scale)[0]
 
@@ -238,7 +255,7 @@ def _normal_equations(x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor
         jtj.append(torch.einsum("hwkp,hwkq->hwpq", jac, jac))
         jtr.append(torch.einsum("hwkp,hwk->hwp", jac, r0 * sw))
         c.append(loss.cost(r0, cw))
-        k.append(loss.scale(r0))
+        k.append(loss.scale(r0, valid_rows(db.obs, db.back is not None, r0.dtype)))
     return (torch.cat(jtj, 0), torch.cat(jtr, 0), torch.cat(c, 0), torch.cat(k, 0),
             torch.cat(kept, 0) if kept else None)
 

@@ -64,32 +64,57 @@ def map_errors(fit: MaterialMaps, gt: MaterialMaps, fit_ior: float = 1.5) -> dic
     return out
 
 
-def ssim_images(pred: Tensor, ref: Tensor) -> np.ndarray:
+def ssim_images(pred: Tensor, ref: Tensor, valid: Tensor | None = None) -> np.ndarray:
     """SSIM per image of ``(N, H, W, 3)`` stacks (``skimage``, colour, Gaussian 7 px window
     or smaller for tiny images); the data range of each image is that of the reference, floored
-    at 1e-3."""
+    at 1e-3.  With ``valid`` ``(N, H, W)`` bool, invalid pixels of the reference take the
+    prediction's value (so they add no error to their neighbours' windows), the range is taken
+    over the valid pixels, and the mean of the SSIM map runs over the valid pixels only (an
+    image without any scores NaN)."""
     from skimage.metrics import structural_similarity
 
     p = pred.detach().to(torch.float64).cpu().numpy()
     r = ref.detach().to(torch.float64).cpu().numpy()
     win = min(7, p.shape[1], p.shape[2])
     win = win if win % 2 == 1 else win - 1
+    v = None if valid is None else valid.detach().cpu().numpy().astype(bool)
     out = []
-    for a, b in zip(p, r):
-        rng = max(float(b.max() - b.min()), 1e-3)
-        out.append(structural_similarity(a, b, data_range=rng, channel_axis=-1, win_size=win))
+    for k, (a, b) in enumerate(zip(p, r)):
+        if v is None:
+            rng = max(float(b.max() - b.min()), 1e-3)
+            out.append(structural_similarity(a, b, data_range=rng, channel_axis=-1, win_size=win))
+            continue
+        ok = v[k]
+        if not ok.any():
+            out.append(float("nan"))
+            continue
+        b = np.where(ok[..., None], b, a)
+        rng = max(float(b[ok].max() - b[ok].min()), 1e-3)
+        _, s = structural_similarity(a, b, data_range=rng, channel_axis=-1, win_size=win, full=True)
+        pad = (win - 1) // 2
+        crop = (slice(pad, s.shape[0] - pad), slice(pad, s.shape[1] - pad))
+        m = ok[crop]
+        out.append(float(s[crop][m].mean()) if m.any() else float(s[ok].mean()))
     return np.asarray(out)
 
 
 def rerender_ssim(maps: MaterialMaps, comps: Components, obs: Observations) -> float:
-    """Mean SSIM between re-renders and the (clamped) images of ``obs`` (held-out lights)."""
+    """Mean SSIM between re-renders and the (clamped) images of ``obs`` (held-out lights), over
+    the valid samples (``obs.valid``; images without one are skipped)."""
     with torch.no_grad():
         pred = render_leds(maps.to(obs.images.dtype), comps, obs)
-    return float(ssim_images(pred, clamp_images(obs.images)).mean())
+    s = ssim_images(pred, clamp_images(obs.images), obs.valid)
+    return float(np.nanmean(s)) if np.isfinite(s).any() else float("nan")
 
 
 def image_losses(maps: MaterialMaps, comps: Components, obs: Observations) -> dict[str, float]:
-    """Mean absolute and RMS error of the clamped re-renders of ``obs``."""
+    """Mean absolute and RMS error of the clamped re-renders of ``obs``, over its valid samples
+    (``obs.valid``; NaN when there is none)."""
     with torch.no_grad():
         r = render_leds(maps.to(obs.images.dtype), comps, obs) - clamp_images(obs.images)
-    return {"l1": float(r.abs().mean()), "rmse": float((r * r).mean().sqrt())}
+    if obs.valid is None:
+        return {"l1": float(r.abs().mean()), "rmse": float((r * r).mean().sqrt())}
+    sel = r[obs.valid]  # (M, 3)
+    if sel.numel() == 0:
+        return {"l1": float("nan"), "rmse": float("nan")}
+    return {"l1": float(sel.abs().mean()), "rmse": float((sel * sel).mean().sqrt())}

@@ -39,7 +39,7 @@ import torch
 from torch import Tensor
 
 from dualscale.errors import InputError, UnitsError
-from dualscale.formats.dataset import CANONICAL_COLOUR_SPACE, CANONICAL_UNITS, Dataset, read_dataset
+from dualscale.formats.dataset import CANONICAL_COLOUR_SPACE, CANONICAL_UNITS, Dataset, read_dataset, resolve_root
 
 
 @dataclass
@@ -152,12 +152,7 @@ def analyzer_weights(analyzer_deg: float | None, relative: bool, direction: np.n
 
 
 def _open(root: str | Path) -> Dataset:
-    root = Path(root)
-    if not root.exists():
-        raise FileNotFoundError(f"dataset not found: {root}")
-    if root.is_dir() and not (root / "manifest.json").is_file() and (root / "micro" / "manifest.json").is_file():
-        root = root / "micro"  # the directory written by `dualscale synth --dataset`
-    return read_dataset(root)
+    return read_dataset(resolve_root(root))
 
 
 def check_fit_units(ds: Dataset, camera: str | None = None) -> None:

@@ -1,7 +1,9 @@
 """The paper's optimiser: Adam on whole maps through the differentiable renderer.
 
 Loss: mean absolute error between renders and images, both clamped at 2, over the step's LED
-images, plus the back-lit image weighted as ``preset.back_weight`` LED images.  After every
+images, plus the back-lit image weighted as ``preset.back_weight`` LED images; samples that are
+clipped or outside the sample mask (``Observations.valid``) have zero weight, and the mean is
+taken over the valid ones.  After every
 update the parameters are projected onto their box and the bounds in force (``params``).
 ``light_batch`` draws that many LED images per iteration (seeded, resumable).
 """
@@ -21,12 +23,22 @@ from .render import render_back, render_leds
 
 def l1_loss(params: dict[str, Tensor], fixed: dict[str, Tensor], comps: Components, obs: Observations,
             images: Tensor, back: Tensor | None, back_weight: float) -> Tensor:
+    """Mean absolute residual over the valid samples (module doc), a scalar."""
     maps = to_maps(params, fixed)
-    err = (render_leds(maps, comps, obs) - images).abs().sum()
-    if back is not None:
-        err = err + back_weight * (render_back(maps, comps, obs) - back).abs().sum()
+    r = (render_leds(maps, comps, obs) - images).abs()
     h, w = obs.shape
-    return err / (h * w * 3 * (obs.n + (back_weight if back is not None else 0.0)))
+    if obs.valid is None and obs.back_valid is None:
+        err = r.sum()
+        if back is not None:
+            err = err + back_weight * (render_back(maps, comps, obs) - back).abs().sum()
+        return err / (h * w * 3 * (obs.n + (back_weight if back is not None else 0.0)))
+    v = obs.valid.to(r.dtype) if obs.valid is not None else torch.ones(r.shape[:3], dtype=r.dtype)
+    err, count = (r * v.unsqueeze(-1)).sum(), 3.0 * v.sum()
+    if back is not None:
+        bv = (obs.back_valid if obs.back_valid is not None else torch.ones((h, w), dtype=torch.bool)).to(r.dtype)
+        err = err + back_weight * ((render_back(maps, comps, obs) - back).abs() * bv.unsqueeze(-1)).sum()
+        count = count + back_weight * 3.0 * bv.sum()
+    return err / count.clamp(min=1.0)
 
 
 def run_adam(params: dict[str, Tensor], comps: Components, obs: Observations, loop: Loop,

@@ -38,6 +38,21 @@ def pixel_rows(images: Tensor) -> Tensor:
     return images.permute(1, 2, 0, 3).reshape(*images.shape[1:3], -1)
 
 
+def valid_rows(obs: Observations, back: bool, dtype: torch.dtype = torch.float32) -> Tensor | None:
+    """1/0 weights ``(H, W, 3 N)`` of the residual rows in :func:`pixel_rows` layout, followed by
+    the 3 back-lit rows when ``back``: 0 for a sample that is clipped or outside the sample
+    mask (``obs.valid`` / ``obs.back_valid``); ``None`` when every sample is valid."""
+    if obs.valid is None and (not back or obs.back_valid is None):
+        return None
+    n, (h, w) = obs.n, obs.shape
+    v = obs.valid if obs.valid is not None else torch.ones((n, h, w), dtype=torch.bool)
+    rows = v.permute(1, 2, 0).repeat_interleave(3, -1)
+    if back:
+        bv = obs.back_valid if obs.back_valid is not None else torch.ones((h, w), dtype=torch.bool)
+        rows = torch.cat([rows, bv.unsqueeze(-1).expand(h, w, 3)], -1)
+    return rows.to(dtype)
+
+
 def render_back(maps: MaterialMaps, comps: Components, obs: Observations) -> Tensor | None:
     """Predicted back-lit image ``(H, W, 3)`` (``None`` without a back-lit capture); an opaque
     model predicts black."""

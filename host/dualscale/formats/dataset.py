@@ -4,6 +4,7 @@ Layout of a dataset directory::
 
     manifest.json
     images/<camera>_<source><id>_<analyser>.exr     float32 EXR, channels R, G, B
+    images/<camera>_off_<analyser>_<t>us.exr         dark frames (light 'off'), exposure t in us
     mask.exr                                         optional, channel Y: 1 = sample pixel
 
 ``manifest.json`` (version 2; version 1 is read too: it has no ``saturation``, ``mask``,
@@ -230,6 +231,13 @@ class ImageRecord:
         return self
 
 
+def _microseconds(exposure_s: Any) -> str:
+    try:
+        return str(int(round(float(exposure_s) * 1e6)))
+    except (TypeError, ValueError, OverflowError):
+        return "bad"
+
+
 @dataclass
 class DatasetWriter:
     """Writes images one by one (each EXR atomically), then the mask and the manifest
@@ -284,7 +292,9 @@ class DatasetWriter:
             pol = "nopol"
         else:
             pol = f"{'rel' if analyzer_relative else 'abs'}{int(round(analyzer_deg * 100)):05d}"
-        name = f"images/{camera.name}_{src}_{pol}.exr"
+        # dark frames (light 'off') differ only by exposure: it is part of their name
+        tag = f"_{_microseconds(exposure_s)}us" if light_kind == "off" else ""
+        name = f"images/{camera.name}_{src}_{pol}{tag}.exr"
         if any(r.file == name for r in self.records):
             raise ValueError(f"duplicate image {name}")
         rec = ImageRecord(name, camera.name, light_kind, light_id,
@@ -391,6 +401,17 @@ def _read_mask(root: Path, name: Any, cameras: dict[str, Any], where: str) -> np
     if not mask.any():
         raise InputError(f"{path}: the mask is empty (no sample pixel)")
     return mask
+
+
+def resolve_root(root: str | Path) -> Path:
+    """The dataset folder of ``root``: ``root`` itself, or ``root/micro`` for the folder
+    ``dualscale synth --dataset`` writes; ``FileNotFoundError`` when there is none."""
+    root = Path(root)
+    if not root.exists():
+        raise FileNotFoundError(f"dataset not found: {root}")
+    if root.is_dir() and not (root / "manifest.json").is_file() and (root / "micro" / "manifest.json").is_file():
+        return root / "micro"
+    return root
 
 
 def read_dataset(root: str | Path) -> Dataset:
