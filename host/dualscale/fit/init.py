@@ -3,7 +3,7 @@
 Albedo and normal come from Lambertian photometric stereo on the diffuse-only images (P90 when
 the dataset is polarised, else all LED images): per pixel, the luminance ``Y_k`` under light
 ``l_k`` is fitted as ``Y_k = g . l_k`` over lights that are well above the horizon and neither
-black nor clipped, ``n = g / |g|``; then each channel's albedo is
+black nor clipped (nor invalid, ``Observations.valid``), ``n = g / |g|``; then each channel's albedo is
 ``b_c = (pi / w_d) sum_k I_kc (n.l_k) / sum_k (n.l_k)^2``.  Pixels without enough usable lights
 keep ``n = +z``.  Other maps start at mid-range values; the transmittance starts from the
 back-lit image.
@@ -40,6 +40,8 @@ def photometric_stereo(obs: Observations, min_z: float = 0.3, clip: float = 1.9)
     wd = d.w_d.to(torch.float64).reshape(-1, 1, 1, 1)
     y = (img / wd).mean(-1)  # (K, H, W) luminance per unit diffuse weight
     use = ((dirs[:, 2] >= min_z).reshape(-1, 1, 1) & (y > 1e-6) & ((img < clip).all(-1))).to(torch.float64)
+    if d.valid is not None:  # clipped or outside the sample mask (observations.py)
+        use = use * d.valid.to(torch.float64)
     a = torch.einsum("khw,ki,kj->hwij", use, dirs, dirs) + 1e-6 * torch.eye(3, dtype=torch.float64)
     b = torch.einsum("khw,khw,ki->hwi", use, y, dirs)
     g = torch.linalg.solve(a, b.unsqueeze(-1)).squeeze(-1)
