@@ -94,24 +94,39 @@ def layout_checked(monkeypatch):
 
 @pytest.fixture(scope="module")
 def run_report(tmp_path_factory):
+    """The full synthetic run, rendered once; every saved figure is checked for labels that
+    overlap or stick out of the figure (the problems are returned third)."""
+    from dualscale.report import html as rhtml
+    from dualscale.report import plots
     from dualscale.report import write_run_report
+
+    problems: list = []
+    save = rhtml.Assets.figure
+
+    def figure(self, fig, stem):
+        bad = plots.overlapping_texts(fig)
+        if bad:
+            problems.append((stem, bad))
+        return save(self, fig, stem)
 
     run = make_run(tmp_path_factory.mktemp("report") / "RUN")
-    return run, write_run_report(run)
+    rhtml.Assets.figure = figure
+    try:
+        page = write_run_report(run)
+    finally:
+        rhtml.Assets.figure = save
+    return run, page, problems
 
 
-def test_run_report_figures_have_no_overlapping_labels(tmp_path, layout_checked):
-    from dualscale.report import write_run_report
-
-    write_run_report(make_run(tmp_path / "RUN"))
-    assert layout_checked == []
+def test_run_report_figures_have_no_overlapping_labels(run_report):
+    assert run_report[2] == []
 
 
 # ---------------------------------------------------------------------------------------------
 # the run report
 
 def test_run_report_content(run_report):
-    run, page = run_report
+    run, page, _ = run_report
     assert page == run / "report" / "index.html"
     text, p = _parse(page)
     raw = page.read_text(encoding="utf-8")
@@ -159,25 +174,21 @@ def test_run_report_optional_stages_missing(tmp_path):
     assert all((run / "report" / s).is_file() for s in p.imgs)
 
 
-def test_run_report_into_another_folder(tmp_path):
-    """The pipeline renders into its work folder and renames it to RUN/report afterwards."""
+def test_run_report_into_another_folder_and_rerun(tmp_path):
+    """The pipeline renders into its work folder (then renames it to RUN/report); a rerun
+    replaces the assets of the previous one."""
     from dualscale.report import write_run_report
 
     run = make_run(tmp_path / "RUN", flyouts=False, guidance=False)
-    page = write_run_report(run, out=run / "work" / "report")
-    assert page == run / "work" / "report" / "index.html" and not (run / "report").exists()
+    out = run / "work" / "report"
+    page = write_run_report(run, out=out)
+    assert page == out / "index.html" and not (run / "report").exists()
+    stale = out / "assets" / "stale.png"
+    stale.write_bytes(b"x")
+    write_run_report(run, out=out)
+    assert not stale.exists()
     _, p = _parse(page)
     assert p.imgs and all((page.parent / s).is_file() for s in p.imgs)
-
-
-def test_run_report_rerun_replaces_assets(run_report):
-    from dualscale.report import write_run_report
-
-    run, page = run_report
-    stale = page.parent / "assets" / "stale.png"
-    stale.write_bytes(b"x")
-    write_run_report(run)
-    assert not stale.exists()
 
 
 @pytest.mark.parametrize("missing", ["run.json", "stages/fit.json", "fit/residual.exr", "fit/maps/material.json",
@@ -385,7 +396,7 @@ def test_report_loads_in_headless_browser(run_report, tmp_path):
     if exe is None:
         pytest.skip("no chromium binary on PATH (Debian: apt-get install chromium; `make deps` installs it)")
     pytest.importorskip("websocket", reason="websocket-client is not installed (pip install -e '.[dev]')")
-    run, page = run_report
+    run, page, _ = run_report
     handler = functools.partial(_Quiet, directory=str(page.parent))
     server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
     thread = threading.Thread(target=server.serve_forever, daemon=True)

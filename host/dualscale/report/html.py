@@ -101,8 +101,11 @@ class Assets:
     def figure(self, fig, stem: str) -> str:
         import matplotlib.pyplot as plt
 
+        from .plots import settle
+
         name = self._name(stem)
         try:
+            settle(fig)
             png = self.dir / f"{name}.png"
             fig.savefig(png, dpi=self.dpi)
             if self.svg:

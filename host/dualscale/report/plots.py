@@ -138,8 +138,16 @@ def _to_plot(col, row, h: int, texel_mm: float | None):
 
 
 def _colorbar(fig, mappable, ax, label: str, extend: str = "neither"):
+    """A colorbar with its label; small or large values get a ×10ⁿ factor instead of long ticks."""
+    from matplotlib.ticker import ScalarFormatter
+
     cb = fig.colorbar(mappable, ax=ax, extend=extend, shrink=0.9, pad=0.02)
     cb.set_label(label)
+    vmax = max(abs(float(mappable.norm.vmin)), abs(float(mappable.norm.vmax)))
+    if 0 < vmax < 0.01 or vmax >= 1e4:
+        f = ScalarFormatter(useMathText=True)
+        f.set_powerlimits((-2, 4))
+        cb.ax.yaxis.set_major_formatter(f)
     return cb
 
 
@@ -447,8 +455,10 @@ def flyout_figure(background, polylines_px, *, mask=None, texel_mm: float | None
     ax.set_title("fly-out fibres")
     if len(polylines_px):
         ax.legend(loc="upper right", fontsize=7, framealpha=0.8)
-    cap = "Detected fly-out fibres (yellow polylines) over the albedo"
-    cap += "; red overlay: the fly-out mask." if mask is not None else "."
+        cap = f"{len(polylines_px)} detected fly-out fibres (yellow polylines) over the albedo"
+        cap += "; red overlay: the fly-out mask." if mask is not None else "."
+    else:
+        cap = "No fly-out fibre was detected; the albedo is shown for reference."
     return fig, cap
 
 
@@ -476,6 +486,13 @@ def guidance_figure(guidance, box=None, *, texel_mm: float | None = None):
     return fig, cap
 
 
+def settle(fig) -> None:
+    """Draw twice: constrained layout moves labels once more after the ticks (and a ×10ⁿ
+    offset) are known, and the saved image must be the settled one."""
+    fig.canvas.draw()
+    fig.canvas.draw()
+
+
 def _drawn_texts(fig):
     """The texts a reader sees: titles, axis labels, tick labels inside the view, annotations,
     legend entries and figure texts (each once)."""
@@ -494,7 +511,8 @@ def _drawn_texts(fig):
     for ax in fig.axes:
         if not ax.get_visible():
             continue
-        for t in (ax.title, ax._left_title, ax._right_title, ax.xaxis.label, ax.yaxis.label, *ax.texts):
+        for t in (ax.title, ax._left_title, ax._right_title, ax.xaxis.label, ax.yaxis.label,
+                  ax.xaxis.offsetText, ax.yaxis.offsetText, *ax.texts):
             add(t)
         for axis, lim in ((ax.xaxis, ax.get_xlim()), (ax.yaxis, ax.get_ylim())):
             lo, hi = min(lim), max(lim)
@@ -515,7 +533,7 @@ def _drawn_texts(fig):
 def overlapping_texts(fig, tol_px: float = 1.0) -> list[tuple[str, str]]:
     """Pairs of drawn texts of ``fig`` whose boxes overlap by more than ``tol_px`` pixels each
     way, plus texts that stick out of the figure. Used by the tests to keep labels apart."""
-    fig.canvas.draw()
+    settle(fig)
     rnd = fig.canvas.get_renderer()
     W, H = fig.canvas.get_width_height()
     boxes = [(t.get_text(), t.get_window_extent(rnd)) for t in _drawn_texts(fig)]

@@ -266,6 +266,7 @@ def write_run_report(run_dir: str | Path, out: str | Path | None = None) -> Path
     for name in REQUIRED_STAGES:
         if name not in stages:
             raise _Missing(f"run report: {run / 'run.json'} lists no {name!r} stage; the report needs it")
+    _check_required(run)
     report_notes: list[dict[str, str]] = []
 
     def note(text: str) -> None:
@@ -474,6 +475,21 @@ def write_run_report(run_dir: str | Path, out: str | Path | None = None) -> Path
         export=exp, timing=timing, records=[_stage_rows(stages[n]) for n in order],
         timing_table=Table(["stage", "time"], [[s.name, fmt.duration(s.seconds)] for s in timed], {1}),
     )
+
+
+def _check_required(run: Path) -> None:
+    """Fail before drawing anything when a required artefact of the fit is missing."""
+    for rel in ("fit/maps/material.json", "fit/residual.exr", "fit/heldout/heldout.json"):
+        if not (run / rel).is_file():
+            raise _Missing(f"run report: {run / rel} is missing (written by the fit stage)")
+    doc = _json(run, "fit/heldout/heldout.json", required=True, writer="fit stage")
+    for light in doc.get("lights") or []:
+        for key in ("capture", "render"):
+            name = (light or {}).get(key) if isinstance(light, dict) else None
+            if not name or not (run / "fit" / "heldout" / str(name)).is_file():
+                raise _Missing(f"run report: the {key} image {name!r} of held-out LED "
+                               f"{(light or {}).get('led_id')} is missing from {run / 'fit' / 'heldout'} "
+                               "(written by the fit stage)")
 
 
 def _box_text(box) -> str:
