@@ -306,7 +306,7 @@ def _device_results(seed=0):
 
 
 def test_device_report_summary_and_hemisphere_scale(tmp_path, layout_checked):
-    from dualscale.calib.report import write_report
+    from dualscale.report.device import write_report
 
     res, calib = _device_results()
     page = write_report(tmp_path / "rep", res, calib)
@@ -330,7 +330,7 @@ def test_device_report_summary_and_hemisphere_scale(tmp_path, layout_checked):
 
 
 def test_device_report_without_optional_parts(tmp_path):
-    from dualscale.calib.report import write_report
+    from dualscale.report.device import write_report
 
     res, calib = _device_results()
     res = {"colour": res["colour"], "summary": {}}

@@ -1,6 +1,6 @@
 """Self-contained HTML reports: the run report of ``dualscale digitize``
 (:func:`dualscale.report.run.write_run_report`) and the device evaluation
-(:func:`dualscale.calib.report.write_report`).
+(:func:`dualscale.report.device.write_report`).
 
 Shared parts: :mod:`.html` (Jinja2 templates shipped as package data, atomic writes, the
 assets folder), :mod:`.plots` (matplotlib figures with labelled units and colour scales that do

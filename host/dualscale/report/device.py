@@ -20,11 +20,10 @@ from typing import Any
 
 import numpy as np
 
+from dualscale.calib import colourref as cr
 from dualscale.report import format as fmt
 from dualscale.report import plots
 from dualscale.report.html import Assets, write_page
-
-from . import colourref as cr
 
 DE_GOAL = 3.0
 POL_MAX_ERROR_GOAL_DEG = 12.0
@@ -35,7 +34,7 @@ CCM_METHODS = (("before", "before (white balance only)"), ("least_squares", "lea
 
 def _hemi_panels(values_by_light: dict[str, float], title: str):
     """``(title, theta, phi, values, centre)`` for :func:`plots.hemisphere_figure`."""
-    from .evaluate import hemisphere_coords
+    from dualscale.calib.evaluate import hemisphere_coords
 
     coords = hemisphere_coords(list(values_by_light))
     leds = [k for k in values_by_light if k.startswith("led") and k in coords]
