@@ -219,9 +219,9 @@ def light_scale(photos: list[Photo], dirs: np.ndarray, rel: np.ndarray, mask: np
 def _prepare_out(out: Path) -> None:
     if out.exists():
         if not out.is_dir():
-            raise FileExistsError(f"{out} exists and is not a folder")
+            raise InputError(f"-o {out}: exists and is not a folder")
         if any(out.iterdir()) and not (out / "manifest.json").is_file():
-            raise FileExistsError(f"{out} exists, is not empty and is not a dataset; choose another -o")
+            raise InputError(f"-o {out}: exists, is not empty and is not a dataset; choose another -o")
 
 
 def import_photos(images: str | Path, lights: str | Path, out: str | Path, transfer: str | None,

@@ -12,6 +12,16 @@
   candidate's error, so all candidates are scored on the same captures and no local model is
   asked to explain a shadow.
 
+* **specular** (any specular lobe at all) -- only for *unpolarised* captures (no crossed-analyser
+  image separates the diffuse reflection, e.g. photographs from other rigs, docs/PHOTOS.md):
+  diffuse-only (IOR 1, so no Fresnel reflection: :func:`diffuse_only`) against an isotropic,
+  untinted specular lobe, by ``SPECULAR_FOLDS``-fold cross-validation over the lights (every
+  light validates once), on the mean absolute error (the fit's L1 loss); the lobe is kept only
+  if it lowers that error by more than ``MARGIN``.  A dozen lights rarely catch a highlight
+  twice, and an unconstrained lobe then predicts highlights where there are none.  Polarised
+  captures keep the lobe (their P0 - P90 difference *is* the specular evidence).  Without a
+  lobe, anisotropy and tint are moot and not tried.
+
 The decision, with its evidence, goes into the fit's metadata.  ``overrides`` (True/False per
 component) replaces a decision; the report then says so.
 """
@@ -21,6 +31,7 @@ from __future__ import annotations
 from dataclasses import asdict
 from typing import Any
 
+import numpy as np
 import torch
 
 from dualscale.bsdf import Components
@@ -34,6 +45,9 @@ from .presets import PRESETS
 from .render import clamp_images, pixel_rows, render_leds
 
 TRANS_LEVEL = 0.02
+SPECULAR_FOLDS = 4
+#: the IOR of a diffuse-only model: eta 1 reflects nothing (Fresnel 0)
+NO_SPECULAR_IOR = 1.0
 TRANS_FRACTION = 0.01
 MARGIN = 0.02
 PIXELS = 512
@@ -61,23 +75,60 @@ class _Validation:
         self.keep: torch.Tensor | None = None
 
     def rmse(self, comps: Components) -> float:
+        return self.errors(comps)["rmse"]
+
+    def errors(self, comps: Components) -> dict[str, float]:
+        """RMS and mean absolute error over the kept validation samples."""
         res = fit_observations(self.train, self.preset, comps)
         with torch.no_grad():
             r = pixel_rows(render_leds(res.maps.to(self.images.dtype), comps, self.val) - self.images)
         if self.keep is None:
             keep = preset_loss(self.preset).keep(r, StepData(self.val, self.images, None))
             self.keep = torch.ones_like(r) if keep is None else keep
-        return float(((r * r * self.keep).sum() / self.keep.sum().clamp(min=1.0)).sqrt())
+        n = self.keep.sum().clamp(min=1.0)
+        return {"rmse": float(((r * r * self.keep).sum() / n).sqrt()), "mae": float((r.abs() * self.keep).sum() / n)}
 
     def shadowed_share(self) -> float:
         return 0.0 if self.keep is None else float(1.0 - self.keep.mean())
+
+
+def diffuse_only(opaque: bool = True) -> Components:
+    """Components without a specular lobe: isotropic, untinted, IOR 1 (no Fresnel
+    reflection), normal-mapped."""
+    return Components(opaque=opaque, isotropic=True, tinted=False, normal_mapped=True, ior_mapped=False,
+                      ior=NO_SPECULAR_IOR)
+
+
+def has_specular(comps: Components) -> bool:
+    """False for :func:`diffuse_only` components (IOR 1 and not mapped)."""
+    return comps.ior_mapped or comps.ior != NO_SPECULAR_IOR
+
+
+def specular_evidence(sub: Observations, translucent: bool, iters_scale: float, folds: int = SPECULAR_FOLDS
+                      ) -> dict[str, Any]:
+    """Cross-validated errors of diffuse-only and specular fits over ``sub`` (module doc)."""
+    ids = sorted(set(sub.led_ids.tolist()))
+    k = max(2, min(folds, len(ids)))
+    cand = {"diffuse_only": diffuse_only(not translucent), "specular": fit_components(not translucent, True, False)}
+    err = {name: [] for name in cand}
+    for off in range(k):
+        train, val = split_holdout(sub, every=k, offset=off)
+        if val is None:
+            continue
+        v = _Validation(train, val, iters_scale)
+        for name, c in cand.items():
+            err[name].append(v.errors(c)["mae"])
+    mae = {name: float(np.mean(e)) for name, e in err.items()}
+    gain = (mae["diffuse_only"] - mae["specular"]) / max(mae["diffuse_only"], 1e-12)
+    return {"folds": k, "val_mae_diffuse_only": mae["diffuse_only"], "val_mae_specular": mae["specular"],
+            "relative_gain": gain, "chosen": bool(gain > MARGIN)}
 
 
 def select_components(obs: Observations, overrides: dict[str, bool | None] | None = None, seed: int = 0,
                       pixels: int = PIXELS, iters_scale: float = 0.6, val_every: int = 5) -> tuple[Components, dict]:
     """``(components, report)`` for the observations (see module docstring)."""
     overrides = {k: v for k, v in (overrides or {}).items() if v is not None}
-    unknown = set(overrides) - {"transmittance", "anisotropy", "tint"}
+    unknown = set(overrides) - {"transmittance", "anisotropy", "tint", "specular"}
     if unknown:
         raise ValueError(f"unknown component overrides {sorted(unknown)}")
     report: dict[str, Any] = {"method": "held-out validation", "margin": MARGIN}
@@ -92,6 +143,23 @@ def select_components(obs: Observations, overrides: dict[str, bool | None] | Non
     train, val = split_holdout(sub, every=val_every, offset=1)
     report["validation"] = {"pixels": int(flat.numel()), "train_images": train.n,
                             "val_leds": sorted(set(val.led_ids.tolist())) if val is not None else []}
+    if "specular" in overrides:
+        report["specular"] = {"chosen": bool(overrides["specular"]), "overridden": True}
+    elif overrides.get("anisotropy") or overrides.get("tint"):
+        report["specular"] = {"chosen": True, "overridden": True, "evidence": "implied by an anisotropy or tint "
+                                                                              "override"}
+    elif obs.has_polarisation:
+        report["specular"] = {"chosen": True, "overridden": False,
+                              "evidence": "polarised captures: the P0 - P90 difference is the specular reflection"}
+    else:
+        ev = specular_evidence(sub, translucent, iters_scale)
+        report["specular"] = {"chosen": ev["chosen"], "overridden": False, "evidence": ev}
+    if not report["specular"]["chosen"]:
+        for name in ("anisotropy", "tint"):
+            report[name] = {"chosen": False, "overridden": name in overrides, "reason": "no specular lobe"}
+        comps = diffuse_only(not translucent)
+        report["components"] = asdict(comps)
+        return comps, report
     need_fit = "anisotropy" not in overrides or "tint" not in overrides
     if val is None and need_fit:
         raise ValueError("component selection needs at least two LEDs; set --anisotropy and --tint explicitly")
