@@ -66,9 +66,13 @@ def stride_leds(obs: Observations, stride: int) -> Observations:
 
 def _fingerprint(obs: Observations, preset: Preset, comps: Components, seed: int) -> str:
     sample = obs.images.flatten()[:: max(1, obs.images.numel() // 4096)]
+    # the valid-sample mask (clipping, the sample mask) changes the fit: its counts per image,
+    # row and column (only when there is one, so fits without keep their fingerprints)
+    valid = {} if obs.valid is None else {"valid": torch.cat([obs.valid.sum(dim=(1, 2)), obs.valid.sum(dim=(0, 2)),
+                                                               obs.valid.sum(dim=(0, 1))])}
     return fingerprint(preset=asdict(preset), comps=asdict(comps), seed=seed, ids=obs.led_ids, ws=obs.w_s,
                        sample=sample, sums=obs.images.sum(dim=(1, 2, 3)),
-                       back=obs.backlight if obs.backlight is not None else torch.zeros(1))
+                       back=obs.backlight if obs.backlight is not None else torch.zeros(1), **valid)
 
 
 def fit_observations(obs: Observations, preset: Preset, comps: Components, *, held_out: Observations | None = None,
