@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
-from dualscale.errors import FormatError, InputError
+from dualscale.errors import InputError
 
 from .common import add_output, add_work_options, apply_threads, want_progress
 
@@ -60,19 +61,6 @@ def _onnx_for(model: Path, precision: str) -> Path:
     return p16 if precision == "fp16" else p32
 
 
-def _guidance_file(path: Path) -> Path:
-    """An image file, or the diffuse (else only) image of a photometric dataset folder."""
-    if path.is_dir():
-        from dualscale.formats.dataset import read_dataset
-
-        ds = read_dataset(path)
-        pick = ds.select(light_kind="diffuse") or (list(range(len(ds.records))) if len(ds.records) == 1 else [])
-        if not pick:
-            raise FormatError(f"{path}: no diffuse image to use as guidance")
-        return path / ds.records[pick[0]].file
-    return path
-
-
 def cmd_run(args: argparse.Namespace) -> int:
     from dualscale.propagate.infer import OnnxModel, run_tiled
     from dualscale.formats.model import read_model_file
@@ -81,9 +69,10 @@ def cmd_run(args: argparse.Namespace) -> int:
     model = Path(args.model)
     if not model.is_file():
         raise InputError(f"model file not found: {model}")
-    guidance = _guidance_file(Path(args.guidance))
-    if not guidance.is_file():
-        raise InputError(f"guidance image not found: {guidance}")
+    from dualscale.propagate.guidance import read_guidance
+
+    # read (linearise, check) the guidance first: its refusals come before anything is written
+    guidance = read_guidance(Path(args.guidance), args.transfer, args.texel_mm)
     if model.suffix != ".onnx":
         read_model_file(model)  # clear error for foreign/incompatible files before exporting
     onnx = _onnx_for(model, args.precision)
@@ -93,6 +82,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         raise InputError(f"--exposure {args.exposure!r}: use 'auto' or a positive gain") from None
     summary = run_tiled(OnnxModel.open(onnx, threads), guidance, args.output,
                         args.tile, args.overlap, exposure, args.batch, want_progress(args))
+    for w in summary["warnings"]:
+        print(f"dualscale propagate run: warning: {w}", file=sys.stderr)
     print(f"wrote {', '.join(summary['maps'])} ({summary['width']}x{summary['height']}, {summary['tiles']} tiles, "
           f"{summary['precision']}) to {args.output}")
     return 0
@@ -136,7 +127,13 @@ def register(subparsers) -> None:
 
     r = sub.add_parser("run", help="propagate maps over a guidance image (tiled, onnxruntime) to EXR")
     r.add_argument("model", help="model file or exported .onnx")
-    r.add_argument("guidance", help="RGB image (EXR) or a photometric dataset folder with a diffuse image")
+    r.add_argument("guidance", help="RGB image (EXR, or PNG/JPEG/TIFF with --transfer) or a photometric dataset "
+                   "folder with a diffuse image")
+    r.add_argument("--transfer", default=None, metavar="srgb|linear|gamma:G",
+                   help="transfer function of a display-encoded guidance (PNG/JPEG/TIFF); required for those")
+    r.add_argument("--texel-mm", type=float, default=None, metavar="MM",
+                   help="texel size of the guidance, recorded in the maps (default: from its dataset's camera; "
+                        "unknown: null, with a warning)")
     add_output(r, "output maps folder")
     r.add_argument("--tile", type=int, default=512)
     r.add_argument("--overlap", type=int, default=64)

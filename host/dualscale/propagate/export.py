@@ -26,7 +26,6 @@ OPSET = 17
 def export_onnx(model: PropagationUNet, path: str | Path, half: bool = False, meta: dict | None = None) -> Path:
     """Write ``model`` as ONNX (legacy TorchScript exporter, opset 17; no onnxscript needed),
     atomically (a temporary file renamed into place)."""
-
     from dualscale.formats.atomic import atomic_path
 
     with atomic_path(path) as tmp:

@@ -134,8 +134,8 @@ def train(sources: list[Source], preset: Preset, out: str | Path, opts: TrainOpt
         scaler.load_state_dict(st["scaler"])
         gen.set_state(st["gen"])
         start, history = int(st["iteration"]), list(st["history"])
-        if start >= preset.iterations:
-            raise ValueError(f"checkpoint {ckpt} is already at iteration {start} >= {preset.iterations}")
+        if start > preset.iterations:  # equal: a run stopped after its last checkpoint; just write the model
+            raise ValueError(f"checkpoint {ckpt} is already at iteration {start} > {preset.iterations}")
     t0 = time.perf_counter()
     model.train()
     bar = tqdm(range(start, preset.iterations), initial=start, total=preset.iterations, disable=not opts.progress,
