@@ -1,6 +1,7 @@
 """The `dualscale` command line: sim, console, flash --dry-run."""
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import signal
@@ -112,9 +113,121 @@ def test_flash_verifies_the_version_over_modbus(sim_link):
 
 
 def test_sim_reports_a_missing_binary(tmp_path):
+    """A simulator that was never built is the environment's problem: exit 4 (ToolError)."""
     env = dict(os.environ, DUALSCALE_FIRMWARE_BUILD=str(tmp_path))
     r = subprocess.run([*DUALSCALE, "sim"], capture_output=True, text=True, env=env, timeout=30)
-    assert r.returncode == 2 and "make -C firmware posix" in r.stderr
+    assert r.returncode == 4 and "make -C firmware posix" in r.stderr
+    assert r.stderr.count("\n") == 1 and "Traceback" not in r.stderr
+
+
+# ---- errors meet the user in one place: cli.main -> one line on stderr, one exit code -------------
+
+def _bad_inputs(tmp_path: Path) -> dict[str, tuple[list[str], int, str]]:
+    """Each subcommand's typical bad input: (argv, exit code, what the line must say)."""
+    missing = str(tmp_path / "missing")
+    (tmp_path / "maps").mkdir()
+    return {
+        "usage": (["fit"], 2, "required: dataset"),
+        "sim": (["sim", "--target", "posix"], 4, "make -C firmware posix"),
+        "demo": (["demo"], 4, "make -C firmware posix"),
+        "console": (["console", "--port", missing, "-c", "id"], 2, "cannot open serial port"),
+        "flash": (["flash"], 4, "no flashing tool found"),
+        "synth": (["synth", "twill", "-o", str(tmp_path / "s"), "--size", "16", "--lights", "every3"], 2, "--lights"),
+        "render": (["render", missing, "-o", str(tmp_path / "r"), "--led", "3"], 2, "missing"),
+        "render-led": (["render", str(tmp_path / "maps"), "-o", str(tmp_path / "r"), "--led", "500"], 2,
+                       "out of range"),
+        "synth-targets": (["synth-targets", "-o", str(tmp_path / "t"), "--parts", "chart,rainbow"], 2, "rainbow"),
+        "calibrate": (["calibrate", missing, "-o", str(tmp_path / "c.json")], 2, "missing"),
+        "evaluate-device": (["evaluate-device", missing, "--calibration", missing, "-o", str(tmp_path / "e")],
+                            2, "missing"),
+        "fit": (["fit", missing, "-o", str(tmp_path / "f")], 2, "missing"),
+        "fit-threads": (["fit", missing, "-o", str(tmp_path / "f"), "--threads", "0"], 2, "--threads"),
+        "study": (["study", "lights", missing, "-o", str(tmp_path / "st")], 2, "missing"),
+        "flyouts": (["flyouts", missing, "-o", str(tmp_path / "fo")], 2, "missing"),
+        "propagate-train": (["propagate", "train", missing, missing, "--maps", missing, "-o", str(tmp_path / "m")],
+                            2, "--maps"),
+        "propagate-export": (["propagate", "export", missing], 2, "missing"),
+        "propagate-run": (["propagate", "run", missing, missing, "-o", str(tmp_path / "pr")], 2, "missing"),
+        "digitize": (["digitize", missing, "-o", str(tmp_path / "run")], 2, "missing"),
+    }
+
+
+BAD = ["usage", "sim", "demo", "console", "flash", "synth", "render", "render-led", "synth-targets", "calibrate",
+       "evaluate-device", "fit", "fit-threads", "study", "flyouts", "propagate-train", "propagate-export",
+       "propagate-run", "digitize"]
+
+
+@pytest.mark.parametrize("case", BAD)
+def test_bad_input_is_one_line_and_an_exit_code(case, tmp_path, monkeypatch, capsys):
+    from dualscale.cli import main
+
+    monkeypatch.setenv("DUALSCALE_FIRMWARE_BUILD", str(tmp_path / "no-build"))
+    monkeypatch.setenv("PATH", "")  # no flashing tool (nor anything else) on the PATH
+    monkeypatch.delenv("DUALSCALE_DEBUG", raising=False)
+    argv, code, needle = _bad_inputs(tmp_path)[case]
+    assert main(argv) == code
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.endswith("\n"), err
+    assert err.startswith("dualscale ") and "error: " in err and needle in err, err
+    assert "Traceback" not in err
+
+
+def test_flash_without_a_tool_ends_in_one_line_not_a_traceback(tmp_path):
+    env = dict(os.environ, PATH="", DUALSCALE_FIRMWARE_BUILD=str(tmp_path))
+    env.pop("DUALSCALE_DEBUG", None)
+    r = subprocess.run([*DUALSCALE, "flash"], capture_output=True, text=True, env=env, timeout=60)
+    assert r.returncode == 4, r.stderr
+    assert r.stderr == ("dualscale flash: error: no flashing tool found: install PlatformIO, openocd, "
+                        "stlink-tools or dfu-util\n")
+
+
+def test_interrupt_and_internal_errors_are_one_line(monkeypatch, capsys):
+    from dualscale import cli
+    from dualscale.errors import EXIT_CODES, Interrupted
+
+    def raising(exc):
+        def fn(_args):
+            raise exc
+        return fn
+
+    cases = [(KeyboardInterrupt(), EXIT_CODES["interrupted"], "interrupted; run the same command again"),
+             (Interrupted("stopped at iteration 4"), 130, "stopped at iteration 4; run the same command again"),
+             (ZeroDivisionError("x"), EXIT_CODES["internal"], "internal error: ZeroDivisionError: x"),
+             (OSError(28, "No space left on device", "/out/x.exr"), EXIT_CODES["tool"],
+              "error: No space left on device: /out/x.exr"),
+             (ValueError("line one\nline two"), EXIT_CODES["input"], "error: line one; line two")]
+    for exc, code, needle in cases:
+        monkeypatch.setattr(cli, "cmd_flash", raising(exc))  # build_parser binds it at each main()
+        assert cli.main(["flash"]) == code
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and needle in err and "Traceback" not in err, err
+
+
+def test_the_same_output_and_work_options_everywhere():
+    """Every command that writes takes -o/--output (dest output); the long ones take --threads
+    and --progress/--no-progress."""
+    from dualscale.cli import build_parser
+
+    long_ones = {"synth", "render", "synth-targets", "calibrate", "evaluate-device", "fit", "study lights",
+                 "flyouts", "propagate train", "propagate run"}
+    seen = set()
+
+    def walk(parser, name):
+        subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+        if subs:
+            for n, p in subs[0].choices.items():
+                walk(p, f"{name} {n}".strip())
+            return
+        opts = {o: a for a in parser._actions for o in a.option_strings}
+        if "-o" in opts:
+            assert opts["-o"] is opts.get("--output") and opts["-o"].dest == "output", name
+            seen.add(name)
+        if name in long_ones:
+            assert "--threads" in opts and "--progress" in opts and "--no-progress" in opts, name
+            assert opts["--progress"].default is None, name  # None = on when stderr is a terminal
+
+    walk(build_parser(), "")
+    assert long_ones <= seen
 
 
 def test_pio_builds_the_same_sources_and_flags_as_make():

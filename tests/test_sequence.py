@@ -55,3 +55,36 @@ def test_plan_rejects_bad_indices():
         CapturePlan(leds=[127]).build()
     with pytest.raises(ValueError, match="back-light"):
         CapturePlan(backlights=[9]).build()
+
+
+def test_step_fields_follow_the_generated_offsets():
+    """Each field lands at its rm.StepWord offset (u32 fields big-endian over two words), and
+    'keep the analyzer' is rm.POL_KEEP."""
+    from dualscale.rig.sequence import STEP_FIELDS
+
+    s = Step(rm.Source.BACKLIGHT, 2, 40000, None, settle_us=0x12345678, exposure_us=0x0001_0002, pulse_us=7,
+             brackets=3, ev_step=2, triggers=0b0101)
+    w = s.to_words()
+    assert set(STEP_FIELDS) == {k for k in vars(rm.StepWord) if k.isupper()}
+    assert w[rm.StepWord.SOURCE] == (rm.Source.BACKLIGHT << 8) | 2
+    assert w[rm.StepWord.POLARIZER] == rm.POL_KEEP
+    assert w[rm.StepWord.SETTLE_US:rm.StepWord.SETTLE_US + 2] == [0x1234, 0x5678]
+    assert w[rm.StepWord.EXPOSURE_US:rm.StepWord.EXPOSURE_US + 2] == [1, 2]
+    assert w[rm.StepWord.BRACKETS] == (2 << 8) | 3 and w[rm.StepWord.TRIGGERS] == 0b0101
+    assert sum(n for _, n in STEP_FIELDS.values()) == rm.STEP_WORDS
+
+
+def test_plan_checks_brackets_ev_steps_and_triggers_against_the_map():
+    from dualscale.errors import InputError
+    from dualscale.rig.sequence import MICRO_TRIGGER
+
+    assert CapturePlan().triggers == MICRO_TRIGGER == 1 << rm.TRIGGER_NAMES.index("micro")
+    assert len(CapturePlan(brackets=rm.MAX_BRACKETS, ev_step=rm.MAX_EV_STEP).build()) > 0
+    with pytest.raises(InputError, match=f"1..{rm.MAX_BRACKETS}"):
+        CapturePlan(brackets=rm.MAX_BRACKETS + 1).build()
+    with pytest.raises(InputError, match="brackets 0"):
+        CapturePlan(brackets=0).build()
+    with pytest.raises(InputError, match="ev_step"):
+        CapturePlan(ev_step=rm.MAX_EV_STEP + 1).build()
+    with pytest.raises(InputError, match="triggers"):
+        CapturePlan(triggers=1 << rm.N_TRIGGERS).build()

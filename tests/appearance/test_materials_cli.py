@@ -1,6 +1,7 @@
 """Synthetic materials (reproducibility, validity, fly-out ground truth) and the CLI."""
 
 import json
+import time
 
 import numpy as np
 import pytest
@@ -85,5 +86,42 @@ def test_cli_synth_and_render(tmp_path):
     r = read_dataset(tmp_path / "r")
     assert r.records[0].units == "dn_normalized" and r.records[0].camera == "polar1"
     assert (tmp_path / "r" / "previews" / "polar1_led003_abs03000.png").is_file()
-    with pytest.raises(SystemExit):
-        _run(["render", str(tmp_path / "s" / "maps"), "-o", str(tmp_path / "x"), "--led", "500"])
+    assert _run(["render", str(tmp_path / "s" / "maps"), "-o", str(tmp_path / "x"), "--led", "500"]) == 2
+    assert not (tmp_path / "x").exists()
+
+
+def test_flyouts_scale_with_the_pixel_budget_not_the_field():
+    """On the mid camera (0.4 mm texels) a 100 mm field holds 100,000 fibres of 12 um: none is
+    drawn as geometry, at most flyout_budget() are drawn at all, and their texel-averaged cover
+    is what per_mm2 x length x diameter predicts."""
+    from dualscale.sim.materials.fabrics import flyout_budget
+
+    mid = generate("twill", 64, 100.0 / 64, seed=0)
+    f = mid.meta["flyouts"]
+    assert f["count"] == 100_000 and f["drawn"] == flyout_budget(64, 64) == 16 and not f["resolved"]
+    assert not mid.flyouts and not mid.flyout_mask.any() and mid.geometry.fibre_mask is None
+    expected = 10.0 * 0.45 * 0.012  # per mm^2 x mean length (mm) x diameter (mm)
+    assert f["mean_coverage"] == pytest.approx(expected, rel=0.05)
+    bare = generate("twill", 64, 100.0 / 64, seed=0)
+    assert torch.equal(bare.maps.albedo, mid.maps.albedo)  # reproducible
+    micro = generate("twill", 96, 0.0045, seed=0)  # 12 um fibres over 4.5 um texels: resolved, as before
+    assert micro.meta["flyouts"]["resolved"] and len(micro.flyouts) == micro.meta["flyouts"]["count"] == 2
+    assert micro.flyout_mask.any()
+
+
+def test_synth_mid_finishes_small(tmp_path):
+    t0 = time.perf_counter()
+    assert _run(["synth", "twill", "-o", str(tmp_path / "s"), "--size", "16", "--mid", "--mid-size", "32",
+                 "--no-previews", "--threads", "1"]) == 0
+    assert time.perf_counter() - t0 < 20
+    assert read_dataset(tmp_path / "s" / "mid").records[0].light_kind == "diffuse"
+
+
+def test_synth_mid_finishes_at_the_default_size(tmp_path):
+    """`synth twill --mid` at the default sizes (512 micro, 256 mid = 100 mm): it used to place
+    100,000 fibres, each a KD-tree query over every pixel, and never finished.  About 7 s on
+    the 2-core VM; the bound is generous for a loaded machine."""
+    t0 = time.perf_counter()
+    assert _run(["synth", "twill", "-o", str(tmp_path / "s"), "--mid", "--no-previews", "--threads", "1"]) == 0
+    assert time.perf_counter() - t0 < 60
+    assert read_dataset(tmp_path / "s" / "mid").records[0].light_kind == "diffuse"

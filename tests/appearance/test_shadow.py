@@ -142,10 +142,12 @@ def test_render_cli_casts_the_saved_shadows(tmp_path, capsys):
     lit = read_exr(next((tmp_path / "lit").rglob("*.exr")))
     shade = read_exr(next((tmp_path / "shade").rglob("*.exr")))
     assert shade.mean() < 0.9 * lit.mean() and np.all(shade <= lit + 1e-6)
-    with pytest.raises(SystemExit, match="does not match"):
-        main(args + ["-o", str(tmp_path / "x"), "--shadows", "--texel-um", "9"])
-    with pytest.raises(SystemExit, match="micro"):
-        main(["render", str(maps), "--led", "0", "--camera", "mid", "--shadows", "-o", str(tmp_path / "y")])
+    for argv, needle in [(args + ["-o", str(tmp_path / "x"), "--shadows", "--texel-um", "9"], "does not match"),
+                         (["render", str(maps), "--led", "0", "--camera", "mid", "--shadows", "-o", str(tmp_path / "y")],
+                          "micro")]:
+        assert main(argv) == 2
+        assert needle in capsys.readouterr().err
     (maps / "geometry.exr").unlink()
-    with pytest.raises(SystemExit, match="needs the relief"):
-        main(args + ["-o", str(tmp_path / "z"), "--shadows"])
+    assert main(args + ["-o", str(tmp_path / "z"), "--shadows"]) == 2
+    assert "needs the relief" in capsys.readouterr().err
+    assert not any((tmp_path / d).exists() for d in "xyz")  # nothing written

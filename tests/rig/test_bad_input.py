@@ -77,3 +77,18 @@ def test_random_garbage_never_breaks_the_device(raw):
     # still alive, still dark
     r = raw.request(bytes([1, 0x01, 0, 0, 0, 127]))
     assert r[:3] == bytes([1, 1, 16]) and r[3:19] == bytes(16)
+
+
+def test_frame_timeout_broadcast_sets_the_register_silently(raw):
+    """The launcher's broadcast (QEMU's FRAME_TIMEOUT_US) reaches the register it names, and
+    nobody answers a broadcast."""
+    from dualscale.rig.launcher import frame_timeout_broadcast
+
+    read = bytes([1, 0x03]) + rm.HR.FRAME_TIMEOUT_US.to_bytes(2, "big") + (1).to_bytes(2, "big")
+    try:
+        assert raw.transact(frame_timeout_broadcast(1234)) == b""
+        r = raw.request(read)
+        assert len(r) == 7 and int.from_bytes(r[3:5], "big") == 1234, r.hex()
+    finally:
+        raw.transact(frame_timeout_broadcast(0))
+    assert int.from_bytes(raw.request(read)[3:5], "big") == 0

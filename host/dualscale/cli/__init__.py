@@ -14,7 +14,7 @@ import signal
 import sys
 import time
 
-from dualscale.errors import EXIT_CODES, DualscaleError, Interrupted
+from dualscale.errors import EXIT_CODES, DualscaleError
 from dualscale.rig.client import RigClient
 from dualscale.rig.launcher import SimError, SimulatedRig
 

@@ -52,7 +52,7 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
     from dualscale.formats.calibration import read_calibration
     from dualscale.formats.captures import read_captures
     from dualscale.calib.pipeline import session_with
-    from dualscale.calib.report import write_report
+    from dualscale.report.device import write_report
 
     from dualscale.progress import tracker
 
@@ -98,7 +98,8 @@ def register(sub) -> None:
     s.add_argument("--micro-px", type=int, default=16)
     s.add_argument("--other-px", type=int, default=48)
     s.add_argument("--rig-id", default="virtual-dome-0")
-    s.add_argument("--parts", default="white_sheet,chart,dot_grid,polarization")
+    s.add_argument("--parts", default="white_sheet,chart,dot_grid,polarization",
+                   help="comma-separated parts of the session to write")
     s.add_argument("--led-gain-sigma", type=float, default=0.05)
     s.add_argument("--collimation", type=float, default=0.08, help="max per-LED irradiance ramp over the micro field")
     s.add_argument("--analyzer-offset", type=float, default=0.0, help="injected analyser misalignment [deg]")

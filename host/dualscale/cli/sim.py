@@ -90,9 +90,9 @@ def cmd_synth(args: argparse.Namespace) -> int:
                             mat.geometry if args.shadows else None, progress)
         print(f"wrote micro photometric dataset {path}")
     if args.mid:
-        mid_texel = 100.0 / args.mid_size
+        mid_texel = args.mid_field_mm / args.mid_size
         coarse = generate(args.material, args.mid_size, mid_texel, args.seed)
-        cam = mid_camera(args.mid_size)
+        cam = mid_camera(args.mid_size, field_mm=args.mid_field_mm)
         path = _capture_set(coarse.maps, cam, out / "mid", [("diffuse", None)], [None], False, mid_texel, sensor,
                             not args.no_previews, {"material": coarse.meta}, progress=progress)
         print(f"wrote mid-range guidance image {path}")
@@ -127,23 +127,8 @@ def _shadow_geometry(args: argparse.Namespace, shape: tuple[int, int]):
     return geom
 
 
-def cmd_render(args: argparse.Namespace) -> int:
-    from dualscale.geometry.cameras import micro_camera, mid_camera, polar_camera
-    from dualscale.sim.sensor import SensorModel
-    from dualscale.formats.maps import load_maps
-
-    apply_threads(args)
-    maps, meta = load_maps(args.maps, dtype=torch.float64 if args.float64 else torch.float32)
-    h, w = maps.shape
-    if args.camera == "micro":
-        if h != w:
-            raise InputError(f"{args.maps}: the micro camera needs square maps, these are {h}x{w}")
-        cam = micro_camera(w, args.texel_um)
-        texel = None
-    else:
-        size = args.size or 512
-        cam = mid_camera(size) if args.camera == "mid" else polar_camera(int(args.camera[-1]), size)
-        texel = args.texel_um / 1000.0
+def _render_lights(args: argparse.Namespace) -> list[tuple[str, int | None]]:
+    """The lights asked for, checked against the register map."""
     lights: list[tuple[str, int | None]] = [("led", i) for i in args.led or []]
     lights += [("backlight", i) for i in args.backlight or []]
     if args.diffuse:
@@ -156,6 +141,27 @@ def cmd_render(args: argparse.Namespace) -> int:
     bad = [i for k, i in lights if k == "backlight" and not 0 <= i < regmap.N_BACKLIGHTS]
     if bad:
         raise InputError(f"--backlight: ids out of range 0..{regmap.N_BACKLIGHTS - 1}: {bad}")
+    return lights
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    from dualscale.geometry.cameras import micro_camera, mid_camera, polar_camera
+    from dualscale.sim.sensor import SensorModel
+    from dualscale.formats.maps import load_maps
+
+    apply_threads(args)
+    lights = _render_lights(args)
+    maps, meta = load_maps(args.maps, dtype=torch.float64 if args.float64 else torch.float32)
+    h, w = maps.shape
+    if args.camera == "micro":
+        if h != w:
+            raise InputError(f"{args.maps}: the micro camera needs square maps, these are {h}x{w}")
+        cam = micro_camera(w, args.texel_um)
+        texel = None
+    else:
+        size = args.size or 512
+        cam = mid_camera(size) if args.camera == "mid" else polar_camera(int(args.camera[-1]), size)
+        texel = args.texel_um / 1000.0
     sensor = SensorModel.realistic() if args.realistic else None
     geometry = _shadow_geometry(args, maps.shape) if args.shadows else None
     path = _capture_set(maps, cam, Path(args.output), lights, _analyzers(args.analyzer), args.relative, texel,
@@ -180,6 +186,8 @@ def register(subparsers) -> None:
     p.add_argument("--analyzers", default="0,90", help="analyser angles relative to each LED polariser, or 'none'")
     p.add_argument("--mid", action="store_true", help="also render a mid-range guidance image (diffuse group)")
     p.add_argument("--mid-size", type=int, default=256)
+    p.add_argument("--mid-field-mm", type=float, default=100.0,
+                   help="field of the mid-range image in mm (the rig: 100; smaller for a test bed)")
     p.add_argument("--realistic", action="store_true", help="apply the full sensor model (noise, 12 bit, ...)")
     p.add_argument("--shadows", action="store_true",
                    help="cast shadows of the relief and of the raised fly-out fibres in the dataset")

@@ -13,6 +13,7 @@ import re
 import select
 import shutil
 import signal
+import struct
 import subprocess
 import termios
 import time
@@ -27,6 +28,15 @@ TARGETS = ("posix", "qemu")
 QEMU_FRAME_TIMEOUT_US = 20000
 BROADCAST_ADDRESS = 0  # Modbus: every server acts on it and none answers
 FC_WRITE_REGISTER = 0x06  # Modbus function code "write single register"
+
+
+def frame_timeout_broadcast(us: int) -> bytes:
+    """The RTU frame that sets every server's FRAME_TIMEOUT_US to ``us``: FC 06 (write single
+    register) to the broadcast address, register address and value big-endian, CRC appended."""
+    from ..protocol.crc import rtu_frame
+    from ..protocol.regmap import HR
+
+    return rtu_frame(struct.pack(">BBHH", BROADCAST_ADDRESS, FC_WRITE_REGISTER, HR.FRAME_TIMEOUT_US, us))
 
 
 def build_dir() -> Path:
@@ -136,15 +146,7 @@ class SimulatedRig:
         time.sleep(1.2)
         termios.tcflush(self._hold, termios.TCIOFLUSH)
         if self.frame_timeout_us:
-            import struct
-
-            from ..protocol.crc import rtu_frame
-            from ..protocol.regmap import HR
-
-            # FC 06 (write single register) to the broadcast address: big-endian address, value
-            pdu = struct.pack(">BBHH", BROADCAST_ADDRESS, FC_WRITE_REGISTER, HR.FRAME_TIMEOUT_US,
-                              self.frame_timeout_us)
-            os.write(self._hold, rtu_frame(pdu))
+            os.write(self._hold, frame_timeout_broadcast(self.frame_timeout_us))
             time.sleep(0.1)
 
     def _read_line(self, stream, want) -> str:

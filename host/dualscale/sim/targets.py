@@ -35,6 +35,7 @@ from dualscale.formats.captures import CaptureWriter, light_key
 from dualscale.calib.chart import DOT_DIAMETER_UM, DOT_PITCH_UM, ChartLayout
 from dualscale.calib.hdr import meter, plan_brackets
 from dualscale.calib.radiometric import micro_footprint_mask
+from dualscale.errors import InputError
 from dualscale.progress import Progress, Tracker, tracker
 
 MICRO_FIELD_MM = 0.9216  # 512 px x 1.8 um
@@ -308,14 +309,22 @@ class Truth:
                 "dot_sigma_px": self.dot_sigma_px, "dot_pixel_um": self.dot_pixel_um}
 
 
+PARTS = ("white_sheet", "chart", "dot_grid", "polarization")
+"""The parts of a calibration session :func:`write_session` can write."""
+
+
 def write_session(root: str | Path, cfg: SynthConfig = SynthConfig(), defects: Defects = Defects(),
-                  parts: tuple[str, ...] = ("white_sheet", "chart", "dot_grid", "polarization"),
-                  progress: Progress = None) -> Truth:
+                  parts: tuple[str, ...] = PARTS, progress: Progress = None) -> Truth:
     """Write a complete synthetic calibration session (``captures.json`` + EXRs) and return the
     truth.  Parts: white sheet (all cameras, lights; micro P0 and P90), ColorChecker (micro:
     one capture per patch, P0 + P90; others: the whole chart), dot grid, polarisation sweep.
     ``progress`` (:mod:`dualscale.progress`): one unit per camera and light, the dot grid, and
     each LED of the polarisation sweep."""
+    unknown = sorted(set(parts) - set(PARTS))
+    if unknown:
+        raise InputError(f"unknown session parts {unknown}; choose from {list(PARTS)}")
+    if cfg.led_step < 1:
+        raise InputError(f"led_step must be at least 1, got {cfg.led_step}")
     dome = DomeGeometry.from_regmap()
     layout = ChartLayout()
     cams = rig_cameras(cfg)

@@ -8,6 +8,8 @@ from __future__ import annotations
 from functools import partial
 from typing import Callable
 
+from dualscale.errors import InputError
+
 from .common import SyntheticMaterial
 from .fabrics import rib_knit, woven
 from .surfaces import from_photo, leather
@@ -27,13 +29,14 @@ MATERIALS: dict[str, Callable[..., SyntheticMaterial]] = {
 
 
 def generate(name: str, size: int = 512, texel_mm: float = 0.0018, seed: int = 0) -> SyntheticMaterial:
-    """Ground truth for material ``name`` at ``size`` x ``size`` texels of ``texel_mm``."""
+    """Ground truth for material ``name`` at ``size`` x ``size`` texels of ``texel_mm``; bad
+    arguments raise :class:`~dualscale.errors.InputError` (a ``ValueError``)."""
     if name not in MATERIALS:
-        raise ValueError(f"unknown material {name!r}; choose from {sorted(MATERIALS)}")
+        raise InputError(f"unknown material {name!r}; choose from {sorted(MATERIALS)}")
     if size < 8:
-        raise ValueError("size must be at least 8")
-    if texel_mm <= 0:
-        raise ValueError("texel_mm must be positive")
+        raise InputError(f"size must be at least 8 texels, got {size}")
+    if not texel_mm > 0:
+        raise InputError(f"texel_mm must be positive, got {texel_mm}")
     return MATERIALS[name](size=size, texel_mm=texel_mm, seed=seed)
 
 

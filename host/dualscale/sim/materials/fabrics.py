@@ -12,8 +12,8 @@ from typing import Callable
 import numpy as np
 import torch
 from scipy import ndimage
-from skimage.draw import line
 
+from dualscale.errors import InputError
 from dualscale.formats.relief import SurfaceGeometry
 
 from .common import SyntheticMaterial, normals_from_height, pixel_grid_mm, smooth_noise, to_maps
@@ -42,7 +42,7 @@ def woven(kind: str, size: int = 512, texel_mm: float = 0.0018, seed: int = 0, p
           yarn_width: float = 0.85, twist_deg: float = 20.0, flyouts_per_mm2: float = 10.0, sheer: bool = False) -> SyntheticMaterial:
     """Woven fabric ``kind`` in :data:`WEAVES` (``sheer=True``: thin yarns with open gaps)."""
     if kind not in WEAVES:
-        raise ValueError(f"unknown weave {kind!r}; choose from {sorted(WEAVES)}")
+        raise InputError(f"unknown weave {kind!r}; choose from {sorted(WEAVES)}")
     rng = np.random.default_rng(seed)
     x, y = pixel_grid_mm(size, texel_mm)
     gx, gy = x / pitch_mm, y / pitch_mm
@@ -117,23 +117,54 @@ def rib_knit(size: int = 512, texel_mm: float = 0.0018, seed: int = 0, wale_mm: 
     return mat
 
 
+FIBRE_BUDGET_PX = 256
+"""At most one drawn fly-out per this many texels (:func:`flyout_budget`)."""
+
+
+def flyout_budget(h: int, w: int) -> int:
+    """How many fly-outs :func:`add_flyouts` draws at most on an ``h`` x ``w`` map: the cost
+    scales with the pixel budget, never with the field in mm^2."""
+    return max(2, (h * w) // FIBRE_BUDGET_PX)
+
+
 def add_flyouts(mat: SyntheticMaterial, rng: np.random.Generator, per_mm2: float, colour: np.ndarray,
                 height_mm: np.ndarray, length_mm: tuple[float, float] = (0.3, 0.6), radius_mm: float = 0.006,
                 rise_mm: tuple[float, float] = (0.04, 0.15), incline_deg: tuple[float, float] = (10.0, 35.0)) -> None:
     """Add fly-out fibres, ``per_mm2`` of them per mm^2 of sample (at least 2), above the
     fabric of relief ``height_mm`` (mm).
 
-    Each fibre is a cylinder of ``radius_mm`` (cotton: 6 um) along a smooth random walk of
-    ``length_mm`` (at most 0.8 of the field), drawn so that the whole fibre is in view.  It is anchored in the fabric at its first end, lifts over its first
-    third to ``rise_mm`` above the highest yarn, and climbs at ``incline_deg`` from there: a
-    free end standing out of the fabric.  Its texels get the cylinder's normal (across the
-    fibre, tilted by its slope), a glossy anisotropic BSDF along the fibre and full opacity.
-    Records the polylines ``[(col, row), ...]``, the footprint mask, and the fibre layer of
-    ``mat.geometry`` that casts and receives shadows."""
-    from scipy.spatial import cKDTree
+    *Resolved fibres* (diameter ``2 radius_mm`` at least one texel, as on the micro camera):
+    each fibre is a cylinder of ``radius_mm`` (cotton: 6 um) along a smooth random walk of
+    ``length_mm`` (at most 0.8 of the field), drawn so that the whole fibre is in view.  It is
+    anchored in the fabric at its first end, lifts over its first third to ``rise_mm`` above
+    the highest yarn, and climbs at ``incline_deg`` from there: a free end standing out of the
+    fabric.  Its texels get the cylinder's normal (across the fibre, tilted by its slope), a
+    glossy anisotropic BSDF along the fibre and full opacity.  Records the polylines
+    ``[(col, row), ...]``, the footprint mask, and the fibre layer of ``mat.geometry`` that
+    casts and receives shadows.  Each fibre only looks at the texels of its bounding box.
 
+    *Sub-texel fibres* (thinner than a texel, as on the 100 mm mid-range camera, 0.4 mm
+    texels): no texel is a fibre, so none is drawn as geometry; their texel-averaged effect
+    is kept: each texel blends the fibre BSDF (albedo, roughness, opacity) by the fraction of
+    its area the fibres cover (about ``per_mm2 x length x diameter``, 5 % for 10/mm^2).
+    Tangent, anisotropy and normal are left: randomly oriented fibres average out to none.
+    The mask is empty and there are no polylines.
+
+    Either way at most :func:`flyout_budget` fibres are drawn (each drawn sub-texel fibre then
+    stands for ``count / drawn`` of the field's), so the cost is bounded by the map size.
+    ``mat.meta["flyouts"]`` records ``per_mm2``, ``count`` (on the field), ``drawn`` and
+    ``resolved``."""
     h, w = mat.maps.shape
     texel = float(mat.meta["texel_mm"])
+    count = max(2, int(round(per_mm2 * h * w * texel * texel)))
+    drawn = min(count, flyout_budget(h, w))
+    resolved = 2 * radius_mm >= texel
+    mat.meta["flyouts"] = {"per_mm2": float(per_mm2), "count": count, "drawn": drawn, "resolved": resolved}
+    if not resolved:
+        _subtexel_flyouts(mat, rng, count, drawn, colour, height_mm, length_mm, radius_mm)
+        return
+    from scipy.spatial import cKDTree
+
     mask = np.zeros((h, w), bool)
     axis_h = np.full((h, w), -np.inf)
     top_h = np.zeros((h, w))
@@ -141,11 +172,8 @@ def add_flyouts(mat: SyntheticMaterial, rng: np.random.Generator, per_mm2: float
     normal = np.zeros((h, w, 3))
     lines = []
     rad_px = max(radius_mm / texel, 0.5)
-    rows, cols = np.mgrid[0:h, 0:w]
-    pix = np.stack([cols.ravel() + 0.5, rows.ravel() + 0.5], -1)  # (col, row) pixel centres
     top = float(height_mm.max())
-    count = max(2, int(round(per_mm2 * h * w * texel * texel)))
-    for _ in range(count):
+    for _ in range(drawn):
         n_seg = int(rng.integers(8, 20))
         seg = min(rng.uniform(*length_mm) / texel, 0.8 * min(h, w)) / n_seg
         for _attempt in range(100):  # redraw until the whole fibre is in view
@@ -179,6 +207,11 @@ def add_flyouts(mat: SyntheticMaterial, rng: np.random.Generator, per_mm2: float
         ax_h = (1 - rise) * ground + rise * (top + rng.uniform(*rise_mm))
         ax_h = ax_h + arc * texel * np.tan(np.radians(rng.uniform(*incline_deg)))
         slope = np.gradient(ax_h, arc * texel)  # mm per mm along the fibre
+        # only the texels of the fibre's bounding box (grown by its radius) can be within reach
+        (c0, r0), (c1, r1) = ps.min(0) - rad_px - 1, ps.max(0) + rad_px + 1
+        rows, cols = np.mgrid[max(0, int(r0)):min(h, int(np.ceil(r1)) + 1), max(0, int(c0)):min(w, int(np.ceil(c1)) + 1)]
+        pix = np.stack([cols.ravel() + 0.5, rows.ravel() + 0.5], -1)  # (col, row) pixel centres
+        flat = rows.ravel() * w + cols.ravel()
         dist, idx = cKDTree(ps).query(pix, distance_upper_bound=rad_px + 1.0)
         near = np.isfinite(dist) & (dist <= rad_px)
         near_pix, near_idx = np.nonzero(near)[0], idx[near]
@@ -193,7 +226,7 @@ def add_flyouts(mat: SyntheticMaterial, rng: np.random.Generator, per_mm2: float
         side -= (side * a_world).sum(-1, keepdims=True) * a_world
         side /= np.linalg.norm(side, axis=1, keepdims=True)
         n = q[:, None] * side + np.sqrt(1 - q * q)[:, None] * up
-        r_, c_ = np.divmod(near_pix, w)
+        r_, c_ = np.divmod(flat[near_pix], w)
         higher = ax_h[near_idx] > axis_h[r_, c_]  # where fibres cross, the upper one is seen
         r_, c_, near_idx, n, q = r_[higher], c_[higher], near_idx[higher], n[higher], q[higher]
         mask[r_, c_] = True
@@ -219,3 +252,38 @@ def add_flyouts(mat: SyntheticMaterial, rng: np.random.Generator, per_mm2: float
     mat.flyouts = lines
     mat.flyout_mask = mask
     mat.geometry = SurfaceGeometry(height_mm, texel, mask, np.where(mask, axis_h, 0.0), top_h, radius_mm)
+
+
+def _subtexel_flyouts(mat: SyntheticMaterial, rng: np.random.Generator, count: int, drawn: int, colour: np.ndarray,
+                      height_mm: np.ndarray, length_mm: tuple[float, float], radius_mm: float,
+                      n_seg: int = 12) -> None:
+    """The texel-averaged effect of ``count`` fibres thinner than a texel (see
+    :func:`add_flyouts`), from ``drawn`` random walks of ``n_seg`` segments, vectorised."""
+    h, w = mat.maps.shape
+    texel = float(mat.meta["texel_mm"])
+    length_px = rng.uniform(*length_mm, drawn) / texel
+    start = rng.uniform([0, 0], [w, h], (drawn, 2))
+    ang = rng.uniform(0, 2 * np.pi, drawn)[:, None] + np.cumsum(rng.normal(0, 0.15, (drawn, n_seg)), 1)
+    seg = length_px / n_seg  # px
+    step = seg[:, None, None] * np.stack([np.cos(ang), -np.sin(ang)], -1)  # (drawn, n_seg, 2); y up, rows down
+    begin = start[:, None] + np.cumsum(step, 1) - step
+    k = max(1, int(np.ceil(seg.max() / 0.25)))  # samples per segment, at most 0.25 px apart
+    t = (np.arange(k) + 0.5) / k
+    pts = begin[:, :, None] + t[None, None, :, None] * step[:, :, None]  # (drawn, n_seg, k, 2)
+    col = np.floor(pts[..., 0]).astype(np.int64) % w  # the field wraps: no fibre is cut at the edge
+    row = np.floor(pts[..., 1]).astype(np.int64) % h
+    # each sample covers (seg / k) px x texel along the fibre by its diameter across it
+    area = (count / drawn) * np.broadcast_to((seg / k)[:, None, None], pts.shape[:3]) * 2 * radius_mm / texel
+    cov = np.bincount((row * w + col).ravel(), weights=area.ravel(), minlength=h * w).reshape(h, w)
+    c = torch.from_numpy(np.clip(cov, 0, 1)[..., None].astype(np.float32))
+    m = mat.maps
+    fibre = {"albedo": np.clip(np.asarray(colour) * 1.3, 0, 1), "roughness": 0.35, "opacity": 1.0}
+    for name, value in fibre.items():
+        t_ = getattr(m, name)
+        if t_ is not None:
+            v = torch.as_tensor(np.asarray(value, np.float32))
+            setattr(m, name, (1 - c) * t_ + c * v)
+    mat.flyouts = []
+    mat.flyout_mask = np.zeros((h, w), bool)
+    mat.geometry = SurfaceGeometry(height_mm, texel)
+    mat.meta["flyouts"]["mean_coverage"] = float(cov.mean())

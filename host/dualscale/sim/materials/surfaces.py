@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
+from dualscale.errors import InputError
 from dualscale.formats.relief import SurfaceGeometry
 
 from .common import SyntheticMaterial, normals_from_height, smooth_noise, to_maps
@@ -40,7 +41,7 @@ def from_photo(name: str, size: int = 512, texel_mm: float = 0.0018, seed: int =
     from skimage import data, transform
 
     if name not in PHOTO_TINTS:
-        raise ValueError(f"unknown photo {name!r}; choose from {sorted(PHOTO_TINTS)}")
+        raise InputError(f"unknown photo {name!r}; choose from {sorted(PHOTO_TINTS)}")
     rng = np.random.default_rng(seed)
     img = getattr(data, name)().astype(np.float64) / 255.0
     img = np.roll(img, tuple(rng.integers(0, 512, 2)), axis=(0, 1))
