@@ -20,7 +20,6 @@ CHECKER = "ColorChecker24 - After November 2014"
 CHECKER_SPECTRA = "BabelColor Average"
 N_PATCHES = 24
 WHITE_PATCH = 18  # "white 9.5 (.05 D)"
-GREY_PATCHES = tuple(range(18, 24))
 
 
 @functools.lru_cache(maxsize=1)
@@ -106,14 +105,6 @@ def camera_raw(reflectances: list, camera: str, illuminant: str) -> np.ndarray:
     s = sens.values
     r = np.stack([sd.copy().align(shape).values for sd in reflectances])
     return (r * e) @ s / float(e @ s[:, 1])
-
-
-@functools.lru_cache(maxsize=16)
-def checker_raw(camera: str, illuminant: str) -> np.ndarray:
-    """Camera raw RGB of the 24 ColorChecker spectral reflectances ``(24, 3)``."""
-    import colour
-
-    return camera_raw(list(colour.SDS_COLOURCHECKERS[CHECKER_SPECTRA].values()), camera, illuminant)
 
 
 def flat_spectrum(v400: float, v700: float):

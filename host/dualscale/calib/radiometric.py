@@ -67,21 +67,6 @@ def apply_white_balance(image: np.ndarray, r_c: np.ndarray, r_ws: np.ndarray) ->
     return np.asarray(image, dtype=np.float64) / r_c * np.asarray(r_ws, dtype=np.float64)
 
 
-def calibrate_with_markers(image: np.ndarray, boxes: list[tuple[int, int, int, int]], r_ws: np.ndarray) -> np.ndarray:
-    """On-the-fly calibration of a diffuse mid-range capture from the white markers on the
-    holder frame (same material as the white sheet): ``r_c`` is the mean over the marker
-    boxes ``(row0, row1, col0, col1)``."""
-    img = np.asarray(image, dtype=np.float64)
-    if not boxes:
-        raise ValueError("no marker boxes given")
-    vals = []
-    for r0, r1, c0, c1 in boxes:
-        if not (0 <= r0 < r1 <= img.shape[0] and 0 <= c0 < c1 <= img.shape[1]):
-            raise ImageSizeError(f"marker box {(r0, r1, c0, c1)} is outside the {img.shape[:2]} image")
-        vals.append(img[r0:r1, c0:c1].reshape(-1, img.shape[-1]).mean(0))
-    return apply_white_balance(img, np.mean(vals, 0), r_ws)
-
-
 # ---- dark frames -------------------------------------------------------------------------
 
 def fit_dark(frames: list[np.ndarray], exposures_s: list[float]) -> tuple[np.ndarray, np.ndarray]:

@@ -68,7 +68,3 @@ class Checkpointer:
 
     def due(self, done: int) -> bool:
         return self.path is not None and self.every > 0 and done % self.every == 0
-
-    def remove(self) -> None:
-        if self.path is not None and Path(self.path).is_file():
-            Path(self.path).unlink()
