@@ -42,8 +42,8 @@ def raw_dataset(out: Path, material: str = "leather", size: int = 16, led_step: 
     from dualscale.sim.materials.io import save_material
     from dualscale.sim.render import Analyzer, LightState, render
     from dualscale.sim.sensor import spectral_matrix
-    from dualscale.sim.targets import (SENSOR, Defects, Exposer, SynthConfig, collimation_ramp, dome_signature, led_gains,
-                                       rig_cameras)
+    from dualscale.sim.targets import (SENSOR, Defects, Exposer, SynthConfig, collimation_ramp, dome_signature,
+                                       led_gains, rig_cameras)
 
     cfg, defects = SynthConfig(led_step=led_step, micro_px=size), Defects()
     dome = DomeGeometry.from_regmap()
@@ -67,7 +67,8 @@ def raw_dataset(out: Path, material: str = "leather", size: int = 16, led_step: 
                 raw = (rgb @ m.T).numpy() * gains[lid] * collimation_ramp(grid, lid, defects)[..., None]
                 raws.append(raw)
             peak = max(float(r.max()) for r in raws)
-            t = float(np.clip(headroom * SENSOR.full_well_e / (peak * SENSOR.gain_e), 1e-4, 1.0)) * spread[k % len(spread)]
+            t = float(np.clip(headroom * SENSOR.full_well_e / (peak * SENSOR.gain_e), 1e-4, 10.0))
+            t *= spread[k % len(spread)]
             for a, raw in zip((0.0, 90.0), raws):
                 w.add(ex(raw, t), cam, "led", lid, [float(x) for x in dome.led_dirs[lid]], 1.0, a, True, t,
                       saturation=1.0)

@@ -81,6 +81,7 @@ class _CameraCal:
     dark_source: str
     flat: np.ndarray | None
     r_c: dict[str, list[float]]
+    r_ws: np.ndarray
     ccm: dict[str, np.ndarray]
 
 
@@ -94,10 +95,10 @@ class _Plan:
 
 
 def _camera(name: str, d: dict[str, Any]) -> Camera:
+    fx, fy = (float(x) for x in d["field_mm"])
+    px, py, pz = (float(x) for x in d.get("position_mm", (0.0, 0.0, 400.0)))
     return Camera(name=name, kind=str(d["kind"]), width=int(d["width"]), height=int(d["height"]),
-                  field_mm=tuple(float(x) for x in d["field_mm"]),  # type: ignore[arg-type]
-                  position_mm=tuple(float(x) for x in d.get("position_mm", (0.0, 0.0, 400.0))),  # type: ignore[arg-type]
-                  has_analyzer=bool(d.get("has_analyzer", False)))
+                  field_mm=(fx, fy), position_mm=(px, py, pz), has_analyzer=bool(d.get("has_analyzer", False)))
 
 
 def _is_raw(rec: ImageRecord) -> bool:
@@ -172,7 +173,7 @@ def _plan(ds: Dataset, calibration: str | Path | None) -> _Plan:
             ff = calib.get("flat_field", {}).get(cam)
             ccm = {k: np.asarray(v["matrix"], np.float64) for k, v in calib["ccm"][cam].items()}
             plan.cameras[cam] = _CameraCal(cam, dark, source, None if not ff else np.asarray(ff["coef"]),
-                                           calib["r_c"][cam], ccm)
+                                           calib["r_c"][cam], r_ws, ccm)
         cc = plan.cameras[cam]
         key = light_key(rec.light_kind, rec.light_id)
         if key not in cc.r_c:
@@ -205,15 +206,14 @@ def _irradiance(rec: ImageRecord, diffuse: float) -> float:
     return diffuse if rec.light_kind == "diffuse" else 1.0
 
 
-def _convert_raw(raw: np.ndarray, rec: ImageRecord, cc: _CameraCal, r_ws: np.ndarray,
-                 diffuse: float) -> tuple[np.ndarray, np.ndarray]:
+def _convert_raw(raw: np.ndarray, rec: ImageRecord, cc: _CameraCal, diffuse: float) -> tuple[np.ndarray, np.ndarray]:
     """``(radiance (H, W, 3), clipped (H, W))`` of one raw image (module doc, steps 1-6)."""
     sat = rec.saturation if rec.saturation is not None else DN_FULL_SCALE
     clipped = (raw >= sat).any(-1)
     x = (np.asarray(raw, np.float64) - dark_at(*cc.dark, rec.exposure_s)) / rec.exposure_s
     if cc.flat is not None:
         x = apply_flat_field(x, cc.flat)
-    x = apply_white_balance(x, np.asarray(cc.r_c[light_key(rec.light_kind, rec.light_id)]), r_ws)
+    x = apply_white_balance(x, np.asarray(cc.r_c[light_key(rec.light_kind, rec.light_id)]), cc.r_ws)
     x = x @ cc.ccm[_ccm_kind(rec)].T
     return x * _irradiance(rec, diffuse), clipped
 
@@ -306,7 +306,7 @@ def to_radiance(dataset_dir: str | Path, out_dir: str | Path, calibration: str |
             rec = ds.records[i]
             img = ds.load(i)
             if _is_raw(rec):
-                rad, clipped = _convert_raw(img, rec, plan.cameras[rec.camera], plan.r_ws, diffuse)  # type: ignore[arg-type]
+                rad, clipped = _convert_raw(img, rec, plan.cameras[rec.camera], diffuse)
             else:
                 rad = np.asarray(img, np.float64) / rec.exposure_s
                 clipped = ds.clipped(i, img)
