@@ -30,8 +30,9 @@ def test_version_2_round_trip(tmp_path):
     np.testing.assert_array_equal(ds.mask(), mask)
     valid = ds.valid(0, ds.load(0))
     assert valid.sum() == 11 and not valid[1, 2] and not valid[3].any()
+    assert float(ds.load_radiance(0)[0, 0, 0]) == pytest.approx(0.25 / (0.5 * 2.0))  # per unit exposure, intensity
     obs = load_observations(tmp_path / "ds")
-    assert float(obs.images[0, 0, 0, 0]) == pytest.approx(0.25 / (0.5 * 2.0))  # per unit exposure and intensity
+    assert float(obs.images[0, 0, 0, 0]) == pytest.approx(0.25 / (0.5 * 2.0))
     assert obs.valid.shape == (1, 4, 4) and int(obs.valid.sum()) == 11
 
 

@@ -65,6 +65,7 @@ from dualscale.formats.captures import light_key
 from dualscale.formats.dataset import (CAMERA_RAW, CANONICAL_COLOUR_SPACE, CANONICAL_UNITS, Dataset, DatasetWriter,
                                        ImageRecord, read_dataset, resolve_root)
 from dualscale.geometry.cameras import Camera
+from dualscale.progress import Progress, iterate
 
 from .radiometric import apply_flat_field, apply_white_balance, dark_at, fit_dark
 
@@ -256,7 +257,7 @@ def _atomic_dir(out: Path):
 
 
 def to_radiance(dataset_dir: str | Path, out_dir: str | Path, calibration: str | Path | None = None,
-                progress: bool = False) -> dict[str, Any]:
+                progress: Progress = False) -> dict[str, Any]:
     """Write the canonical (calibrated, exposure-folded) copy of a dataset to ``out_dir`` and
     return the summary (module doc for the steps and errors)::
 
@@ -269,10 +270,8 @@ def to_radiance(dataset_dir: str | Path, out_dir: str | Path, calibration: str |
     counts the images written, ``clipped_share`` the share of their pixels (inside the mask)
     that are clipped; ``texel_mm`` / ``field_mm`` are those of the micro camera (else the
     first camera).  The output manifest records the calibration applied in
-    ``extra.calibration``.
+    ``extra.calibration``.  ``progress``: see :mod:`dualscale.progress` (one unit per image).
     """
-    from tqdm import tqdm
-
     src = resolve_root(dataset_dir)
     ds = read_dataset(src)
     out = Path(out_dir)
@@ -302,7 +301,7 @@ def to_radiance(dataset_dir: str | Path, out_dir: str | Path, calibration: str |
         w = DatasetWriter(tmp, units=CANONICAL_UNITS, colour_space=CANONICAL_COLOUR_SPACE,
                           dome=dict(ds.manifest.get("dome") or {}), extra=extra, mask=mask, transfer=ds.transfer,
                           rig=ds.rig)
-        for i in tqdm(todo, desc="calibrate", unit="image", disable=not progress, leave=False):
+        for i in iterate(progress, todo, "calibrate", unit="image"):
             rec = ds.records[i]
             img = ds.load(i)
             if _is_raw(rec):

@@ -38,8 +38,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from dualscale.errors import InputError, UnitsError
-from dualscale.formats.dataset import CANONICAL_COLOUR_SPACE, CANONICAL_UNITS, Dataset, read_dataset, resolve_root
+from dualscale.errors import InputError
+from dualscale.formats.dataset import Dataset, read_dataset, resolve_root
 
 
 @dataclass
@@ -158,19 +158,8 @@ def _open(root: str | Path) -> Dataset:
 def check_fit_units(ds: Dataset, camera: str | None = None) -> None:
     """Refuse a dataset whose images (of ``camera``, or all) are not ``relative_radiance`` in
     ``linear_rec709``, with a :class:`~dualscale.errors.UnitsError` naming the file, the field
-    and the way out (apply a calibration)."""
-    for rec in ds.records:
-        if camera is not None and rec.camera != camera:
-            continue
-        where = f"dataset {ds.root}: image {rec.file}"
-        how = ("apply a calibration first: `dualscale digitize DATASET --calibration CAL -o RUN`, or "
-               "dualscale.calib.apply.to_radiance(DATASET, OUT, CAL), which writes the calibrated "
-               "relative_radiance / linear_rec709 dataset the fit reads")
-        if rec.units != CANONICAL_UNITS:
-            raise UnitsError(f"{where}: units {rec.units!r} are raw sensor values, not radiance; {how}")
-        if rec.colour_space != CANONICAL_COLOUR_SPACE:
-            raise UnitsError(f"{where}: colour_space {rec.colour_space!r} is a camera's raw RGB, not "
-                             f"{CANONICAL_COLOUR_SPACE}; {how}")
+    and the way out (apply a calibration): :meth:`Dataset.require_radiance`."""
+    ds.require_radiance(camera, "the fit")
 
 
 def load_observations(root: str | Path, camera: str = "micro", dtype: torch.dtype = torch.float32,
@@ -235,4 +224,4 @@ def _load(ds: Dataset, index: int) -> tuple[np.ndarray, np.ndarray | None]:
     except (OSError, ValueError) as e:
         raise type(e)(f"dataset {ds.root}: cannot use {rec.file}: {e}") from e
     valid = ds.valid(index, img)
-    return img / np.float32(rec.exposure_s * rec.intensity), valid
+    return img / np.float32(rec.exposure_s * rec.intensity), valid  # as Dataset.load_radiance

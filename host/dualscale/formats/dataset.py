@@ -364,6 +364,30 @@ class Dataset:
             raise ValueError(f"{rec.file}: contains NaN or Inf")
         return img
 
+    def require_radiance(self, camera: str | None = None, stage: str = "this stage") -> None:
+        """Refuse (:class:`UnitsError` naming the image and the field, and the way out) unless
+        every image (of ``camera``, or all) is ``relative_radiance`` in ``linear_rec709``: the
+        only data the fit and propagation read."""
+        for rec in self.records:
+            if camera is not None and rec.camera != camera:
+                continue
+            where = f"dataset {self.root}: image {rec.file}"
+            how = (f"{stage} reads {CANONICAL_UNITS} in {CANONICAL_COLOUR_SPACE} only; apply a calibration first: "
+                   "`dualscale digitize DATASET --calibration CAL -o RUN`, or "
+                   "dualscale.calib.apply.to_radiance(DATASET, OUT, CAL), which writes the calibrated dataset")
+            if rec.units != CANONICAL_UNITS:
+                raise UnitsError(f"{where}: units {rec.units!r} are raw sensor values, not radiance; {how}")
+            if rec.colour_space != CANONICAL_COLOUR_SPACE:
+                raise UnitsError(f"{where}: colour_space {rec.colour_space!r} is a camera's raw RGB; {how}")
+
+    def load_radiance(self, index: int) -> np.ndarray:
+        """Image ``index`` as radiance per unit light intensity per second of exposure
+        (``load / (exposure_s * intensity)``; dark frames: per second only), float32
+        ``(H, W, 3)``; call :meth:`require_radiance` first."""
+        rec = self.records[index]
+        scale = rec.exposure_s * (rec.intensity if rec.light_kind != "off" else 1.0)
+        return self.load(index) / np.float32(scale)
+
     def clipped(self, index: int, image: np.ndarray) -> np.ndarray | None:
         """``(H, W)`` bool: pixels of image ``index`` with a channel at or above its
         ``saturation``; ``None`` when the record gives none."""
