@@ -33,6 +33,7 @@ from dualscale.errors import FormatError
 from .unet import MULTIPLE
 
 LUMA = np.array([0.2126, 0.7152, 0.0722], np.float32)
+MARGIN_FRACTION = 0.25  # share of the overlap where an inner tile edge gets weight 0
 
 
 @dataclass
@@ -78,7 +79,7 @@ def tile_positions(n: int, tile: int, stride: int) -> list[int]:
 def window_1d(tile: int, overlap: int, lo_border: bool, hi_border: bool) -> np.ndarray:
     """Blend weights along one tile axis (see the module docstring)."""
     w = np.ones(tile, np.float32)
-    margin = overlap // 4
+    margin = int(overlap * MARGIN_FRACTION)
     ramp = overlap - margin
     if ramp > 0:
         t = (np.arange(ramp, dtype=np.float32) + 0.5) / ramp
