@@ -54,13 +54,6 @@ class _Missing(FormatError):
 # ---------------------------------------------------------------------------------------------
 # reading
 
-def _rel(run: Path, p: Path) -> str:
-    try:
-        return p.relative_to(run).as_posix()
-    except ValueError:
-        return str(p)
-
-
 def _json(run: Path, rel: str, *, required: bool, writer: str) -> dict[str, Any] | None:
     path = run / rel
     if not path.is_file():
@@ -75,18 +68,6 @@ def _json(run: Path, rel: str, *, required: bool, writer: str) -> dict[str, Any]
     if not isinstance(doc, dict):
         raise _Missing(f"run report: {path} must hold a JSON object")
     return doc
-
-
-def _exr(run: Path, rel: str, channels, *, writer: str) -> np.ndarray:
-    from dualscale.formats.exr import read_exr
-
-    path = run / rel
-    if not path.is_file():
-        raise _Missing(f"run report: {path} is missing (written by the {writer})")
-    try:
-        return read_exr(path, channels)
-    except (OSError, ValueError) as e:
-        raise _Missing(f"run report: cannot read {path}: {e}") from e
 
 
 def _exr_any(run: Path, rel: str, *, writer: str, rgb: bool) -> np.ndarray:
