@@ -1,6 +1,8 @@
 """Progress of the long calibration steps: counted through the library's `progress`
 argument (never printed by the library), and the bar the command line draws from it."""
 
+import pytest
+
 from dualscale.progress import Tracker, iterate, tracker
 
 
@@ -40,16 +42,25 @@ def test_synth_targets_counts_every_step(tmp_path):
     assert calls[-1][:2] == (total, total) and len(calls) == total
 
 
-def test_calibrate_counts_each_merge_once(session_dir):
-    from dualscale.calib.pipeline import CALIBRATION_TARGETS, calibrate
+@pytest.mark.slow  # a calibration and an evaluation of the shared session: ~30 s on 2 cores
+def test_calibrate_and_evaluate_count_each_merge_once(session_dir):
+    """The bars of `calibrate` and `evaluate-device` end at their totals: every HDR merge is
+    counted once, and the totals are known before the work starts."""
+    from dualscale.calib.evaluate import merges_needed
+    from dualscale.calib.pipeline import CALIBRATION_TARGETS, calibrate, session_with
+    from dualscale.cli.calib import _evaluate
     from dualscale.formats.captures import read_captures
 
     cs = read_captures(session_dir[0])
     calls, fn = _recorder()
-    calibrate(cs, progress=fn)
+    calib = calibrate(cs, progress=fn)
     total = sum(g.target in CALIBRATION_TARGETS for g in cs.groups)
     assert total > 0 and calls[-1][:2] == (total, total) and len(calls) == total
     assert len({c[2] for c in calls}) == total  # each group's id, once
+    calls, fn = _recorder()
+    with tracker(fn, merges_needed(cs), "evaluate-device") as bar:
+        _evaluate(session_with(cs, calib, progress=bar))
+    assert calls[-1][:2] == (merges_needed(cs),) * 2 and len(calls) == merges_needed(cs)
 
 
 def test_synth_targets_draws_its_bar_on_stderr_when_asked(tmp_path, capsys):

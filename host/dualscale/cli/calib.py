@@ -47,20 +47,11 @@ def cmd_calibrate(a: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_evaluate(a: argparse.Namespace) -> int:
+def _evaluate(s) -> tuple[dict, dict]:
+    """Every measurement of the device evaluation on a calibrated session: results, summary."""
     from dualscale.calib import evaluate as ev
-    from dualscale.formats.calibration import read_calibration
-    from dualscale.formats.captures import read_captures
-    from dualscale.calib.pipeline import session_with
-    from dualscale.report.device import write_report
 
-    from dualscale.progress import tracker
-
-    apply_threads(a)
-    cs = read_captures(a.captures)
-    calib = read_calibration(a.calibration, rig_id=cs.rig["id"], layout=cs.rig.get("layout"))
-    bar = tracker(want_progress(a), ev.merges_needed(cs), "evaluate-device", "group")
-    s = session_with(cs, calib, progress=bar)
+    cs = s.cs
     res: dict = {"colour": ev.colour_accuracy(s)}
     summary: dict = {}
     for cam, d in res["colour"].items():
@@ -81,7 +72,23 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
     res["collimation"] = ev.collimation(s)
     if res["collimation"]:
         summary["collimation_std_max"] = max(res["collimation"].values())
-    bar.close()
+    return res, summary
+
+
+def cmd_evaluate(a: argparse.Namespace) -> int:
+    from dualscale.calib import evaluate as ev
+    from dualscale.formats.calibration import read_calibration
+    from dualscale.formats.captures import read_captures
+    from dualscale.calib.pipeline import session_with
+    from dualscale.report.device import write_report
+
+    from dualscale.progress import tracker
+
+    apply_threads(a)
+    cs = read_captures(a.captures)
+    calib = read_calibration(a.calibration, rig_id=cs.rig["id"], layout=cs.rig.get("layout"))
+    with tracker(want_progress(a), ev.merges_needed(cs), "evaluate-device", "group") as bar:
+        res, summary = _evaluate(session_with(cs, calib, progress=bar))
     res["summary"] = summary
     out = Path(a.output)
     out.mkdir(parents=True, exist_ok=True)
