@@ -51,8 +51,11 @@ def _guidance_texel(g, warnings: list[str]) -> float:
     return tex
 
 
-def _trained(model_path: Path, name: str, iterations: int, crop: int) -> dict | None:
-    """The training record of a finished model file for this very run, else ``None``."""
+def _trained(model_path: Path, name: str, preset) -> dict | None:
+    """The training record of a finished model file for this very run (same source and scale,
+    same preset settings), else ``None``."""
+    from dataclasses import asdict
+
     from dualscale.formats.model import read_model_file
 
     if not model_path.is_file():
@@ -61,8 +64,7 @@ def _trained(model_path: Path, name: str, iterations: int, crop: int) -> dict | 
         info = read_model_file(model_path).get("train") or {}
     except (InputError, OSError):
         return None
-    p = info.get("preset") or {}
-    if info.get("datasets") == [name] and p.get("iterations") == iterations and p.get("crop") == crop:
+    if info.get("datasets") == [name] and info.get("preset") == asdict(preset):
         return info
     return None
 
@@ -160,7 +162,7 @@ def run_propagation(dataset: Path, maps: Path, guidance: Path, out: Path, *, pre
     p = preset_with(preset, iterations=iterations, batch=batch, crop=min(p.crop, side // 16 * 16))
     model_path = out / "model.dsp"
     t0 = time.perf_counter()
-    done = _trained(model_path, small.name, p.iterations, p.crop)
+    done = _trained(model_path, small.name, p)
     if done is None:
         res = train([small], p, model_path, TrainOptions(resume=True, progress=progress, seed=seed,
                                                         init=None if init is None else str(init)))
