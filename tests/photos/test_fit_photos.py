@@ -106,3 +106,25 @@ def test_led_stride_keeps_every_light_of_a_small_set(tmp_path):
     many = obs.select([k % 12 for k in range(127)])
     many.led_ids = torch.arange(127)
     assert stride_leds(many, 2).n == 64 and stride_leds(many, 8).n == 43  # stride 3: >= 32 left
+
+
+def test_fit_warns_when_the_albedo_would_leave_its_box(tmp_path):
+    from dualscale.fit.init import initial_params
+
+    s = render_sphere(tmp_path / "ball", lights_one_side(12, seed=1), size=16, gain=2.5)  # albedo x 2.5 > 1
+    import_photos(s.folder, s.lp, tmp_path / "raw", "srgb", scale=1.0)
+    with pytest.warns(RuntimeWarning, match="albedo >= 1"):
+        initial_params(load_observations(tmp_path / "raw"), diffuse_only())
+    import_photos(s.folder, s.lp, tmp_path / "scaled", "srgb")  # the importer's light scale
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        p = initial_params(load_observations(tmp_path / "scaled"), diffuse_only())
+    assert float(p["albedo"][torch.from_numpy(s.mask)].max()) < 0.95
+
+
+def test_unpolarised_lights_weigh_both_fresnel_terms(tmp_path):
+    _, obs = imported(tmp_path, size=8)
+    assert torch.equal(obs.w_s, torch.full((12,), 0.5)) and torch.equal(obs.w_p, obs.w_s)
+    assert torch.equal(obs.w_d, torch.ones(12))

@@ -57,11 +57,37 @@ def photometric_stereo(obs: Observations, min_z: float = 0.3, clip: float = 1.9)
     return albedo.clamp(0.0, 1.0).to(obs.images.dtype), n.to(obs.images.dtype)
 
 
+#: share of the sample's pixels whose photometric-stereo albedo may reach 1 before the fit warns
+BRIGHT_SHARE = 0.02
+
+
+def check_albedo_range(albedo: Tensor, fitted: Tensor | None) -> float:
+    """Share of the sample's pixels (``fitted`` ``(H, W)``, None = all) whose start albedo
+    ``(H, W, 3)`` reached the box top 1 in some channel; warns (``RuntimeWarning``) above
+    :data:`BRIGHT_SHARE`: the images are brighter than relative radiance allows (light power or
+    exposure unknown, as with photographs), the fit will clip those albedos and bend normals
+    towards the lights to make up the brightness (docs/PHOTOS.md)."""
+    top = (albedo >= 1.0 - 1e-6).any(-1)
+    if fitted is not None:
+        top = top[fitted]
+    share = float(top.to(torch.float64).mean()) if top.numel() else 0.0
+    if share > BRIGHT_SHARE:
+        import warnings
+
+        warnings.warn(f"{100 * share:.0f} % of the pixels have a Lambertian albedo >= 1: the images are not "
+                      "radiance relative to the lights (unknown light power or exposure?); the fit clips the albedo "
+                      "at 1. Import photographs with `dualscale import` (it sets the light scale) or give the "
+                      "lights their intensity", RuntimeWarning, stacklevel=3)
+    return share
+
+
 def initial_params(obs: Observations, comps: Components) -> dict[str, Tensor]:
-    """Starting parameters for ``comps`` (normalised units, normal as a square point)."""
+    """Starting parameters for ``comps`` (normalised units, normal as a square point); warns
+    when the albedo would leave its box (:func:`check_albedo_range`)."""
     h, w = obs.shape
     dt = obs.images.dtype
     albedo, normal = photometric_stereo(obs)
+    check_albedo_range(albedo, obs.fitted_pixels)
     out: dict[str, Tensor] = {}
     for name in param_names(comps):
         if name == "albedo":

@@ -7,7 +7,8 @@ intensity (``dualscale.bsdf.evaluate`` weights):
 * relative analyser at ``a`` deg from the LED's polariser (P0 = 0, P90 = 90): the LED light is
   S-polarised, so the specular Fresnel factor is ``R_s`` scaled by Malus' ``cos^2 a``
   (``w_s = cos^2 a``, ``w_p = 0``); diffuse light is depolarised, half passes (``w_d = 1/2``);
-* no analyser: ``w_s = 1``, ``w_p = 0`` (still S-polarised light), ``w_d = 1``;
+* no analyser: ``w_s = 1``, ``w_p = 0`` (still S-polarised light), ``w_d = 1``; with unpolarised
+  lights (dome ``polarizer: "none"``, photographs imported from other rigs) ``w_s = w_p = 1/2``;
 * absolute analyser angle: Malus' law between the analyser and the LED's polariser axis as seen
   by the orthographic micro camera.
 
@@ -139,7 +140,7 @@ def analyzer_weights(analyzer_deg: float | None, relative: bool, direction: np.n
                      polarizer: str = "s") -> tuple[float, float, float]:
     """``(w_s, w_p, w_d)`` of an LED image (see the module docstring)."""
     if analyzer_deg is None:
-        return 1.0, 0.0, 1.0
+        return (0.5, 0.5, 1.0) if polarizer == "none" else (1.0, 0.0, 1.0)
     if relative:
         return math.cos(math.radians(analyzer_deg)) ** 2, 0.0, 0.5
     from dualscale.geometry.dome import polarizer_axis
@@ -162,10 +163,11 @@ def check_fit_units(ds: Dataset, camera: str | None = None) -> None:
     ds.require_radiance(camera, "the fit")
 
 
-def load_observations(root: str | Path, camera: str = "micro", dtype: torch.dtype = torch.float32,
+def load_observations(root: str | Path, camera: str | None = None, dtype: torch.dtype = torch.float32,
                       leds: set[int] | None = None) -> Observations:
     """Read the ``camera`` images of a photometric dataset (``DIR`` or ``DIR/micro``) as
     radiance per unit light intensity per second of exposure, with their valid-sample masks.
+    ``camera`` None: ``"micro"``, or the dataset's only camera (``"photo"`` of an import).
 
     Raises ``FileNotFoundError`` / ``OSError`` with the offending file named when the manifest
     or an image is missing or corrupt, :class:`~dualscale.errors.UnitsError` for units or a
@@ -173,6 +175,9 @@ def load_observations(root: str | Path, camera: str = "micro", dtype: torch.dtyp
     :class:`~dualscale.errors.InputError` subclasses for bad values.
     """
     ds = _open(root)
+    if camera is None:
+        cams = {r.camera for r in ds.records}
+        camera = cams.pop() if len(cams) == 1 and "micro" not in cams else "micro"
     check_fit_units(ds, camera)
     polar = str(ds.manifest.get("dome", {}).get("polarizer", "s"))
     imgs, dirs, ws, wp, wd, ids, valids = [], [], [], [], [], [], []
