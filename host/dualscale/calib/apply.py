@@ -46,12 +46,8 @@ as ``OUT.parent/.tmp-OUT-*`` and renamed into place.
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import math
-import os
-import shutil
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -59,7 +55,7 @@ from typing import Any
 import numpy as np
 
 from dualscale.errors import CalibrationError, InputError, RigMismatchError, UnitsError
-from dualscale.formats.atomic import TMP_PREFIX
+from dualscale.formats.atomic import atomic_dir as _atomic_dir
 from dualscale.formats.calibration import read_calibration
 from dualscale.formats.captures import light_key
 from dualscale.formats.dataset import (CAMERA_RAW, CANONICAL_COLOUR_SPACE, CANONICAL_UNITS, Dataset, DatasetWriter,
@@ -234,26 +230,6 @@ def _carry_clipped(img: np.ndarray, clipped: np.ndarray | None) -> tuple[np.ndar
 
 def _sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
-
-
-@contextlib.contextmanager
-def _atomic_dir(out: Path):
-    """Yield a temporary folder beside ``out``; on success it replaces ``out`` (any previous
-    ``out`` is removed after the new one is in place), on failure it is deleted."""
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f"{TMP_PREFIX}{out.name}-", dir=out.parent))
-    try:
-        yield tmp
-        old = None
-        if out.exists():
-            old = Path(tempfile.mkdtemp(prefix=f"{TMP_PREFIX}{out.name}-old-", dir=out.parent))
-            os.replace(out, old / out.name)
-        os.replace(tmp, out)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
 
 
 def to_radiance(dataset_dir: str | Path, out_dir: str | Path, calibration: str | Path | None = None,

@@ -45,10 +45,7 @@ light file (:class:`FormatError`, naming them); integer images without a stated 
 from __future__ import annotations
 
 import math
-import os
 import re
-import shutil
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path, PureWindowsPath
 from typing import Any
@@ -56,6 +53,7 @@ from typing import Any
 import numpy as np
 
 from dualscale.errors import FormatError, GeometryError, InputError
+from dualscale.formats.atomic import atomic_dir
 from dualscale.formats.lightfile import LightRecord, read_lights
 from dualscale.formats.photo import SUFFIXES, Photo, read_mask, read_photo
 
@@ -284,18 +282,16 @@ def import_photos(images: str | Path, lights: str | Path, out: str | Path, trans
 
     t = 1.0 if texel_mm is None else float(texel_mm)
     cam = Camera(CAMERA, "orthographic", w, h, (w * t, h * t), has_analyzer=False)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".tmp-{out.name}-", dir=out.parent))
     report = ImportReport(out, [p.name for p in paths], (h, w), e, source, mask_src, clipped,
                           max(ph.bits for ph in photos), None if is_float == {True} else transfer, notes)
-    try:
-        extra = {"import": {"images": str(folder.resolve()), "lights": str(Path(lights).resolve()),
-                            "sources": [{"id": k, "file": p.name, "light_file_name": r.file,
-                                         "relative_intensity": r.intensity}
-                                        for k, (p, r) in enumerate(zip(paths, records))],
-                            "light_scale": e, "light_scale_source": source, "target_albedo": TARGET_ALBEDO,
-                            "texel_mm": texel_mm, "texel_mm_known": texel_mm is not None,
-                            "polarisation": "none (unpolarised lights, no analyser)", "notes": notes}}
+    extra = {"import": {"images": str(folder.resolve()), "lights": str(Path(lights).resolve()),
+                        "sources": [{"id": k, "file": p.name, "light_file_name": r.file,
+                                     "relative_intensity": r.intensity}
+                                    for k, (p, r) in enumerate(zip(paths, records))],
+                        "light_scale": e, "light_scale_source": source, "target_albedo": TARGET_ALBEDO,
+                        "texel_mm": texel_mm, "texel_mm_known": texel_mm is not None,
+                        "polarisation": "none (unpolarised lights, no analyser)", "notes": notes}}
+    with atomic_dir(out) as tmp:
         writer = DatasetWriter(tmp, units="relative_radiance", colour_space="linear_rec709",
                                dome={"source": str(lights), "polarizer": "none"}, extra=extra, mask=m,
                                transfer=report.transfer, rig={"id": "photos", "layout": "light file"})
@@ -304,14 +300,4 @@ def import_photos(images: str | Path, lights: str | Path, out: str | Path, trans
                                              disable=not progress, leave=False)):
                 writer.add(ph.rgb, cam, "led", light_id=k, direction=list(r.direction), intensity=e * rel[k],
                            analyzer_deg=None, exposure_s=1.0, saturation=None if ph.bits == 32 else 1.0)
-        old = None
-        if out.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".tmp-old-{out.name}-", dir=out.parent))
-            os.replace(out, old / "d")
-        os.replace(tmp, out)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return report
