@@ -48,7 +48,6 @@ import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path, PureWindowsPath
-from typing import Any
 
 import numpy as np
 
@@ -80,11 +79,6 @@ class ImportReport:
     bits: int
     transfer: str | None
     notes: list[str] = field(default_factory=list)
-
-    def as_json(self) -> dict[str, Any]:
-        return {"dataset": str(self.dataset), "files": self.files, "size_hw": list(self.size), "scale": self.scale,
-                "scale_source": self.scale_source, "mask": self.mask, "clipped_pixels": self.clipped,
-                "bits": self.bits, "transfer": self.transfer, "notes": self.notes}
 
 
 def _base(name: str) -> str:
