@@ -11,8 +11,8 @@ a guidance image to maps over the whole guidance, at the guidance's texel size.
 4. resample the micro images and maps to the guidance's texel size (:mod:`.resample`), so the
    network learns the structure at the scale it will see it;
 5. train (:mod:`.train`; resumable from ``out/model.dsp.ckpt``; a finished model is reused) with
-   128 px crops, or the largest multiple of 16 that the resampled micro field holds (at least
-   :data:`MIN_TRAIN_PX`);
+   the preset's crops, or smaller ones that still move around the resampled micro field
+   (:func:`training_crop`; at least :data:`MIN_TRAIN_PX`);
 6. export to ONNX and run tiled over the guidance (:mod:`.export`, :mod:`.infer`), matching the
    exposure inside the registered micro field; the maps go to ``out/maps`` through
    :func:`dualscale.formats.maps.save_maps` with ``texel_mm`` = the guidance's;
@@ -38,6 +38,13 @@ from .guidance import LUMA, read_guidance
 MIN_TRAIN_PX = 32  # the U-Net pools 4 times: 32 px leaves a 2 x 2 bottleneck
 RIG_GUIDANCE_FIELD_MM = 100.0  # the mid-range camera's field (seed Sec. 7.2: 10 x 10 cm)
 SUMMARY = "propagate.json"
+
+
+def training_crop(side: int, preset_crop: int) -> int:
+    """The crop for a training image of ``side`` px: the preset's, else the largest multiple of 16
+    that leaves at least 16 px of room to move (a crop the size of the whole image always shows
+    the network the same picture, which it then memorises), never under :data:`MIN_TRAIN_PX`."""
+    return max(MIN_TRAIN_PX, min(preset_crop, (side - 16) // 16 * 16))
 
 
 def _guidance_texel(g, warnings: list[str]) -> float:
@@ -159,7 +166,7 @@ def run_propagation(dataset: Path, maps: Path, guidance: Path, out: Path, *, pre
 
     # 5. train (or resume, or reuse a finished model)
     p = preset_with(preset, iterations=iterations, batch=batch)
-    p = preset_with(preset, iterations=iterations, batch=batch, crop=min(p.crop, side // 16 * 16))
+    p = preset_with(preset, iterations=iterations, batch=batch, crop=training_crop(side, p.crop))
     model_path = out / "model.dsp"
     t0 = time.perf_counter()
     done = _trained(model_path, small.name, p)
