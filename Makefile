@@ -65,20 +65,30 @@ test-slow: deps
 	$(PY) -m pytest -m slow -q
 
 # The main job on the simulated rig: the capture sequence on the firmware simulator, then a
-# synthetic twill captured by the virtual rig's sensor (camera counts), the calibration targets
-# and their calibration, and `dualscale digitize` on them.  Each step is skipped when its output
-# exists, and digitize resumes by itself: rerunning `make demo` continues where it stopped.
+# synthetic twill captured by the virtual rig's sensor (camera counts, per-LED exposures), the
+# calibration targets and their calibration, and `dualscale digitize` on them.  Each step is
+# skipped when its output exists, and digitize resumes by itself: rerunning `make demo`
+# continues where it stopped.  To stay within 10 minutes on 2 cores the demo captures every
+# 4th LED (the calibration covers the same LEDs), a micro field of 128 px of 7.2 um (the rig's
+# 0.92 mm field binned 4x) and a guidance image of 512 px over 12.5 mm (24 um per pixel, the
+# pitch of the rig's 4072 px mid-range camera); docs/DIGITIZE.md measures it.
 DEMO ?= $(BUILD)/demo
 DEMO_SIZE ?= 128
+DEMO_TEXEL_UM ?= 7.2
+DEMO_LED_STEP ?= 4
+DEMO_MID_SIZE ?= 512
+DEMO_MID_FIELD_MM ?= 12.5
 DEMO_QUALITY ?= standard
 DS := $(VENV)/bin/dualscale
 demo: deps
 	$(MAKE) -C firmware posix
 	$(DS) demo
-	@test -f $(DEMO)/targets/captures.json || $(DS) synth-targets -o $(DEMO)/targets --threads 2
+	@test -f $(DEMO)/targets/captures.json || $(DS) synth-targets -o $(DEMO)/targets --led-step $(DEMO_LED_STEP) \
+	    --threads 2
 	@test -f $(DEMO)/calibration.json || $(DS) calibrate $(DEMO)/targets -o $(DEMO)/calibration.json --threads 2
 	@test -f $(DEMO)/sample/mid/manifest.json || $(DS) synth twill -o $(DEMO)/sample --size $(DEMO_SIZE) \
-	    --dataset --mid --realistic --threads 2
+	    --texel-um $(DEMO_TEXEL_UM) --dataset --lights mod$(DEMO_LED_STEP) --mid --mid-size $(DEMO_MID_SIZE) \
+	    --mid-field-mm $(DEMO_MID_FIELD_MM) --realistic --threads 2
 	$(DS) digitize $(DEMO)/sample/micro -o $(DEMO)/run --calibration $(DEMO)/calibration.json \
 	    --guidance $(DEMO)/sample/mid --quality $(DEMO_QUALITY) --threads 2
 

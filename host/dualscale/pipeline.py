@@ -300,8 +300,14 @@ class Digitizer:
         if float(obs.dirs[:, 2].min()) > 0.5:
             return {"skipped": "fly-out detection needs grazing LEDs (elevation under 30 deg); the lowest "
                                f"light here is at {90 - float(obs.dirs[:, 2].min().acos().rad2deg()):.0f} deg"}
-        rep = detect_dataset(self.dataset, work, tangent_maps=self.out("fit") / "maps", obs=obs, seed=self.opts.seed)
-        return {"count": rep["count"], "tangent_filter": rep["tangent_filter"], "pixel_mm": rep["pixel_mm"]}
+        maps = self.out("fit") / "maps"
+        tangent = maps if (maps / "tangent.exr").is_file() else None
+        rep = detect_dataset(self.dataset, work, tangent_maps=tangent, obs=obs, seed=self.opts.seed)
+        out = {"count": rep["count"], "tangent_filter": rep["tangent_filter"], "pixel_mm": rep["pixel_mm"]}
+        if tangent is None:
+            out["warnings"] = ["the fit found the sample isotropic (no tangent map): fly-outs are detected without "
+                               "the yarn-direction filter, which lets more yarn highlights through"]
+        return out
 
     def propagate(self) -> StageResult:
         g = self.opts.guidance
@@ -367,6 +373,9 @@ class Digitizer:
                     on_stage(st)
         finally:
             bar.close()
+        work = self.run / "work"
+        if work.is_dir() and not any(work.iterdir()):
+            work.rmdir()
         return result
 
 

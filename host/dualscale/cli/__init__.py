@@ -182,5 +182,22 @@ def main(argv: list[str] | None = None) -> int:
         return code
 
 
+def run() -> None:
+    """The ``dualscale`` console script: :func:`main`, then a prompt exit.
+
+    The process ends with ``os._exit`` once the command has returned and both streams are
+    flushed: OpenImageIO's nanobind bindings otherwise print a page of benign "leaked instance"
+    warnings at interpreter shutdown after some commands (nanobind's documented shutdown-order
+    effect; the wheel does not expose ``set_leak_warnings``).  Every artefact is closed by then:
+    writers use context managers and atomic renames, never exit handlers.
+    """
+    import os
+
+    code = main()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    run()

@@ -1,7 +1,5 @@
 """``python -m dualscale.cli``: the same as the ``dualscale`` command."""
 
-import sys
+from . import run
 
-from . import main
-
-sys.exit(main())
+run()
