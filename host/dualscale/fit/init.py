@@ -61,16 +61,26 @@ def photometric_stereo(obs: Observations, min_z: float = 0.3, clip: float = 1.9)
 BRIGHT_SHARE = 0.02
 
 
-def check_albedo_range(albedo: Tensor, fitted: Tensor | None) -> float:
-    """Share of the sample's pixels (``fitted`` ``(H, W)``, None = all) whose start albedo
-    ``(H, W, 3)`` reached the box top 1 in some channel; warns (``RuntimeWarning``) above
-    :data:`BRIGHT_SHARE`: the images are brighter than relative radiance allows (light power or
-    exposure unknown, as with photographs), the fit will clip those albedos and bend normals
-    towards the lights to make up the brightness (docs/PHOTOS.md)."""
-    top = (albedo >= 1.0 - 1e-6).any(-1)
-    if fitted is not None:
-        top = top[fitted]
-    share = float(top.to(torch.float64).mean()) if top.numel() else 0.0
+def check_albedo_range(obs: Observations, normal: Tensor) -> float:
+    """Share of the sample's pixels (``obs.fitted_pixels``) whose albedo, estimated robustly at
+    the start normals ``(H, W, 3)`` (per pixel, the median over the diffuse images lit at
+    ``n.l > 0.3`` of ``pi max_c I_c / (w_d n.l)``, so that a few bright outliers do not count),
+    is 1 or more; warns (``RuntimeWarning``) above :data:`BRIGHT_SHARE`: the images are brighter
+    than relative radiance allows (light power or exposure unknown, as with photographs), the
+    fit will clip those albedos at 1 and bend normals towards the lights to make up the
+    brightness (docs/PHOTOS.md)."""
+    d = diffuse_images(obs)
+    y = (d.images / d.w_d.reshape(-1, 1, 1, 1)).amax(-1).to(torch.float64)  # (K, H, W)
+    cos = torch.einsum("kc,hwc->khw", d.dirs.to(torch.float64), normal.to(torch.float64))
+    use = cos > 0.3
+    if d.valid is not None:
+        use = use & d.valid
+    ratio = torch.where(use, math.pi * y / cos.clamp(min=0.3), torch.full_like(y, float("nan")))
+    med = ratio.nanmedian(0).values
+    ok = torch.isfinite(med)
+    if obs.fitted_pixels is not None:
+        ok = ok & obs.fitted_pixels
+    share = float((med[ok] >= 1.0).to(torch.float64).mean()) if bool(ok.any()) else 0.0
     if share > BRIGHT_SHARE:
         import warnings
 
@@ -87,7 +97,7 @@ def initial_params(obs: Observations, comps: Components) -> dict[str, Tensor]:
     h, w = obs.shape
     dt = obs.images.dtype
     albedo, normal = photometric_stereo(obs)
-    check_albedo_range(albedo, obs.fitted_pixels)
+    check_albedo_range(obs, normal)
     out: dict[str, Tensor] = {}
     for name in param_names(comps):
         if name == "albedo":
