@@ -2,6 +2,9 @@
 and its fitted maps, exported to ONNX and run tiled over the mid-range guidance image.
 
 Modules: ``unet`` (model), ``data`` (training sources), ``augment``, ``losses``, ``train``,
-``io`` (model files), ``export`` (ONNX + parity), ``infer`` (tiled inference), ``metrics``.
+``model`` (building the net from a model file, :mod:`dualscale.formats.model`), ``export`` (ONNX +
+parity), ``guidance`` (reading and checking guidance images), ``infer`` (tiled inference),
+``bridge`` (locating the micro field in the guidance), ``resample`` (micro data to the guidance
+texel), ``stage`` (the pipeline entry point ``run_propagation``), ``metrics``.
 See docs/PROPAGATION.md.
 """
