@@ -233,15 +233,34 @@ class Digitizer:
     def calibrate(self) -> StageResult:
         from dualscale.calib.apply import to_radiance
 
+        g = self.opts.guidance
         inputs = {"dataset": tree_sha256(self.dataset_in),
-                  "calibration": None if self.opts.calibration is None else file_sha256(self.opts.calibration)}
-        return self._stage("calibrate", inputs, {}, lambda work: to_radiance(
-            self.dataset_in, work / "dataset", self.opts.calibration, progress=self.opts.progress))
+                  "calibration": None if self.opts.calibration is None else file_sha256(self.opts.calibration),
+                  "guidance_dataset": tree_sha256(g) if g is not None and g.is_dir() else None}
+
+        def run(work: Path) -> dict[str, Any]:
+            summary = to_radiance(self.dataset_in, work / "dataset", self.opts.calibration,
+                                  progress=self.opts.progress)
+            if g is not None and g.is_dir():  # a guidance dataset goes through the same calibration
+                gs = to_radiance(g, work / "guidance", self.opts.calibration, progress=self.opts.progress)
+                summary["guidance"] = {k: gs[k] for k in ("units_in", "colour_space_in", "applied", "images")
+                                       if k in gs}
+            return summary
+
+        return self._stage("calibrate", inputs, {}, run)
+
+    @property
+    def guidance(self) -> Path | None:
+        """The guidance the propagation reads: the calibrated guidance dataset when the guidance
+        was a dataset, else the image file as given."""
+        cal = self.out("calibrate") / "guidance"
+        return cal if (cal / "manifest.json").is_file() else self.opts.guidance
 
     def fit(self) -> StageResult:
         params = {"preset": self.quality.fit_preset, "holdout_every": self.quality.holdout_every,
                   "seed": self.opts.seed}
-        return self._stage("fit", {"calibrate": self._prev("calibrate")}, params, self._fit)
+        self._prev("calibrate")
+        return self._stage("fit", {"dataset": tree_sha256(self.dataset)}, params, self._fit)
 
     def _fit(self, work: Path) -> dict[str, Any]:
         import numpy as np
@@ -284,7 +303,7 @@ class Digitizer:
 
     def flyouts(self) -> StageResult:
         params = {"enabled": self.quality.flyouts, "seed": self.opts.seed}
-        return self._stage("flyouts", {"calibrate": self._prev("calibrate"), "fit": self._prev("fit")}, params,
+        return self._stage("flyouts", {"dataset": tree_sha256(self.dataset), "fit": self._prev("fit")}, params,
                            self._flyouts)
 
     def _flyouts(self, work: Path) -> dict[str, Any]:
@@ -310,9 +329,9 @@ class Digitizer:
         return out
 
     def propagate(self) -> StageResult:
-        g = self.opts.guidance
-        inputs = {"calibrate": self._prev("calibrate"), "fit": self._prev("fit"),
-                  "guidance": None if g is None else tree_sha256(g)}
+        gp = self.guidance
+        inputs = {"dataset": tree_sha256(self.dataset), "fit": self._prev("fit"),
+                  "guidance": None if gp is None else tree_sha256(gp)}
         params = {"preset": self.quality.propagate_preset, "transfer": self.opts.guidance_transfer,
                   "texel_mm": self.opts.guidance_texel_mm, "seed": self.opts.seed}
         return self._stage("propagate", inputs, params, self._propagate)
@@ -322,7 +341,7 @@ class Digitizer:
             return {"skipped": "no guidance image (--guidance): the maps cover the micro field only"}
         from dualscale.propagate.stage import run_propagation
 
-        return run_propagation(self.dataset, self.out("fit") / "maps", self.opts.guidance, work,
+        return run_propagation(self.dataset, self.out("fit") / "maps", self.guidance, work,
                                preset=self.quality.propagate_preset, texel_mm_guidance=self.opts.guidance_texel_mm,
                                transfer=self.opts.guidance_transfer, threads=self.opts.threads,
                                progress=self.opts.progress)

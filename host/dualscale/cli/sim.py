@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from dualscale.errors import FormatError, InputError
@@ -34,20 +35,26 @@ def _write_capture(writer, img: torch.Tensor, cam, png_dir: Path | None, kind: s
 
 
 def _capture_set(maps, cam, out: Path, lights: list[tuple[str, int | None]], analyzers: list[float | None],
-                 relative: bool, texel_mm: float | None, sensor, previews: bool, extra: dict,
+                 relative: bool, texel_mm: float | None, realistic: bool, previews: bool, extra: dict,
                  geometry=None, progress=None) -> Path:
-    """Render (and optionally expose) one image per light x analyser into a dataset at ``out``;
-    ``progress`` as in :mod:`dualscale.progress` (one unit per image)."""
+    """Render one image per light x analyser into a dataset at ``out``: relative radiance, or,
+    with ``realistic``, camera counts as the virtual rig's sensor takes them (metered exposure per
+    image, the rig's LED spectra, gains, vignetting, dark signal, noise;
+    :func:`dualscale.sim.targets.capture_material`), which the calibration of the same virtual rig
+    (``synth-targets`` + ``calibrate``) turns back into radiance.  ``progress`` as in
+    :mod:`dualscale.progress` (one unit per image)."""
     from dualscale.formats.dataset import DatasetWriter
     from dualscale.geometry.dome import DomeGeometry
     from dualscale.sim.render import Analyzer, LightRealism, LightState, render
-    from dualscale.sim.sensor import capture
+    from dualscale.sim.targets import SynthConfig, capture_material, rig_exposer, rig_record
 
     dome = DomeGeometry.from_regmap()
-    units = "dn_normalized" if sensor is not None else "relative_radiance"
-    space = f"camera_raw:{sensor.spectral_camera}" if sensor is not None and sensor.spectral_camera else "linear_rec709"
+    units = "dn_normalized" if realistic else "relative_radiance"
+    space = f"camera_raw:{SynthConfig().sens(cam.name)}" if realistic else "linear_rec709"
     png_dir = out / "previews" if previews else None
-    with DatasetWriter(out, units=units, colour_space=space, extra=extra,
+    exposer = rig_exposer(cam) if realistic else None
+    exposures: list[float] = []
+    with DatasetWriter(out, units=units, colour_space=space, extra=extra, rig=rig_record() if realistic else None,
                        dome={"source": dome.source, "polarizer": dome.polarizer, "radius_mm": dome.radius_mm}) as w, \
             tracker(progress, len(lights) * len(analyzers), f"render {out.name}", "image") as bar:
         for kind, lid in lights:
@@ -58,17 +65,23 @@ def _capture_set(maps, cam, out: Path, lights: list[tuple[str, int | None]], ana
                 an = None if a is None or not cam.has_analyzer else Analyzer(a, relative)
                 img = render(maps, cam, state, dome, an, texel_mm=texel_mm, geometry=geometry,
                              realism=LightRealism(shadows=geometry is not None))
-                if sensor is not None:
-                    img = capture(img, cam, sensor, seed=(lid or 0) * 1000 + int((a or 0) * 10))
+                exposure_s = 1.0
+                if realistic:
+                    dn, exposure_s = capture_material(img.detach().double().cpu().numpy(), exposer, kind, lid)
+                    exposures.append(exposure_s)
+                    img = torch.from_numpy(dn.astype("float32"))
                 _write_capture(w, img, cam, png_dir, kind, lid, direction, None if an is None else a,
-                               relative and an is not None, sensor.exposure_s if sensor else 1.0)
+                               relative and an is not None, exposure_s)
                 bar.update(what=f"{kind} {'' if lid is None else lid}".strip())
+        if realistic:  # dark frames at the shortest and longest exposure, as the rig takes them
+            for t in sorted({min(exposures), max(exposures)}):
+                dark = exposer(np.zeros((cam.height, cam.width, 3)), t).astype(np.float32)
+                w.add(dark, cam, "off", None, None, 1.0, None, False, t)
     return out / "manifest.json"
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
     from dualscale.geometry.cameras import micro_camera, mid_camera
-    from dualscale.sim.sensor import SensorModel
     from dualscale.sim.materials import generate
     from dualscale.sim.materials.io import save_material
 
@@ -80,12 +93,11 @@ def cmd_synth(args: argparse.Namespace) -> int:
     mat = generate(args.material, args.size, texel, args.seed)
     save_material(out / "maps", mat, previews=not args.no_previews)
     print(f"wrote ground-truth maps to {out / 'maps'}")
-    sensor = SensorModel.realistic() if args.realistic else None
     if args.dataset:
         # the rig always takes the back-lit image: it is how an opaque sample shows it is opaque
         lights: list[tuple[str, int | None]] = [("led", i) for i in leds] + [("backlight", 0)]
         path = _capture_set(mat.maps, micro_camera(args.size, args.texel_um), out / "micro", lights,
-                            _analyzers(args.analyzers), True, None, sensor, not args.no_previews,
+                            _analyzers(args.analyzers), True, None, args.realistic, not args.no_previews,
                             {"material": mat.meta, "shadows": bool(args.shadows)},
                             mat.geometry if args.shadows else None, progress)
         print(f"wrote micro photometric dataset {path}")
@@ -93,7 +105,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
         mid_texel = args.mid_field_mm / args.mid_size
         coarse = generate(args.material, args.mid_size, mid_texel, args.seed)
         cam = mid_camera(args.mid_size, field_mm=args.mid_field_mm)
-        path = _capture_set(coarse.maps, cam, out / "mid", [("diffuse", None)], [None], False, mid_texel, sensor,
+        path = _capture_set(coarse.maps, cam, out / "mid", [("diffuse", None)], [None], False, mid_texel, args.realistic,
                             not args.no_previews, {"material": coarse.meta}, progress=progress)
         print(f"wrote mid-range guidance image {path}")
     return 0
@@ -146,7 +158,6 @@ def _render_lights(args: argparse.Namespace) -> list[tuple[str, int | None]]:
 
 def cmd_render(args: argparse.Namespace) -> int:
     from dualscale.geometry.cameras import micro_camera, mid_camera, polar_camera
-    from dualscale.sim.sensor import SensorModel
     from dualscale.formats.maps import load_maps
 
     apply_threads(args)
@@ -162,10 +173,9 @@ def cmd_render(args: argparse.Namespace) -> int:
         size = args.size or 512
         cam = mid_camera(size) if args.camera == "mid" else polar_camera(int(args.camera[-1]), size)
         texel = args.texel_um / 1000.0
-    sensor = SensorModel.realistic() if args.realistic else None
     geometry = _shadow_geometry(args, maps.shape) if args.shadows else None
     path = _capture_set(maps, cam, Path(args.output), lights, _analyzers(args.analyzer), args.relative, texel,
-                        sensor, True, {"maps": str(args.maps), "material": meta, "shadows": bool(args.shadows)},
+                        args.realistic, True, {"maps": str(args.maps), "material": meta, "shadows": bool(args.shadows)},
                         geometry, want_progress(args))
     print(f"wrote {path}")
     return 0
@@ -188,7 +198,8 @@ def register(subparsers) -> None:
     p.add_argument("--mid-size", type=int, default=256)
     p.add_argument("--mid-field-mm", type=float, default=100.0,
                    help="field of the mid-range image in mm (the rig: 100; smaller for a test bed)")
-    p.add_argument("--realistic", action="store_true", help="apply the full sensor model (noise, 12 bit, ...)")
+    p.add_argument("--realistic", action="store_true", help="capture in camera counts with the virtual rig's sensor (metered exposures, LED "
+                        "spectra and gains, dark signal, noise, 12 bit); calibrate with synth-targets + calibrate")
     p.add_argument("--shadows", action="store_true",
                    help="cast shadows of the relief and of the raised fly-out fibres in the dataset")
     p.add_argument("--no-previews", action="store_true")

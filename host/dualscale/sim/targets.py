@@ -221,7 +221,7 @@ class Exposer:
     saturation, quantisation.  ``__call__(radiance, t)`` returns normalised DN."""
 
     def __init__(self, camera: Camera, cfg: SynthConfig, defects: Defects, seed: int) -> None:
-        self.camera, self.cfg, self.seed = camera, cfg, seed
+        self.camera, self.cfg, self.defects, self.seed = camera, cfg, defects, seed
         self.vig = vignetting_map(camera, defects.vignetting).numpy() if defects.vignetting > 0 else 1.0
         rng = np.random.default_rng([defects.seed, 11, seed])
         self.bias = cfg.dark_bias * (1.0 + 0.1 * rng.standard_normal((camera.height, camera.width, 1)))
@@ -235,6 +235,50 @@ class Exposer:
         out = capture(torch.from_numpy(np.ascontiguousarray(x)), self.camera, replace(s, exposure_s=exposure_s),
                       seed=self.seed * 100003 + self.count)
         return out.numpy()
+
+
+def rig_exposer(camera: Camera, cfg: SynthConfig = SynthConfig(), defects: Defects = Defects()) -> Exposer:
+    """The sensor side of the virtual rig's camera ``camera.name``: one per camera, as in
+    :func:`write_session` (same seed, hence the same dark fixed pattern at the same size)."""
+    return Exposer(camera, cfg, defects, cfg.cameras.index(camera.name) + 1)
+
+
+def capture_material(radiance: np.ndarray, exposer: Exposer, kind: str, light_id: int | None,
+                     target: float = 0.8) -> tuple[np.ndarray, float]:
+    """The virtual rig capturing a rendered sample the way it captures its calibration targets,
+    so that a calibration from :func:`write_session` applies to it: ``(normalised DN (H, W, 3),
+    exposure [s])``.
+
+    ``radiance``: linear Rec.709 relative radiance ``(H, W, 3)`` from :func:`dualscale.sim.render.render`
+    for one light (``kind`` ``led`` with ``light_id``, ``diffuse`` or ``backlight``).  Its colour is
+    read as Smits (1999) spectra under the rig's illuminant for that light and integrated against
+    the camera's sensitivities (:func:`dualscale.sim.sensor.spectral_matrix`, white -> raw green 1,
+    like :func:`dualscale.calib.colourref.camera_raw`); an LED adds its gain and collimation ramp;
+    then ``exposer`` (:func:`rig_exposer`: vignetting, dark signal, noise, 12 bits) takes one
+    exposure, metered so that the 99.9th percentile of the signal lands at ``target`` of full
+    scale (the rig's auto-exposure; a black image, e.g. an opaque sample's back light, meters to
+    the longest exposure, 1 s).
+    """
+    from dualscale.sim.sensor import spectral_matrix
+
+    cfg, camera, defects = exposer.cfg, exposer.camera, exposer.defects
+    m = spectral_matrix(cfg.sens(camera.name), cfg.illum(kind))
+    raw = np.asarray(radiance, np.float64) @ m.T
+    if kind == "led":
+        n = DomeGeometry.from_regmap().n_leds
+        raw = raw * led_gains(n, defects)[light_id] * collimation_ramp(camera, light_id, defects)[..., None]
+    if float(raw.max()) <= 0:
+        return exposer(raw, 1.0), 1.0
+    shot, t = meter(lambda t: exposer(raw, t))
+    dark = float(exposer.bias.mean()) + cfg.dark_rate * t
+    peak = max(float(np.percentile(shot - dark, 99.9)), 1e-6)
+    t = float(f"{t * target / peak:.3g}")
+    return exposer(raw, t), t
+
+
+def rig_record(cfg: SynthConfig = SynthConfig()) -> dict[str, str]:
+    """The ``rig`` record of datasets captured by the virtual rig (checked against calibrations)."""
+    return {"id": cfg.rig_id, "layout": dome_signature(DomeGeometry.from_regmap())}
 
 
 def bracket(exposer: Exposer, radiance: np.ndarray, dark_pixels_ignore: float = 0.0) -> tuple[list[float], list[np.ndarray]]:
