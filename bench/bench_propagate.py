@@ -324,7 +324,8 @@ def stage_real(work: Path, repo: Path) -> None:
     plausibility measures of tests/propagate/test_real_guidance.py, per photo."""
     from dualscale.propagate.export import export_model, onnx_paths
     from dualscale.propagate.guidance import LUMA, read_guidance
-    from dualscale.propagate.infer import OnnxModel, exposure_gain, propagate_image, tile_positions
+    from dualscale.propagate.infer import OnnxModel, exposure_gain, propagate_image
+    from dualscale.propagate.metrics import seam_score
 
     data = repo / ".." / "shared" / "data" / "fabric-rt"
     if not data.is_dir():
@@ -339,14 +340,6 @@ def stage_real(work: Path, repo: Path) -> None:
         n = x.shape[0]
         w = np.hanning(n)[:, None] * np.hanning(n)[None]
         return np.abs(np.fft.fftshift(np.fft.fft2((x - x.mean()) * w))) ** 2
-
-    def seam(a, tile, overlap):
-        a = a.mean(-1)
-        n = a.shape[0]
-        gx, gy = np.abs(np.diff(a, axis=1)).mean(0), np.abs(np.diff(a, axis=0)).mean(1)
-        band = sorted({c for q in tile_positions(n, tile, tile - overlap)[1:]
-                       for c in range(q - 1, min(q + max(overlap, 1), n - 1))})
-        return max(gx[band].max() / np.median(gx), gy[band].max() / np.median(gy))
 
     print(f"\nReal guidance photos, warm-start model (load {load()}): albedo-luminance correlation, weave peak "
           "(guidance period; albedo power at it over the ring median), tile seams (largest step near a tile edge "
@@ -370,7 +363,7 @@ def stage_real(work: Path, repo: Path) -> None:
         y, x = np.unravel_index(np.argmax(pg), pg.shape)
         ring = np.abs(r - r[y, x]) < 2
         ratio = pa[y - 1:y + 2, x - 1:x + 2].max() / np.median(pa[ring])
-        sm = {k: f"{seam(blend[k], 256, 64):.1f} / {seam(naive[k], 256, 0):.1f}" for k in ("albedo", "roughness",
+        sm = {k: f"{seam_score(blend[k], 256, 64):.1f} / {seam_score(naive[k], 256, 0):.1f}" for k in ("albedo", "roughness",
                                                                                                "normal")}
         print(f"| {f.name} | {100 * g.clipped:.2f} % | {np.corrcoef(lum.ravel(), alb.ravel())[0, 1]:.2f} | "
               f"{n / r[y, x]:.1f} | {ratio:.0f} | {sm['albedo']} | {sm['roughness']} | {sm['normal']} | "

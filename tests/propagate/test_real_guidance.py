@@ -17,6 +17,8 @@ Plausible maps, as tested here (the fabrics have no ground truth):
 from pathlib import Path
 
 import numpy as np
+
+from dualscale.propagate.metrics import seam_score
 import pytest
 
 from dualscale.cli import main
@@ -68,18 +70,6 @@ def test_real_photo_gives_plausible_maps(model, photo, tmp_path):
     assert pa[y - 1:y + 2, x - 1:x + 2].max() >= 20 * np.median(pa[ring]), "the weave repeat is lost"
 
 
-def _seam_score(a: np.ndarray, tile: int, overlap: int) -> float:
-    """Largest mean row/column step within a tile's overlap band, over the median step."""
-    from dualscale.propagate.infer import tile_positions
-
-    a = a.mean(-1)
-    n = a.shape[0]
-    gx, gy = np.abs(np.diff(a, axis=1)).mean(0), np.abs(np.diff(a, axis=0)).mean(1)
-    band = sorted({c for p in tile_positions(n, tile, tile - overlap)[1:]
-                   for c in range(p - 1, min(p + max(overlap, 1), n - 1))})
-    return max(gx[band].max() / np.median(gx), gy[band].max() / np.median(gy))
-
-
 @pytest.mark.parametrize("photo", [p for p in PHOTOS if p == "satin1_T.png"] or ["none"])
 def test_real_photo_tiles_without_seams(model, photo):
     from dualscale.propagate.export import export_model, onnx_paths
@@ -93,5 +83,5 @@ def test_real_photo_tiles_without_seams(model, photo):
     naive, _ = propagate_image(om, g.rgb, 256, 0, gain, progress=False)
     blended, _ = propagate_image(om, g.rgb, 256, 64, gain, progress=False)
     for name, limit in (("albedo", 0.5), ("roughness", 0.5), ("normal", 0.75)):
-        b, n = _seam_score(blended[name], 256, 64), _seam_score(naive[name], 256, 0)
+        b, n = seam_score(blended[name], 256, 64), seam_score(naive[name], 256, 0)
         assert b <= limit * n, (name, b, n)

@@ -297,6 +297,8 @@ def to_radiance(dataset_dir: str | Path, out_dir: str | Path, calibration: str |
                 clipped_px += 0 if clipped is None else int((clipped & inside).sum())
         w.close()
     cam = cameras.get("micro") or (next(iter(cameras.values())) if cameras else None)
+    if ds.manifest.get("extra", {}).get("import", {}).get("texel_mm_known") is False:
+        cam = None  # photographs imported without a scale: the camera's field is nominal
     return {"calibration": None if plan.calibration is None else str(plan.calibration),
             "applied": list(plan.applied), "units_in": str(ds.manifest.get("units")), "units_out": CANONICAL_UNITS,
             "colour_space_in": str(ds.manifest.get("colour_space")), "colour_space_out": CANONICAL_COLOUR_SPACE,

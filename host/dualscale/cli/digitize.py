@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
+
+from .common import add_output, add_work_options, apply_threads, want_progress
 
 
 def _line(st) -> str:
@@ -21,8 +22,7 @@ def cmd_digitize(a: argparse.Namespace) -> int:
 
     opts = DigitizeOptions(input=a.input, run=a.output, calibration=a.calibration, guidance=a.guidance,
                            guidance_transfer=a.transfer, guidance_texel_mm=a.guidance_texel_mm, quality=a.quality,
-                           until=a.until, threads=a.threads,
-                           progress=a.progress if a.progress is not None else sys.stderr.isatty(), seed=a.seed)
+                           until=a.until, threads=apply_threads(a), progress=want_progress(a), seed=a.seed)
     print(f"digitize {opts.input} -> {opts.run} (quality {opts.quality})")
     res = digitize(opts, on_stage=lambda st: print(_line(st), flush=True))
     run = Path(a.output)
@@ -46,7 +46,7 @@ def register(sub) -> None:
     d = sub.add_parser("digitize", help="the whole job: calibrate, fit, fly-outs, propagate, export, report "
                                         "(resumable: rerun the same command to continue)")
     d.add_argument("input", help="photometric dataset folder (manifest.json), or a folder holding micro/")
-    d.add_argument("-o", "--output", required=True, metavar="RUN", help="run folder (created; reused to resume)")
+    add_output(d, "run folder RUN (created; reused to resume)")
     d.add_argument("--calibration", default=None, metavar="CAL",
                    help="calibration file (`dualscale calibrate`); required for datasets in sensor units")
     d.add_argument("--guidance", default=None, metavar="IMAGE",
@@ -59,7 +59,5 @@ def register(sub) -> None:
                    help="coherent presets across stages (docs/DIGITIZE.md measures them)")
     d.add_argument("--until", choices=STAGES, default=None, help="stop after this stage")
     d.add_argument("--seed", type=int, default=0)
-    d.add_argument("--threads", type=int, default=None, help="torch CPU threads")
-    d.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
-                   help="progress bars on stderr (default: when stderr is a terminal)")
+    add_work_options(d)
     d.set_defaults(fn=cmd_digitize)

@@ -5,7 +5,8 @@ docs/PHOTOS.md)."""
 from __future__ import annotations
 
 import argparse
-import sys
+
+from .common import add_output, add_work_options, apply_threads, want_progress
 
 
 def _scale(text: str) -> float | str:
@@ -20,8 +21,9 @@ def _scale(text: str) -> float | str:
 def cmd_import(a: argparse.Namespace) -> int:
     from dualscale.calib.photo_import import import_photos
 
+    apply_threads(a)
     rep = import_photos(a.images, a.lights, a.output, a.transfer, mask=a.mask, texel_mm=a.texel_mm, scale=a.scale,
-                        match=a.match, progress=a.progress or sys.stderr.isatty())
+                        match=a.match, progress=want_progress(a))
     h, w = rep.size
     print(f"imported {len(rep.files)} images of {w}x{h} px ({rep.bits}-bit, transfer {rep.transfer or 'linear EXR'}) "
           f"into {rep.dataset}")
@@ -38,7 +40,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("images", metavar="IMAGES", help="folder of photographs, one per light (PNG/JPEG/TIFF 8 or "
                                                     "16 bit, EXR)")
     p.add_argument("--lights", required=True, metavar="LIGHTS", help=".lp (RTI) or our .json light file")
-    p.add_argument("-o", "--output", required=True, metavar="DATASET", help="dataset folder to write")
+    add_output(p, "dataset folder DATASET to write")
     p.add_argument("--transfer", default=None, metavar="srgb|linear|gamma:G",
                    help="transfer function of integer images (required for PNG/JPEG/TIFF; EXR is linear)")
     p.add_argument("--mask", default="auto", metavar="MASK|auto|none",
@@ -51,5 +53,5 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--match", choices=("auto", "name", "number"), default="auto",
                    help="how light-file names find the images: by name, by the numbers in the names "
                         "(chrome.3.png -> cat.3.png), or auto (name, else number when no name matches)")
-    p.add_argument("--progress", action="store_true", help="show progress bars even when not on a terminal")
+    add_work_options(p)
     p.set_defaults(fn=cmd_import)

@@ -34,6 +34,7 @@ import numpy as np
 from scipy import ndimage
 from skimage.draw import line
 
+from dualscale.errors import InputError
 from dualscale.progress import Progress, iterate
 
 _DIRS = [(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)]  # (drow, dcol)
@@ -281,6 +282,9 @@ def detect_dataset(dataset: str | Path, out: str | Path, tangent_maps: str | Pat
         tan = read_exr(tpath, ("Y",))[..., 0].astype(np.float64)
         if tan.shape != conf.shape:
             raise ValueError(f"tangent map is {tan.shape}, images are {conf.shape}")
+    if obs.pixel_mm is None:
+        raise InputError(f"{dataset}: fly-out detection needs the texel size in mm (fibre lengths and gaps are in mm); "
+                         "import the photographs with --texel-mm")
     res = detect(conf, obs.pixel_mm, seeds, min_length_mm, tan, seed=seed, progress=progress)
     out = Path(out)
     rep: dict[str, Any] = {"seeds": res["seeds"], "min_length_px": res["min_length_px"], "pixel_mm": obs.pixel_mm,

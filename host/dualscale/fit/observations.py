@@ -58,7 +58,7 @@ class Observations:
     led_ids: Tensor
     backlight: Tensor | None = None
     back_wd: float = 0.5
-    pixel_mm: float = 0.0018
+    pixel_mm: float | None = 0.0018  # texel size in mm; None when unknown (photographs without a scale)
     view: Tensor | None = None
     valid: Tensor | None = None
     back_valid: Tensor | None = None
@@ -206,7 +206,9 @@ def load_observations(root: str | Path, camera: str | None = None, dtype: torch.
     if not imgs:
         raise InputError(f"{ds.root}: no LED images for camera {camera!r}")
     cam = ds.manifest.get("cameras", {}).get(camera, {})
-    pixel_mm = float(cam["field_mm"][0]) / float(cam["width"]) if "field_mm" in cam else 0.0018
+    pixel_mm: float | None = float(cam["field_mm"][0]) / float(cam["width"]) if "field_mm" in cam else 0.0018
+    if ds.manifest.get("extra", {}).get("import", {}).get("texel_mm_known") is False:
+        pixel_mm = None  # photographs imported without --texel-mm: the camera's field is nominal
     f = dict(dtype=dtype)
     valid = None
     if any(v is not None for v in valids):

@@ -55,10 +55,10 @@ def downsample(obs: Observations, factor: int) -> Observations:
         return obs
     if obs.valid is None and obs.back_valid is None:
         back = None if obs.backlight is None else _pool(obs.backlight, factor)
-        return replace(obs, images=_pool(obs.images, factor), backlight=back, pixel_mm=obs.pixel_mm * factor)
+        return replace(obs, images=_pool(obs.images, factor), backlight=back, pixel_mm=None if obs.pixel_mm is None else obs.pixel_mm * factor)
     imgs, valid = _pool_valid(obs.images, obs.valid, factor)
     back, bv = (None, None) if obs.backlight is None else _pool_valid(obs.backlight, obs.back_valid, factor)
-    return replace(obs, images=imgs, backlight=back, pixel_mm=obs.pixel_mm * factor, valid=valid, back_valid=bv)
+    return replace(obs, images=imgs, backlight=back, pixel_mm=None if obs.pixel_mm is None else obs.pixel_mm * factor, valid=valid, back_valid=bv)
 
 
 def _pool_valid(x: Tensor, valid: Tensor | None, factor: int) -> tuple[Tensor, Tensor]:

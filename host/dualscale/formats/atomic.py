@@ -57,12 +57,20 @@ def atomic_dir(out: str | Path) -> Iterator[Path]:
         raise
 
 
-def write_text(path: str | Path, text: str) -> Path:
-    """Write ``text`` (UTF-8) atomically; returns ``path``."""
+def write_bytes(path: str | Path, data: bytes) -> Path:
+    """Write ``data`` atomically, flushed to disk (fsync) before the rename; returns ``path``."""
     path = Path(path)
     with atomic_path(path) as tmp:
-        tmp.write_text(text, encoding="utf-8")
+        with open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
     return path
+
+
+def write_text(path: str | Path, text: str) -> Path:
+    """Write ``text`` (UTF-8, ``\n`` line ends) atomically; returns ``path``."""
+    return write_bytes(path, text.encode("utf-8"))
 
 
 def write_json(path: str | Path, data: Any, indent: int | None = 1) -> Path:

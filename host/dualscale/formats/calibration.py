@@ -10,13 +10,13 @@
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
-from .versioned import read_versioned_json
 from dualscale.errors import CalibrationError, RigMismatchError
+
+from .atomic import write_text
+from .versioned import read_versioned_json
 
 FORMAT = "dualscale-calibration"
 VERSION = 1
@@ -35,17 +35,7 @@ def write_calibration(path: str | Path, data: dict[str, Any]) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     text = json.dumps({"format": FORMAT, "version": VERSION, "conventions": CONVENTIONS, **data}, indent=1)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    write_text(path, text)
     return path
 
 

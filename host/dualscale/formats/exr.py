@@ -48,12 +48,9 @@ def write_exr(path: str | Path, image: np.ndarray, channels: Sequence[str] | Non
             out.close()
 
 
-def read_exr(path: str | Path, channels: Sequence[str] | None = None, allow_window: bool = False) -> np.ndarray:
-    """Read an image as float32 ``(H, W, C)``; ``channels`` selects by name (EXR reorders them).
-
-    Raises :class:`~dualscale.errors.GeometryError` when the data window is not the display
-    window with its origin at (0, 0) (unless ``allow_window``), ``FileNotFoundError`` and
-    ``OSError`` for missing or unreadable files, ``ValueError`` for a missing channel."""
+def open_image(path: str | Path):
+    """An OpenImageIO ``ImageInput`` for ``path`` (close it); ``FileNotFoundError`` when missing,
+    ``OSError`` when unreadable, naming the file."""
     import OpenImageIO as oiio
 
     path = Path(path)
@@ -62,6 +59,16 @@ def read_exr(path: str | Path, channels: Sequence[str] | None = None, allow_wind
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
         raise OSError(f"cannot read {path}: {oiio.geterror()}")
+    return inp
+
+
+def read_exr(path: str | Path, channels: Sequence[str] | None = None, allow_window: bool = False) -> np.ndarray:
+    """Read an image as float32 ``(H, W, C)``; ``channels`` selects by name (EXR reorders them).
+
+    Raises :class:`~dualscale.errors.GeometryError` when the data window is not the display
+    window with its origin at (0, 0) (unless ``allow_window``), ``FileNotFoundError`` and
+    ``OSError`` for missing or unreadable files, ``ValueError`` for a missing channel."""
+    inp = open_image(path)
     try:
         spec = inp.spec()
         if not allow_window:
@@ -98,14 +105,7 @@ def check_window(path: str | Path, spec) -> None:
 def read_exr_attributes(path: str | Path, prefix: str = "dualscale:") -> dict[str, str]:
     """The header attributes named ``prefix...`` (as :func:`write_exr` writes them), keyed
     without the prefix."""
-    import OpenImageIO as oiio
-
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"image not found: {path}")
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise OSError(f"cannot read {path}: {oiio.geterror()}")
+    inp = open_image(path)
     try:
         return {a.name[len(prefix):]: str(a.value) for a in inp.spec().extra_attribs if a.name.startswith(prefix)}
     finally:

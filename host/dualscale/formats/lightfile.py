@@ -32,13 +32,13 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable
 
 from dualscale.errors import GeometryError  # a ValueError: below-horizon directions
+
+from .atomic import write_text
 
 FORMAT = "dualscale-lights"
 VERSION = 1
@@ -109,23 +109,6 @@ def _check_records(records: Iterable[LightRecord], path: Path, wheres: list[str]
     return out
 
 
-def _atomic_write(path: Path, text: str) -> None:
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent if str(path.parent) else ".")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
-
-
 # ----------------------------------------------------------------------------------------- .lp
 def read_lp(path: str | Path) -> list[LightRecord]:
     """Read an RTI ``.lp`` file (tolerant, see the module docstring) into ``LightRecord`` s
@@ -179,7 +162,7 @@ def write_lp(path: str | Path, records: Iterable[LightRecord]) -> Path:
                              "which .lp cannot carry")
     body = [f"{len(recs)}"] + [f"{r.file} {r.direction[0]:.9f} {r.direction[1]:.9f} {r.direction[2]:.9f}"
                                for r in recs]
-    _atomic_write(path, "\n".join(body) + "\n")
+    write_text(path, "\n".join(body) + "\n")
     return path
 
 
@@ -231,7 +214,7 @@ def write_lights_json(path: str | Path, records: Iterable[LightRecord], source: 
         text = json.dumps(doc, indent=1, allow_nan=False)
     except (TypeError, ValueError) as e:
         raise ValueError(f"{path}: 'source' is not JSON-serialisable with finite numbers ({e})") from None
-    _atomic_write(path, text + "\n")
+    write_text(path, text + "\n")
     return path
 
 

@@ -24,7 +24,7 @@ import numpy as np
 
 from dualscale.errors import GeometryError, UnitsError
 
-from .exr import check_window
+from .exr import check_window, open_image
 
 SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr")
 TRANSFERS = ("srgb", "linear", "gamma:G")
@@ -82,16 +82,10 @@ def read_photo(path: str | Path, transfer: str | None, clip: float = 1.0) -> Pho
     (transfer missing or not applicable), :class:`~dualscale.errors.GeometryError` (a shifted
     data window), ``ValueError`` (non-finite pixels in a float image).
     """
-    import OpenImageIO as oiio
-
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"image not found: {path}")
     if path.suffix.lower() not in SUFFIXES:
         raise UnitsError(f"{path}: unsupported image type {path.suffix!r} (use {', '.join(SUFFIXES)})")
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise OSError(f"cannot read {path}: {oiio.geterror()}")
+    inp = open_image(path)
     try:
         spec = inp.spec()
         check_window(path, spec)

@@ -26,3 +26,16 @@ def map_scores(name: str, pred: np.ndarray, gt: np.ndarray) -> dict[str, float]:
 def compare(pred: dict[str, np.ndarray], gt: dict[str, np.ndarray]) -> dict[str, dict[str, float]]:
     """Scores for every map present in both."""
     return {m: map_scores(m, pred[m], gt[m]) for m in pred if m in gt}
+
+
+def seam_score(a: np.ndarray, tile: int, overlap: int) -> float:
+    """Tile seams of a tiled inference ``(N, N, C)``: the largest mean row/column step within a
+    tile's overlap band, over the median step (1 = no seam; a hard seam is several times it)."""
+    from .infer import tile_positions
+
+    a = a.mean(-1)
+    n = a.shape[0]
+    gx, gy = np.abs(np.diff(a, axis=1)).mean(0), np.abs(np.diff(a, axis=0)).mean(1)
+    band = sorted({c for p in tile_positions(n, tile, tile - overlap)[1:]
+                   for c in range(p - 1, min(p + max(overlap, 1), n - 1))})
+    return max(gx[band].max() / np.median(gx), gy[band].max() / np.median(gy))

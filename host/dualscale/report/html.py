@@ -10,12 +10,12 @@
 
 from __future__ import annotations
 
-import os
 import shutil
-import tempfile
 from functools import lru_cache
 from pathlib import Path
 from typing import Any
+
+from dualscale.formats.atomic import write_bytes
 
 from . import format as fmt
 
@@ -46,24 +46,8 @@ def render(template: str, **context: Any) -> str:
 
 
 def write_atomic(path: str | Path, data: str | bytes) -> Path:
-    """Write ``data`` to ``path`` through a temporary file in the same folder and ``os.replace``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    raw = data.encode("utf-8") if isinstance(data, str) else data
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(raw)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
-    return path
+    """Write ``data`` to ``path`` atomically (:mod:`dualscale.formats.atomic`)."""
+    return write_bytes(path, data.encode("utf-8") if isinstance(data, str) else data)
 
 
 def write_page(path: str | Path, template: str, **context: Any) -> Path:

@@ -289,7 +289,7 @@ def write_run_report(run_dir: str | Path, out: str | Path | None = None) -> Path
     # -- fit: maps, selection, residual, held-out
     fit_sum = stages["fit"].summary
     maps, meta = _maps(run, "fit/maps", "fit stage")
-    texel_fit = meta.get("texel_mm") or texel
+    texel_fit = meta.get("texel_mm")  # None: the maps do not know their size (axes in px)
     field_fit = meta.get("field_mm")
     names = [n for n in MAP_ORDER if n in maps] + [n for n in maps if n not in MAP_ORDER]
     h, w = next(iter(maps.values())).shape[:2]

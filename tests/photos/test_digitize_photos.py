@@ -1,0 +1,30 @@
+"""`dualscale digitize` on imported photographs: the stages that need our rig say why they are
+skipped, and maps of photographs without a scale do not invent one."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from dualscale.cli import main
+from dualscale.formats.maps import load_maps
+
+
+@pytest.mark.parametrize("texel", [None, "0.05"])
+def test_digitize_imported_photos(sphere_set, tmp_path, texel):
+    ds = tmp_path / "ds"
+    extra = [] if texel is None else ["--texel-mm", texel]
+    assert main(["import", str(sphere_set.folder), "--lights", str(sphere_set.lp), "-o", str(ds), "--transfer", "srgb",
+                 "--no-progress", *extra]) == 0
+    run = tmp_path / "run"
+    assert main(["digitize", str(ds), "-o", str(run), "--quality", "draft", "--threads", "1", "--no-progress"]) == 0
+    stages = {s: json.loads((run / "stages" / f"{s}.json").read_text())["summary"]
+              for s in ("flyouts", "propagate")}
+    assert "polarised" in stages["flyouts"]["skipped"] and "guidance" in stages["propagate"]["skipped"]
+    _, meta = load_maps(run / "export" / "micro")
+    if texel is None:
+        assert meta["texel_mm"] is None and meta["field_mm"] is None
+    else:
+        assert meta["texel_mm"] == pytest.approx(0.05) and meta["field_mm"] == pytest.approx([2.0, 2.0])
+    assert (run / "report" / "index.html").is_file()
