@@ -72,14 +72,12 @@ def _assert_readable(text: str) -> None:
     assert not long_numbers, long_numbers[:5]
 
 
-@pytest.fixture
-def layout_checked(monkeypatch):
-    """Every figure a report saves is checked for overlapping labels and labels cut off at the
-    figure's edge; returns the list of problems (name, pairs)."""
+def _checking_figures(problems: list):
+    """A replacement for ``Assets.figure`` that checks each saved figure for overlapping labels
+    and labels cut off at the figure's edge, appending ``(name, pairs)`` to ``problems``."""
     from dualscale.report import html as rhtml
     from dualscale.report import plots
 
-    problems: list = []
     save = rhtml.Assets.figure
 
     def figure(self, fig, stem):
@@ -88,29 +86,31 @@ def layout_checked(monkeypatch):
             problems.append((stem, bad))
         return save(self, fig, stem)
 
-    monkeypatch.setattr(rhtml.Assets, "figure", figure)
+    return figure
+
+
+@pytest.fixture
+def layout_checked(monkeypatch):
+    """Every figure a report saves is checked (see :func:`_checking_figures`); returns the list
+    of problems."""
+    from dualscale.report import html as rhtml
+
+    problems: list = []
+    monkeypatch.setattr(rhtml.Assets, "figure", _checking_figures(problems))
     return problems
 
 
 @pytest.fixture(scope="module")
 def run_report(tmp_path_factory):
-    """The full synthetic run, rendered once; every saved figure is checked for labels that
-    overlap or stick out of the figure (the problems are returned third)."""
+    """The full synthetic run, rendered once, every saved figure checked (the problems are
+    returned third)."""
     from dualscale.report import html as rhtml
-    from dualscale.report import plots
     from dualscale.report import write_run_report
 
     problems: list = []
     save = rhtml.Assets.figure
-
-    def figure(self, fig, stem):
-        bad = plots.overlapping_texts(fig)
-        if bad:
-            problems.append((stem, bad))
-        return save(self, fig, stem)
-
     run = make_run(tmp_path_factory.mktemp("report") / "RUN")
-    rhtml.Assets.figure = figure
+    rhtml.Assets.figure = _checking_figures(problems)
     try:
         page = write_run_report(run)
     finally:

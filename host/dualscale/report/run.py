@@ -222,6 +222,16 @@ def _selection(sel: dict[str, Any] | None) -> dict[str, Any] | None:
 # ---------------------------------------------------------------------------------------------
 # the report
 
+def _not_done(st, not_run: str, what: str) -> str:
+    """The one-line note of a stage that did not run (``not_run``) or was skipped (its reason);
+    empty when it ran."""
+    if st is None or st.record is None:
+        return not_run
+    if st.skipped:
+        return f"{what} was skipped: {st.skipped}."
+    return ""
+
+
 def write_run_report(run_dir: str | Path, out: str | Path | None = None) -> Path:
     """Render ``RUN/report/index.html`` (images in ``RUN/report/assets/``) from the run folder
     ``run_dir``; returns the page's path. ``out`` puts the page and its assets in another folder
@@ -353,11 +363,8 @@ def write_run_report(run_dir: str | Path, out: str | Path | None = None) -> Path
     # -- fly-outs
     fly: dict[str, Any] = {"note": "", "fig": None, "rows": []}
     st = stages.get("flyouts")
-    if st is None or st.record is None:
-        fly["note"] = "Fly-out detection was not run for this material."
-    elif st.skipped:
-        fly["note"] = f"Fly-out detection was skipped: {st.skipped}."
-    else:
+    fly["note"] = _not_done(st, "Fly-out detection was not run for this material.", "Fly-out detection")
+    if not fly["note"]:
         fdoc = _json(run, "flyouts/flyouts.json", required=False, writer="flyouts stage")
         if fdoc is None:
             fly["note"] = "The flyouts stage ran but wrote no flyouts/flyouts.json."
@@ -376,11 +383,8 @@ def write_run_report(run_dir: str | Path, out: str | Path | None = None) -> Path
     # -- propagation
     prop: dict[str, Any] = {"note": "", "guidance": None, "maps": [], "rows": []}
     st = stages.get("propagate")
-    if st is None or st.record is None:
-        prop["note"] = "No guidance image was given: the maps cover the micro field only."
-    elif st.skipped:
-        prop["note"] = f"Propagation was skipped: {st.skipped}."
-    else:
+    prop["note"] = _not_done(st, "No guidance image was given: the maps cover the micro field only.", "Propagation")
+    if not prop["note"]:
         ps = st.summary
         gt = ps.get("texel_mm")
         guidance = _exr_any(run, "propagate/guidance.exr", writer="propagate stage", rgb=True)
@@ -402,11 +406,8 @@ def write_run_report(run_dir: str | Path, out: str | Path | None = None) -> Path
     # -- export
     exp: dict[str, Any] = {"note": "", "table": None, "formats": ""}
     st = stages.get("export")
-    if st is None or st.record is None:
-        exp["note"] = "The maps were not exported."
-    elif st.skipped:
-        exp["note"] = f"Export was skipped: {st.skipped}."
-    else:
+    exp["note"] = _not_done(st, "The maps were not exported.", "Export")
+    if not exp["note"]:
         files = [str(f) for f in (st.summary.get("files") or [])]
         if not files:
             exp["note"] = "The export stage wrote no files."
