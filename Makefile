@@ -79,18 +79,20 @@ DEMO_LED_STEP ?= 4
 DEMO_MID_SIZE ?= 512
 DEMO_MID_FIELD_MM ?= 12.5
 DEMO_QUALITY ?= standard
+# one thread: on a shared 2-core machine a second torch thread per process costs far more than it gives
+DEMO_THREADS ?= 1
 DS := $(VENV)/bin/dualscale
 demo: deps
 	$(MAKE) -C firmware posix
 	$(DS) demo
 	@test -f $(DEMO)/targets/captures.json || $(DS) synth-targets -o $(DEMO)/targets --led-step $(DEMO_LED_STEP) \
-	    --threads 2
-	@test -f $(DEMO)/calibration.json || $(DS) calibrate $(DEMO)/targets -o $(DEMO)/calibration.json --threads 2
+	    --threads $(DEMO_THREADS)
+	@test -f $(DEMO)/calibration.json || $(DS) calibrate $(DEMO)/targets -o $(DEMO)/calibration.json --threads $(DEMO_THREADS)
 	@test -f $(DEMO)/sample/mid/manifest.json || $(DS) synth twill -o $(DEMO)/sample --size $(DEMO_SIZE) \
 	    --texel-um $(DEMO_TEXEL_UM) --dataset --lights mod$(DEMO_LED_STEP) --mid --mid-size $(DEMO_MID_SIZE) \
-	    --mid-field-mm $(DEMO_MID_FIELD_MM) --realistic --threads 2
+	    --mid-field-mm $(DEMO_MID_FIELD_MM) --realistic --threads $(DEMO_THREADS)
 	$(DS) digitize $(DEMO)/sample/micro -o $(DEMO)/run --calibration $(DEMO)/calibration.json \
-	    --guidance $(DEMO)/sample/mid --quality $(DEMO_QUALITY) --threads 2
+	    --guidance $(DEMO)/sample/mid --quality $(DEMO_QUALITY) --threads $(DEMO_THREADS)
 
 # Every benchmark prints a markdown table for the doc it belongs to (see each script's docstring).
 bench: deps

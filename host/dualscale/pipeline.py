@@ -38,11 +38,12 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Callable
 
-from dualscale.errors import InputError
+from dualscale.errors import InputError, UnitsError
 from dualscale.formats.atomic import clean_stale, write_text
 from dualscale.formats.run import (file_sha256, json_sha256, read_stage, stage_path, tree_sha256, write_run,
                                    write_stage)
 
+CHECKPOINT_EVERY = 2  # fit iterations between checkpoints (the LM presets run 11-21 iterations in all)
 STAGES = ("calibrate", "fit", "flyouts", "propagate", "export", "report")
 # rough share of a run's time per stage, for the overall ETA (measured in docs/DIGITIZE.md)
 _WEIGHTS = {"calibrate": 1.0, "fit": 10.0, "flyouts": 1.0, "propagate": 8.0, "export": 0.5, "report": 1.0}
@@ -177,6 +178,29 @@ class Digitizer:
         if opts.guidance is not None and not opts.guidance.exists():
             raise FileNotFoundError(f"guidance image not found: {opts.guidance}")
         self.versions = versions()
+        self._preflight()
+
+    def _preflight(self) -> None:
+        """Refuse, before anything is written, what a later stage would refuse: captures in
+        camera counts without a calibration, a calibration file that is not one, a
+        display-encoded guidance image without its transfer function."""
+        from dualscale.formats.calibration import read_calibration
+        from dualscale.formats.dataset import read_dataset
+        from dualscale.formats.photo import parse_transfer
+
+        ds = read_dataset(self.dataset_in)
+        raw = {r.units for r in ds.records} - {"relative_radiance"}
+        if raw and self.opts.calibration is None:
+            raise UnitsError(f"{self.dataset_in}: the captures are in {', '.join(sorted(raw))} (camera counts): "
+                             "give the rig's calibration file with --calibration CAL (dualscale calibrate)")
+        if self.opts.calibration is not None:
+            read_calibration(self.opts.calibration)
+        g = self.opts.guidance
+        if g is not None and g.is_file() and g.suffix.lower() != ".exr":
+            if self.opts.guidance_transfer is None:
+                raise UnitsError(f"--guidance {g}: a display-encoded image needs its transfer function: "
+                                 "--transfer srgb|linear|gamma:G (dualscale never guesses it)")
+            parse_transfer(self.opts.guidance_transfer)
 
     # -- paths of the finished stages
     def out(self, stage: str) -> Path:
@@ -275,7 +299,7 @@ class Digitizer:
         obs = load_observations(self.dataset)
         res, extra = fit_dataset(self.dataset, work / "maps", self.quality.fit_preset,
                                  holdout_every=self.quality.holdout_every, progress=self.opts.progress,
-                                 seed=self.opts.seed, obs=obs)
+                                 seed=self.opts.seed, obs=obs, checkpoint_every=CHECKPOINT_EVERY)
         train, held = split_holdout(obs, self.quality.holdout_every)
         write_exr(work / "residual.exr", residual_map(res.maps, res.comps, train).numpy()[..., None], ("Y",))
         summary: dict[str, Any] = {
@@ -402,12 +426,16 @@ def _options_json(o: DigitizeOptions) -> dict[str, Any]:
     return {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(o).items() if k not in ("run",)}
 
 
-def digitize(opts: DigitizeOptions, on_stage: Callable[[StageResult], None] | None = None) -> RunResult:
-    """Run ``dualscale digitize`` (see the module docstring); ``on_stage`` is called after each
-    stage.  Raises :class:`~dualscale.errors.InputError` (and subclasses) for input a stage
+def digitize(opts: DigitizeOptions, on_stage: Callable[[StageResult], None] | None = None,
+             on_start: Callable[[], None] | None = None) -> RunResult:
+    """Run ``dualscale digitize`` (see the module docstring); ``on_start`` is called once the
+    inputs passed their checks, ``on_stage`` after each stage.  Raises :class:`~dualscale.errors.InputError` (and subclasses) for input a stage
     cannot interpret, before anything of that stage is written."""
     if opts.threads:
         import torch
 
         torch.set_num_threads(opts.threads)
-    return Digitizer(opts).digitize(on_stage)
+    d = Digitizer(opts)
+    if on_start is not None:
+        on_start()
+    return d.digitize(on_stage)

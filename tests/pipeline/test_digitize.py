@@ -93,3 +93,42 @@ def test_kill_9_during_the_fit_then_resume(sample, tmp_path):
     r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr
     assert (run / "stages" / "fit.json").is_file() and (run / "fit" / "maps" / "material.json").is_file()
+
+
+def test_inputs_a_later_stage_would_refuse_are_refused_before_anything_is_written(sample, tmp_path, capsys):
+    """Camera counts without --calibration, a calibration that is not one, a PNG guidance without
+    its transfer function: exit 2, one line, and no run folder."""
+    import numpy as np
+
+    from dualscale.formats.exr import write_png_preview
+
+    raw = tmp_path / "raw"
+    assert main(["synth", "leather", "-o", str(raw), "--size", "8", "--texel-um", "9", "--dataset", "--lights",
+                 "mod32", "--realistic", "--no-previews", "--no-progress"]) == 0
+    png = tmp_path / "guide.png"
+    write_png_preview(png, np.full((16, 16, 3), 0.5))
+    bad_cal = tmp_path / "cal.json"
+    bad_cal.write_text("{}")
+    cases = [([str(raw / "micro")], "--calibration"),
+             ([str(raw / "micro"), "--calibration", str(bad_cal)], "not a dualscale-calibration"),
+             ([str(sample / "micro"), "--guidance", str(png)], "--transfer")]
+    for args, words in cases:
+        run = tmp_path / "run"
+        capsys.readouterr()
+        assert main(["digitize", *args, "-o", str(run), *ARGS]) == 2
+        captured = capsys.readouterr()
+        assert words in captured.err and len(captured.err.strip().splitlines()) == 1 and captured.out == ""
+        assert not run.exists()
+
+
+def test_outputs_get_the_usual_file_mode(sample, tmp_path):
+    """Atomic writes go through mkstemp (mode 0600): the artefacts still get 0666 & ~umask."""
+    old = os.umask(0o022)
+    try:
+        run = tmp_path / "run"
+        assert _digitize(sample, run, "--until", "calibrate") == 0
+    finally:
+        os.umask(old)
+    for f in (run / "run.json", run / "stages" / "calibrate.json", run / "calibrate" / "dataset" / "manifest.json"):
+        assert f.stat().st_mode & 0o777 == 0o644, f
+    assert (run / "calibrate").stat().st_mode & 0o777 == 0o755

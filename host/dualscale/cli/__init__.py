@@ -79,6 +79,9 @@ class _Parser(argparse.ArgumentParser):
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="dualscale", description=__doc__.split("\n\n")[0],
                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    from importlib.metadata import version
+
+    p.add_argument("--version", action="version", version=f"dualscale {version('dualscale')}")
     sub = p.add_subparsers(dest="cmd", required=True)
 
     s = sub.add_parser("sim", help="start the simulated rig (prints its serial device first)")

@@ -23,8 +23,8 @@ def cmd_digitize(a: argparse.Namespace) -> int:
     opts = DigitizeOptions(input=a.input, run=a.output, calibration=a.calibration, guidance=a.guidance,
                            guidance_transfer=a.transfer, guidance_texel_mm=a.guidance_texel_mm, quality=a.quality,
                            until=a.until, threads=apply_threads(a), progress=want_progress(a), seed=a.seed)
-    print(f"digitize {opts.input} -> {opts.run} (quality {opts.quality})")
-    res = digitize(opts, on_stage=lambda st: print(_line(st), flush=True))
+    res = digitize(opts, on_stage=lambda st: print(_line(st), flush=True),
+                   on_start=lambda: print(f"digitize {opts.input} -> {opts.run} (quality {opts.quality})", flush=True))
     run = Path(a.output)
     fit = res.record("fit")
     if fit is not None:

@@ -149,7 +149,7 @@ def run_propagation(dataset: Path, maps: Path, guidance: Path, out: Path, *, pre
     if side < MIN_TRAIN_PX:
         raise InputError(f"{dataset}: the micro field ({w_m * src.texel_mm:.3g} x {h_m * src.texel_mm:.3g} mm) covers "
                          f"only {small.size[1]}x{small.size[0]} guidance pixels at {tex:.4g} mm/px; propagation needs "
-                         f"at least {MIN_TRAIN_PX} px: capture a larger micro field or a finer guidance")
+                         f"at least {MIN_TRAIN_PX} px: capture a larger micro field or a finer guidance (or state the guidance's true texel size: --guidance-texel-mm / --texel-mm)")
     if scale > 1:
         warnings.append(f"the guidance ({tex:.4g} mm/px) is finer than the micro capture ({src.texel_mm:.4g} mm/px): "
                         "the micro data were enlarged, and the maps hold no detail finer than the micro texel")
@@ -189,14 +189,14 @@ def run_propagation(dataset: Path, maps: Path, guidance: Path, out: Path, *, pre
             warnings.append(f"ONNX fp32 parity {parity:.2g} is worse than 1e-4")
     om = OnnxModel.open(p32, threads)
     info = run_tiled(om, g, out / "maps", tile, overlap, "auto", 1, progress, texel_mm=tex, box=reg.box_px,
-                     meta={"micro_box_px": list(reg.box_px), "model": str(model_path), "preset": p.name})
+                     meta={"micro_box_px": list(reg.box_px), "model": model_path.name, "preset": p.name})
     warnings += [w for w in info["warnings"] if w not in warnings]
     run_seconds = time.perf_counter() - t1
 
     # 7. self-check inside the micro field, then the summary (the stage's completion marker)
     pred, _ = load_maps(out / "maps")
     in_field = _in_field({k: v.numpy() for k, v in pred.items()}, small, reg.box_px)
-    summary = {"guidance": str(g.file), "guidance_exr": str(out / "guidance.exr"), "transfer": g.transfer,
+    summary = {"guidance": str(g.file), "guidance_exr": "guidance.exr", "transfer": g.transfer,
                "texel_mm": tex, "guidance_size_px": [g.shape[1], g.shape[0]], "micro_texel_mm": src.texel_mm,
                "micro_size_px": [w_m, h_m], "training_size_px": [small.size[1], small.size[0]],
                "micro_box_px": [round(v, 3) for v in reg.box_px], "registration": reg.to_json(),
