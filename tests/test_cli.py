@@ -244,3 +244,16 @@ def test_pio_builds_the_same_sources_and_flags_as_make():
     assert set(make) == {"stm32.srcs", "stm32.cflags", "stm32.incs", "stm32.ldflags", "stm32.libs"}
     assert make == pio
     assert "core/src/seq.c" in make["stm32.srcs"] and "-mcpu=cortex-m4" in make["stm32.cflags"]
+
+
+def test_flash_with_a_missing_tool_refuses_before_building(monkeypatch, capsys):
+    """`--tool openocd` without openocd: exit 4 at once, no firmware build first."""
+    import subprocess
+
+    from dualscale.cli import main
+
+    monkeypatch.setattr(fl.shutil, "which", lambda name: None)
+    ran = []
+    monkeypatch.setattr(subprocess, "run", lambda *a, **k: ran.append(a))
+    assert main(["flash", "--tool", "openocd"]) == 4
+    assert "openocd is not installed" in capsys.readouterr().err and ran == []

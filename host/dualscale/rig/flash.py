@@ -74,13 +74,16 @@ def flash(tool: str = "auto", dry_run: bool = False, port: str | None = None, ou
     elf = build_dir() / "stm32f405" / "dualscale.elf"
     binary = elf.with_suffix(".bin")
     cmds = [c for c in (build_command(t), flash_command(t, elf, binary)) if c]
+    missing = [c[0] for c in cmds if not shutil.which(c[0])]
     if dry_run:
         for c in cmds:
             out(shlex.join(c))
+        if missing:
+            out(f"# not installed here: {', '.join(missing)}")
         return 0
+    if missing:  # before building anything
+        raise FlashError(f"{', '.join(missing)} is not installed")
     for c in cmds:
-        if not shutil.which(c[0]):
-            raise FlashError(f"{c[0]} is not installed")
         r = subprocess.run(c)
         if r.returncode != 0:
             raise FlashError(f"`{shlex.join(c)}` failed with exit code {r.returncode}")
