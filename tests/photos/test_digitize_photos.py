@@ -28,3 +28,22 @@ def test_digitize_imported_photos(sphere_set, tmp_path, texel):
     else:
         assert meta["texel_mm"] == pytest.approx(0.05) and meta["field_mm"] == pytest.approx([2.0, 2.0])
     assert (run / "report" / "index.html").is_file()
+
+
+def test_residual_leaves_out_pixels_that_were_not_fitted(sphere_set, tmp_path):
+    """Outside the sample mask the residual map is NaN, so its statistics (the report's median)
+    describe the sample, not the background."""
+    import numpy as np
+
+    from dualscale.formats.exr import read_exr
+    from dualscale.formats.photo import read_mask
+
+    ds = tmp_path / "ds"
+    assert main(["import", str(sphere_set.folder), "--lights", str(sphere_set.lp), "-o", str(ds), "--transfer", "srgb",
+                 "--no-progress"]) == 0
+    run = tmp_path / "run"
+    assert main(["digitize", str(ds), "-o", str(run), "--quality", "draft", "--until", "fit", "--threads", "1",
+                 "--no-progress"]) == 0
+    res = read_exr(run / "fit" / "residual.exr")[..., 0]
+    mask = read_mask(ds / "mask.exr")
+    assert np.isnan(res[~mask]).all() and np.isfinite(res[mask]).all()

@@ -29,15 +29,17 @@ def _valid(obs: Observations) -> Tensor:
 
 def residual_map(maps: MaterialMaps, comps: Components, obs: Observations) -> Tensor:
     """``(H, W)`` float: per pixel, mean over lights and channels of ``|render - capture|``
-    divided by the mean capture there (relative, unitless; NaN-free: pixels with no valid
-    sample are 0)."""
+    divided by the mean capture there (relative, unitless).  A pixel with no valid sample
+    (outside the sample mask, or clipped under every light) is NaN: it was not fitted, and
+    statistics of the residual must leave it out."""
     with torch.no_grad():
         pred = render_leds(maps.to(obs.images.dtype), comps, obs)
     cap = clamp_images(obs.images)
     w = _valid(obs).unsqueeze(-1).to(cap.dtype)
     err = ((pred - cap).abs() * w).sum((0, 3))
     ref = (cap * w).sum((0, 3))
-    return torch.where(ref > EPS, err / ref.clamp_min(EPS), torch.zeros_like(ref))
+    rel = torch.where(ref > EPS, err / ref.clamp_min(EPS), torch.zeros_like(ref))
+    return torch.where(w[..., 0].sum(0) > 0, rel, torch.full_like(rel, float("nan")))
 
 
 def relative_l1(pred: Tensor, cap: Tensor, valid: Tensor | None = None) -> float:
