@@ -44,7 +44,11 @@ def register(sub) -> None:
     from dualscale.pipeline import QUALITIES, STAGES
 
     d = sub.add_parser("digitize", help="the whole job: calibrate, fit, fly-outs, propagate, export, report "
-                                        "(resumable: rerun the same command to continue)")
+                                        "(resumable: rerun the same command to continue)",
+                       description="Turn a photometric capture into SVBSDF maps: RUN/export/ holds the maps, "
+                                   "RUN/report/index.html the report. Rerunning the same command skips finished "
+                                   "stages and resumes an interrupted one. Exit codes: 0 done, 2 bad input, "
+                                   "130 interrupted (see README).")
     d.add_argument("input", help="photometric dataset folder (manifest.json), or a folder holding micro/")
     add_output(d, "run folder RUN (created; reused to resume)")
     d.add_argument("--calibration", default=None, metavar="CAL",
@@ -56,8 +60,8 @@ def register(sub) -> None:
     d.add_argument("--guidance-texel-mm", type=float, default=None, metavar="MM",
                    help="texel size of the guidance image (default: from its dataset, else the mid camera)")
     d.add_argument("--quality", choices=sorted(QUALITIES), default="standard",
-                   help="coherent presets across stages (docs/DIGITIZE.md measures them)")
+                   help="coherent presets across stages (default: standard; docs/DIGITIZE.md measures them)")
     d.add_argument("--until", choices=STAGES, default=None, help="stop after this stage")
-    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--seed", type=int, default=0, help="random seed of the fit and the training (default: 0)")
     add_work_options(d)
     d.set_defaults(fn=cmd_digitize)
