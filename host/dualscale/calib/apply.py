@@ -297,7 +297,7 @@ def to_radiance(dataset_dir: str | Path, out_dir: str | Path, calibration: str |
                 clipped_px += 0 if clipped is None else int((clipped & inside).sum())
         w.close()
     cam = cameras.get("micro") or (next(iter(cameras.values())) if cameras else None)
-    if ds.manifest.get("extra", {}).get("import", {}).get("texel_mm_known") is False:
+    if not ds.texel_known:
         cam = None  # photographs imported without a scale: the camera's field is nominal
     return {"calibration": None if plan.calibration is None else str(plan.calibration),
             "applied": list(plan.applied), "units_in": str(ds.manifest.get("units")), "units_out": CANONICAL_UNITS,

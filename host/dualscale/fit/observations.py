@@ -207,7 +207,7 @@ def load_observations(root: str | Path, camera: str | None = None, dtype: torch.
         raise InputError(f"{ds.root}: no LED images for camera {camera!r}")
     cam = ds.manifest.get("cameras", {}).get(camera, {})
     pixel_mm: float | None = float(cam["field_mm"][0]) / float(cam["width"]) if "field_mm" in cam else 0.0018
-    if ds.manifest.get("extra", {}).get("import", {}).get("texel_mm_known") is False:
+    if not ds.texel_known:
         pixel_mm = None  # photographs imported without --texel-mm: the camera's field is nominal
     f = dict(dtype=dtype)
     valid = None

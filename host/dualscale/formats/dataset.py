@@ -349,6 +349,12 @@ class Dataset:
     def rig(self) -> dict[str, Any] | None:
         return self.manifest.get("rig")
 
+    @property
+    def texel_known(self) -> bool:
+        """False for photographs imported without a scale (``extra.import.texel_mm_known``):
+        the cameras' fields are then nominal and no stage may report a physical size."""
+        return self.manifest.get("extra", {}).get("import", {}).get("texel_mm_known") is not False
+
     def mask(self) -> np.ndarray | None:
         """The sample mask ``(H, W)`` bool (True = sample pixel), or ``None`` without one."""
         return self._mask
