@@ -12,17 +12,18 @@ FUZZ_SECONDS ?= 20
 
 # Debian packages: ARM toolchain + newlib, QEMU, an independent Modbus peer (mbpoll),
 # C test framework (cmocka), clang + its runtime for libFuzzer, the GL/GLib runtime OpenCV's
-# wheel loads, headless Chromium for the HTML report's browser test (skipped when absent).
+# wheel loads, headless Chromium for the HTML report's and the viewer's browser tests, Node (npm
+# comes with NodeSource's nodejs, else Debian's npm package) for the Khronos glTF-Validator and three.js (package.json, pinned by package-lock.json).
 APT_PKGS := gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm mbpoll libmodbus-dev \
             libcmocka-dev clang libclang-rt-14-dev make gcc g++ python3-venv libgl1 libglib2.0-0 \
-            chromium
+            chromium nodejs
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: all deps apt venv gen gen-check firmware sim test test-fast test-slow demo bench fuzz fuzz-long clean
+.PHONY: all deps apt venv node gen gen-check firmware sim test test-fast test-slow demo bench fuzz fuzz-long clean
 
 all: firmware sim
 
-deps: apt venv
+deps: apt venv node
 
 apt: $(BUILD)/.apt-stamp
 $(BUILD)/.apt-stamp: Makefile
@@ -40,6 +41,23 @@ $(VENV)/.stamp: pyproject.toml
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q torch==2.13.0
 	$(PY) -m pip install -q -e '.[dev]'
+	@touch $@
+
+# npm packages (package-lock.json): the glTF-Validator the tests run, and three.js, whose module
+# build and the addons the viewer imports are copied into the package's static assets (nothing
+# is fetched when the viewer runs).
+VENDOR := host/dualscale/view/static/vendor
+THREE_ADDONS := loaders/GLTFLoader.js controls/OrbitControls.js utils/BufferGeometryUtils.js utils/SkeletonUtils.js
+node: node_modules/.stamp $(VENDOR)/.stamp
+node_modules/.stamp: package.json package-lock.json | apt
+	@command -v npm >/dev/null || { $(SUDO) apt-get update -qq && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq npm; }
+	npm ci --no-audit --no-fund --loglevel=error
+	@touch $@
+$(VENDOR)/.stamp: node_modules/.stamp
+	@mkdir -p $(VENDOR)/addons
+	cp node_modules/three/build/three.module.js node_modules/three/build/three.core.js node_modules/three/LICENSE $(VENDOR)/
+	@for f in $(THREE_ADDONS); do mkdir -p $(VENDOR)/addons/$$(dirname $$f); \
+	  cp node_modules/three/examples/jsm/$$f $(VENDOR)/addons/$$f; done
 	@touch $@
 
 gen: venv

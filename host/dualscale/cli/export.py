@@ -1,0 +1,76 @@
+"""``dualscale export MAPS -o OUT --format ...``: materials that users' tools open."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from dualscale.errors import InputError
+
+from .common import add_output
+
+FORMATS_HELP = "exr (Standard Surface inputs, float), mtlx (MaterialX), gltf, glb, u3m (.u3ma)"
+
+
+def parse_formats(text: str) -> list[str]:
+    """``"gltf,mtlx"`` or ``"all"`` -> the list of format names (order kept, duplicates dropped)."""
+    from dualscale.export.material import ALL_FORMATS
+
+    names = list(ALL_FORMATS) if text.strip() == "all" else [t.strip() for t in text.split(",") if t.strip()]
+    bad = [n for n in names if n not in ALL_FORMATS]
+    if bad or not names:
+        raise InputError(f"--format {text!r}: choose from {', '.join(ALL_FORMATS)} or 'all' (comma-separated)")
+    return list(dict.fromkeys(names))
+
+
+def parse_size_mm(text: str | None) -> tuple[float, float] | None:
+    """``"50"`` or ``"50x30"`` (mm) -> ``(w, h)``."""
+    if text is None:
+        return None
+    try:
+        parts = [float(p) for p in text.lower().split("x")]
+    except ValueError:
+        parts = []
+    if len(parts) == 1:
+        parts *= 2
+    if len(parts) != 2 or not all(p > 0 and p < 1e5 for p in parts):
+        raise InputError(f"--swatch-mm {text!r}: give W or WxH in mm, positive")
+    return parts[0], parts[1]
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    from dualscale.export.material import export_material
+
+    formats = parse_formats(args.format)
+    doc = export_material(args.maps, args.output, formats, name=args.name, tile=args.tile,
+                          swatch_mm=parse_size_mm(args.swatch_mm))
+    size = doc["repeat_mm"]
+    where = f"{size[0]:.3g} x {size[1]:.3g} mm" if size else "physical size unknown (no texel size)"
+    print(f"exported {doc['name']} ({'seamless tile, ' if doc['tiled'] else ''}{where}):")
+    for fmt, files in doc["formats"].items():
+        main = next((f for f in files if Path(f).suffix in (".mtlx", ".gltf", ".glb", ".u3ma", ".json")), files[0])
+        print(f"  {fmt:5s} {Path(args.output) / main}")
+    if doc["tiled"] and doc.get("tile"):
+        seam = doc["tile"].get("seam", {})
+        if seam:
+            print("  tile seam score " + ", ".join(f"{k} {v:.3g}" for k, v in seam.items()
+                                                   if isinstance(v, (int, float))))
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("export", help="write fitted or propagated maps as MaterialX, glTF/GLB, U3M and EXR",
+                       description="Write a maps folder (fit, propagate or tile output) in the formats that "
+                                   "users' tools open; see docs/EXPORT.md for what each format keeps. "
+                                   "Each format goes to OUT/<format>/, and OUT/export.json lists the files; "
+                                   "a rerun skips formats that are complete and unchanged.")
+    p.add_argument("maps", help="maps folder (with material.json)")
+    add_output(p, "export folder")
+    p.add_argument("--format", default="all", help=f"comma-separated: {FORMATS_HELP}; or 'all' (default)")
+    p.add_argument("--tile", action="store_true",
+                   help="cut a seamless tile of whole weave/knit repeats first and export it (its physical "
+                        "size goes into every format)")
+    p.add_argument("--name", default=None, help="material name (file stem; default: the maps folder's name)")
+    p.add_argument("--swatch-mm", default=None, metavar="W[xH]",
+                   help="size of the glTF swatch in mm (default: one repeat, or 2 x 2 tiles)")
+    p.set_defaults(fn=cmd_export)

@@ -1,0 +1,93 @@
+"""Exports: our SVBSDF maps as materials that users' tools open (issue 12).
+
+:func:`export_material` writes one maps folder (``material.json`` + EXR, see
+:mod:`dualscale.formats.maps`) in each requested format of :data:`EXPORT_FORMATS`, a
+colour-science-style ``method=`` registry::
+
+    exr   full-precision EXR maps in the exchange conventions (:mod:`.exr`)
+    mtlx  MaterialX document with standard_surface and open_pbr_surface (:mod:`.mtlx`)
+    gltf  glTF 2.0 swatch (.gltf + .bin + textures) at real-world size (:mod:`.gltf`)
+    glb   the same as one binary .glb
+    u3m   U3M 1.1 material, zipped as .u3ma (:mod:`.u3m`)
+
+Every writer has the signature ``write(ex: Exchange, ctx: ExportContext, out: Path) ->
+list[Path]``: ``out`` is the format's own folder (created by :func:`export_material`, written
+in a temporary folder that is renamed when complete), the result lists the files written.  The
+conversion from our parameters happens once, in :mod:`.exchange`; docs/EXPORT.md tabulates it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+from .exchange import Exchange, exchange
+
+DEFAULT_SWATCH_MM = 100.0  # the side of the glTF swatch when the texel size is unknown
+
+
+@dataclass
+class ExportContext:
+    """What every format writer needs besides the maps.
+
+    ``name``: the material's name (file stem, safe characters only).
+    ``repeat_mm``: physical ``(width, height)`` in mm of one texture repeat (the whole map, or
+    the seamless tile), ``None`` when the texel size is unknown.
+    ``tiled``: the maps are a seamless tile (:mod:`dualscale.tile`); formats then repeat them.
+    ``swatch_mm``: ``(width, height)`` in mm of the swatch geometry (glTF); by default the
+    repeat itself, or a 2 x 2 repeat of a tile.
+    ``meta``: provenance written into the formats' free-form fields (generator, version, source).
+    """
+
+    name: str
+    repeat_mm: tuple[float, float] | None
+    tiled: bool = False
+    swatch_mm: tuple[float, float] | None = None
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def swatch(self) -> tuple[float, float]:
+        """The swatch size in mm (see the class docstring)."""
+        if self.swatch_mm is not None:
+            return self.swatch_mm
+        if self.repeat_mm is None:
+            return DEFAULT_SWATCH_MM, DEFAULT_SWATCH_MM
+        k = 2.0 if self.tiled else 1.0
+        return k * self.repeat_mm[0], k * self.repeat_mm[1]
+
+    def repeats(self) -> tuple[float, float]:
+        """How many texture repeats cover the swatch along (u, v)."""
+        if self.repeat_mm is None:
+            return 1.0, 1.0
+        sw = self.swatch()
+        return sw[0] / self.repeat_mm[0], sw[1] / self.repeat_mm[1]
+
+
+Writer = Callable[[Exchange, ExportContext, Path], list[Path]]
+
+
+def _registry() -> dict[str, Writer]:
+    reg: dict[str, Writer] = {}
+    from . import exr as _exr
+
+    reg["exr"] = _exr.write
+    try:
+        from . import mtlx as _mtlx
+        reg["mtlx"] = _mtlx.write
+    except ImportError:  # pragma: no cover - the module lands with its tests
+        pass
+    try:
+        from . import gltf as _gltf
+        reg["gltf"] = _gltf.write_gltf
+        reg["glb"] = _gltf.write_glb
+    except ImportError:  # pragma: no cover
+        pass
+    try:
+        from . import u3m as _u3m
+        reg["u3m"] = _u3m.write
+    except ImportError:  # pragma: no cover
+        pass
+    return reg
+
+
+__all__ = ["Exchange", "ExportContext", "exchange"]

@@ -1,0 +1,153 @@
+"""``dualscale export``: one maps folder -> every requested format, with a manifest.
+
+Layout of an export folder ``OUT``::
+
+    OUT/export.json          manifest (written last: a folder with it is complete)
+    OUT/maps/                the exported maps in our own conventions (dualscale-maps)
+    OUT/exr/                 exchange EXR set (+ exchange.json)
+    OUT/mtlx/<name>.mtlx     + textures
+    OUT/gltf/<name>.gltf     + <name>.bin + textures
+    OUT/glb/<name>.glb
+    OUT/u3m/<name>.u3ma
+    OUT/tile/                the seamless tile's maps (``--tile``), in our own conventions
+
+Each format folder is written in a temporary folder and renamed (:func:`atomic_dir`), so a
+rerun after an interruption redoes only what is missing; a format whose folder is complete
+and whose source is unchanged (same ``material.json`` digest and options) is skipped.
+
+``export.json`` (version 1)::
+
+    {"format": "dualscale-export", "version": 1, "name": ..., "source": "<maps dir>",
+     "source_sha256": ..., "formats": {"glb": ["glb/<name>.glb"], ...},
+     "repeat_mm": [w, h] | null, "tiled": bool, "tile": {...} | null, "options": {...}}
+"""
+
+from __future__ import annotations
+
+import hashlib
+import re
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+from dualscale.errors import FormatError, InputError
+from dualscale.formats.atomic import atomic_dir, write_json
+from dualscale.formats.maps import load_maps, save_maps
+from dualscale.formats.versioned import read_versioned_json
+
+from . import ExportContext, _registry
+from .exchange import exchange
+
+FORMAT = "dualscale-export"
+VERSION = 1
+ALL_FORMATS = ("exr", "mtlx", "gltf", "glb", "u3m")
+_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+
+
+def formats_available() -> dict[str, Callable]:
+    """The writers of :data:`ALL_FORMATS` (the ``method=`` registry of this package)."""
+    return _registry()
+
+
+def _digest(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def read_export(out: str | Path) -> dict[str, Any]:
+    """The validated ``export.json`` of an export folder (``FileNotFoundError``/``FormatError``)."""
+    path = Path(out) / "export.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"no export.json in {out} (not a dualscale export folder)")
+    doc = read_versioned_json(path, FORMAT, (VERSION,))
+    for key in ("name", "formats", "repeat_mm"):
+        if key not in doc:
+            raise FormatError(f"{path}: missing {key!r}")
+    return doc
+
+
+def export_material(maps_dir: str | Path, out: str | Path, formats: Sequence[str] = ALL_FORMATS, *,
+                    name: str | None = None, tile: bool = False, swatch_mm: tuple[float, float] | None = None,
+                    meta: dict[str, Any] | None = None, tile_options: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Export the maps folder ``maps_dir`` into ``out`` in each of ``formats``; returns the manifest.
+
+    ``tile``: first cut a seamless tile of whole repeats (:func:`dualscale.tile.make_tile`, with
+    ``tile_options``) and export the tile, whose physical size then goes into every format.
+    ``name``: the material's file stem (default: the maps folder's parent name, sanitised).
+    Raises ``InputError`` for an unknown format or name, ``UnitsError`` from a format that
+    needs the physical size when the texel size is unknown (U3M), and the maps' own
+    ``FormatError``/``GeometryError``.
+    """
+    maps_dir, out = Path(maps_dir), Path(out)
+    reg = formats_available()
+    unknown = [f for f in formats if f not in reg]
+    if unknown:
+        raise InputError(f"unknown export format(s) {unknown}; choose from {sorted(reg)}")
+    if not formats:
+        raise InputError("no export format given")
+    if name is None:
+        stem = maps_dir.resolve().parent.name if maps_dir.name == "maps" else maps_dir.resolve().name
+        name = re.sub(r"[^A-Za-z0-9_.-]", "_", stem).strip("._-") or "material"
+    if not _NAME.match(name):
+        raise InputError(f"material name {name!r}: use letters, digits, '_', '.', '-' (at most 64)")
+    maps, mmeta = load_maps(maps_dir)
+    texel = mmeta.get("texel_mm")
+    source_sha = _digest(maps_dir / "material.json")
+    options = {"tile": bool(tile), "swatch_mm": list(swatch_mm) if swatch_mm else None,
+               "tile_options": tile_options or {}}
+    previous = _previous(out, source_sha, options)
+    out.mkdir(parents=True, exist_ok=True)
+    tile_info = None
+    if tile:
+        from dualscale.tile import make_tile, save_tile
+
+        t = make_tile(maps, texel, **(tile_options or {}))
+        maps, texel, tile_info = t.maps, t.texel_mm, t.meta()
+        if "tile" not in previous:
+            with atomic_dir(out / "tile") as tmp:
+                save_tile(t, tmp)
+    ex = exchange(maps, texel)
+    repeat = ex.size_mm
+    ctx = ExportContext(name=name, repeat_mm=repeat, tiled=bool(tile), swatch_mm=swatch_mm,
+                        meta={"generator": _generator(), "source": str(maps_dir), **(meta or {})})
+    done: dict[str, list[str]] = {}
+    if "maps" in previous and (out / "maps").is_dir():
+        done["maps"] = previous["maps"]
+    else:
+        with atomic_dir(out / "maps") as tmp:
+            save_maps(tmp, maps, {"source": str(maps_dir), "tile": tile_info}, texel_mm=texel)
+            done["maps"] = sorted(f"maps/{p.name}" for p in tmp.iterdir())
+    for fmt in formats:
+        if fmt in previous and (out / fmt).is_dir():
+            done[fmt] = previous[fmt]
+            continue
+        with atomic_dir(out / fmt) as tmp:
+            files = reg[fmt](ex, ctx, tmp)
+            done[fmt] = sorted(f"{fmt}/{Path(f).relative_to(tmp).as_posix()}" for f in files)
+    doc = {"format": FORMAT, "version": VERSION, "name": name, "source": str(maps_dir),
+           "source_sha256": source_sha, "formats": done, "repeat_mm": list(repeat) if repeat else None,
+           "texel_mm": texel, "tiled": bool(tile), "tile": tile_info, "options": options,
+           "generator": ctx.meta["generator"]}
+    write_json(out / "export.json", doc)
+    return doc
+
+
+def _previous(out: Path, source_sha: str, options: dict) -> dict[str, list[str]]:
+    """Formats of a complete earlier export of the same source with the same options."""
+    try:
+        doc = read_export(out)
+    except (FileNotFoundError, FormatError):
+        return {}
+    if doc.get("source_sha256") != source_sha or doc.get("options") != options:
+        return {}
+    done = dict(doc["formats"])
+    if doc.get("tiled"):
+        done["tile"] = []
+    return {f: files for f, files in done.items() if all((out / p).is_file() for p in files)}
+
+
+def _generator() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return f"dualscale {version('dualscale')}"
+    except PackageNotFoundError:  # pragma: no cover - running from a source tree
+        return "dualscale"
