@@ -15,7 +15,7 @@ from dualscale.bsdf.model import evaluate
 from dualscale.errors import GeometryError
 from dualscale.export.exchange import (exchange, f0_from_ior, gltf_anisotropy, gltf_transmission, luminance,
                                        openpbr_anisotropy, specular_f0_color, standard_surface_anisotropy,
-                                       standard_surface_transmission)
+                                       thin_walled_translucency)
 from dualscale.export.shading import gltf_bsdf, relative_error, standard_surface_bsdf
 
 
@@ -67,8 +67,8 @@ def test_standard_surface_and_openpbr_anisotropy_are_exact():
     aspect = np.sqrt(1 - a_s.astype(np.float64))  # Standard Surface: aspect = sqrt(1 - anisotropy)
     np.testing.assert_allclose(r.astype(np.float64) ** 2 / aspect, at, rtol=1e-5)
     np.testing.assert_allclose(r.astype(np.float64) ** 2 * aspect, ab, rtol=1e-5)
-    np.testing.assert_allclose(rot * 2 * math.pi, ex.tangent_angle, rtol=1e-6)
-    assert (rot >= 0).all() and (rot < 0.5).all()
+    np.testing.assert_allclose(rot * math.pi, ex.tangent_angle, rtol=1e-6)  # spec: 1 = 180 deg
+    assert (rot >= 0).all() and (rot < 1).all()
     r_o, a_o = openpbr_anisotropy(ex)
     a2 = r_o.astype(np.float64) ** 2  # OpenPBR: alpha_t = r^2 sqrt(2 / (1 + (1 - a)^2)), alpha_b = (1 - a) alpha_t
     t = np.minimum(1, a2 * np.sqrt(2 / (1 + (1 - a_o) ** 2)))
@@ -84,7 +84,7 @@ def test_transmission_splits_keep_the_energy():
     # glTF: (1 - T) base reflects, T base transmits: equal to ours in luminance
     np.testing.assert_allclose(luminance(g.base_color) * (1 - g.weight), luminance(b), rtol=1e-4)
     np.testing.assert_allclose(luminance(g.base_color) * g.weight, luminance(t), rtol=1e-4, atol=1e-6)
-    s = standard_surface_transmission(ex)
+    s = thin_walled_translucency(ex)
     ok = (b / (1 - s.weight[..., None]) <= 1).all(-1) & (s.color < 1).all(-1)
     assert ok.any()
     np.testing.assert_allclose((s.base_color * (1 - s.weight[..., None]))[ok], b[ok], rtol=1e-4)  # exact per channel

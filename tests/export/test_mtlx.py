@@ -17,7 +17,7 @@ from dualscale.errors import InputError  # noqa: E402
 from dualscale.export import ExportContext, exchange  # noqa: E402
 from dualscale.export import mtlx  # noqa: E402
 from dualscale.export.exchange import (  # noqa: E402
-    openpbr_anisotropy, standard_surface_anisotropy, standard_surface_transmission)
+    openpbr_anisotropy, standard_surface_anisotropy, thin_walled_translucency)
 from dualscale.export.textures import read_png  # noqa: E402
 from dualscale.formats.exr import read_exr  # noqa: E402
 from dualscale.sim.materials import generate  # noqa: E402
@@ -90,7 +90,7 @@ def _read(path: Path, srgb: bool) -> np.ndarray:
 def _expected(ex) -> dict[tuple[str, str], tuple[np.ndarray, bool, str]]:
     """(shader, input) -> (exchange value the texture must hold, sRGB?, nodes between), computed
     here from the exchange functions rather than from the writer's plan."""
-    trans = standard_surface_transmission(ex)
+    trans = thin_walled_translucency(ex)
     ss_r, ss_a, ss_rot = standard_surface_anisotropy(ex)
     op_r, op_a = openpbr_anisotropy(ex)
     base = ex.base_color if trans is None else trans.base_color
@@ -106,21 +106,21 @@ def _expected(ex) -> dict[tuple[str, str], tuple[np.ndarray, bool, str]]:
         exp[("open_pbr_surface", "specular_ior")] = (ex.ior, False, "")
     if ss_a is not None:
         exp[("standard_surface", "specular_anisotropy")] = (ss_a, False, "")
-        exp[("standard_surface", "specular_rotation")] = (ss_rot, False, "")
     if op_a is not None:
         exp[("open_pbr_surface", "specular_roughness_anisotropy")] = (op_a, False, "")
         phi = ex.tangent_angle.astype(np.float64)
         enc = 0.5 * np.stack([np.cos(phi), np.sin(phi), np.zeros_like(phi)], -1) + 0.5
         exp[("open_pbr_surface", "geometry_tangent")] = (enc, False, "normalmap")
+        exp[("standard_surface", "tangent")] = (enc, False, "normalmap")
     if ex.normal is not None:
         enc = 0.5 * ex.normal.astype(np.float64) + 0.5
         exp[("standard_surface", "normal")] = (enc, False, "normalmap")
         exp[("open_pbr_surface", "geometry_normal")] = (enc, False, "normalmap")
     if trans is not None:
-        exp[("standard_surface", "transmission")] = (trans.weight, False, "")
-        exp[("open_pbr_surface", "transmission_weight")] = (trans.weight, False, "")
-        exp[("standard_surface", "transmission_color")] = (trans.color, True, "")
-        exp[("open_pbr_surface", "transmission_color")] = (trans.color, True, "")
+        exp[("standard_surface", "subsurface")] = (trans.weight, False, "")
+        exp[("open_pbr_surface", "subsurface_weight")] = (trans.weight, False, "")
+        exp[("standard_surface", "subsurface_color")] = (trans.color, True, "")
+        exp[("open_pbr_surface", "subsurface_color")] = (trans.color, True, "")
     if ex.opacity is not None:
         exp[("standard_surface", "opacity")] = (ex.opacity, False, "convert")
         exp[("open_pbr_surface", "geometry_opacity")] = (ex.opacity, False, "")
@@ -266,28 +266,21 @@ def test_openpbr_tangent_is_our_direction(exported):
     assert float(diff.max()) < 1e-5
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "exchange.standard_surface_anisotropy gives phi/(2 pi); MaterialX 1.39's standard_surface turns "
-    "the tangent by 360*rotation degrees with rotate3d, whose GLSL/OSL turns clockwise about the "
-    "normal (MaterialX issue #2083), so the highlight direction comes out mirrored (-phi); the "
-    "Standard Surface spec v1.0.1 instead says rotation 1 = 180 degrees.  Reported to the lead."))
-def test_standard_surface_rotation_reproduces_our_direction(tmp_path):
+def test_standard_surface_direction_goes_through_the_tangent_not_the_rotation(tmp_path):
+    """MaterialX 1.39's standard_surface turns its tangent by 360 * specular_rotation degrees with
+    rotate3d, clockwise in its GLSL/OSL (MaterialX issue #2083), while the Standard Surface spec
+    says 1 = 180 degrees: no rotation value is right in both, so the writer leaves it at 0 and
+    connects the rotated tangent (the same network as OpenPBR's geometry_tangent)."""
     ex, ctx = _case("anisotropic")
     files = mtlx.write(ex, ctx, tmp_path)
     doc = mtlx.read_document(files[0])
-    fname, _, _ = _source(_shader(doc, "standard_surface").getInput("specular_rotation"))
-    rot = _read(tmp_path / fname, srgb=False)
-    # MaterialX's own graph: degrees = specular_rotation * <in2 of tangent_rotate_degree>
-    lib = mtlx.standard_libraries()
-    scale = lib.getNodeGraph("NG_standard_surface_surfaceshader_100").getNode(
-        "tangent_rotate_degree").getInputValue("in2")
-    assert "cross(_in, axis) * s" in _library_source("stdlib/genglsl/mx_rotate_vector3.glsl")
-    # rotate3d of T = +x about N = +z by a degrees, as MaterialX implements it (v c + (v x k) s)
-    a = np.radians(rot * scale)
-    t = np.stack([np.cos(a), -np.sin(a)], -1)  # (1,0,0) c + ((1,0,0) x (0,0,1)) s = (c, -s, 0)
+    ss = _shader(doc, "standard_surface")
+    assert ss.getInput("specular_rotation").getValue() == 0.0
+    fname, chain, _ = _source(ss.getInput("tangent"))
+    t = _normalmap_decode(_read(tmp_path / fname, srgb=False))
     angle = np.remainder(np.arctan2(t[..., 1], t[..., 0]), math.pi)
     diff = np.abs(np.remainder(angle - ex.tangent_angle + math.pi / 2, math.pi) - math.pi / 2)
-    assert float(diff.max()) < 1e-4
+    assert float(diff.max()) < 1e-5
 
 
 def test_shader_code_generates(exported):

@@ -146,13 +146,16 @@ def standard_surface_anisotropy(ex: Exchange) -> tuple[np.ndarray, np.ndarray | 
 
     Standard Surface (v1.0.1, as MaterialX implements it) uses ``aspect = sqrt(1 - a_s)``,
     ``alpha_x = r^2 / aspect``, ``alpha_y = r^2 aspect``: Burley's with ``a_s = 0.9 a``, so the
-    roughness is ours and the anisotropy is scaled -- exact.  ``specular_rotation`` in [0, 1) is a
-    fraction of a full turn CCW about the normal from the surface tangent (texture +u), so an axial
-    azimuth ``phi`` gives ``phi / (2 pi)``.
+    roughness is ours and the anisotropy is scaled -- exact.  ``specular_rotation`` follows the
+    specification's parameter table (v1.0.1, Specular): 0..1 turns the anisotropy 0..180 deg
+    about the normal from the surface tangent (texture +u), counter-clockwise, so it is
+    ``phi / pi``.  MaterialX 1.39.5's own graph instead turns ``360 * rotation`` degrees through
+    ``rotate3d``, clockwise in its GLSL/OSL (MaterialX issue #2083); the MaterialX writer therefore
+    leaves ``specular_rotation`` at 0 and connects the rotated ``tangent`` instead (:mod:`.mtlx`).
     """
     if ex.anisotropy is None or ex.tangent_angle is None:
         return ex.roughness, None, None
-    rotation = (ex.tangent_angle.astype(np.float64) / (2 * math.pi)).astype(np.float32)
+    rotation = (ex.tangent_angle.astype(np.float64) / math.pi).astype(np.float32)
     return ex.roughness, (0.9 * np.clip(ex.anisotropy, 0.0, 1.0)).astype(np.float32), rotation
 
 
@@ -201,12 +204,15 @@ def gltf_transmission(ex: Exchange) -> Transmission | None:
                         np.clip(total, 0, 1).astype(np.float32))
 
 
-def standard_surface_transmission(ex: Exchange) -> Transmission | None:
-    """Standard Surface / OpenPBR thin-walled split with a separate transmission colour.
+def thin_walled_translucency(ex: Exchange) -> Transmission | None:
+    """Our diffuse transmittance as a thin-walled *subsurface* lobe: Standard Surface with
+    ``thin_walled = 1`` (whose subsurface becomes a Lambertian ``translucent_bsdf``) and OpenPBR's
+    thin-walled subsurface -- the same diffuse transmission as ours (seed Sec. 5, ``t / pi``).
 
-    ``transmission = T = Y(t) / Y(b + t)``, ``base_color = b / (1 - T)`` and
-    ``transmission_color = t / T``, each clipped to [0, 1]: exact per channel unless a clip
-    bites (then the reflected or transmitted energy is reduced).  ``None`` when opaque.
+    ``weight = S = Y(t) / Y(b + t)`` (``subsurface`` / ``subsurface_weight``),
+    ``base_color = b / (1 - S)`` and ``color = t / S`` (``subsurface_color``), each clipped to
+    [0, 1]: exact per channel unless a clip bites (then the reflected or transmitted energy is
+    reduced).  ``None`` when opaque.
     """
     if ex.transmittance is None:
         return None

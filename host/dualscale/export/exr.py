@@ -8,15 +8,15 @@ every one of our parameters exactly (see :mod:`.exchange` and docs/EXPORT.md):
 ==================== ======= ============================================================
 file                 chans   value
 ==================== ======= ============================================================
-base_color.exr       RGB     diffuse reflectance (``b / (1 - transmission)`` when transmitting)
+base_color.exr       RGB     diffuse reflectance (``b / (1 - subsurface)`` when transmitting)
 specular_roughness   Y       ``r``, GGX ``alpha = r^2``
 specular_anisotropy  Y       Standard Surface anisotropy ``0.9 a`` (``aspect = sqrt(1 - s)``)
-specular_rotation    Y       fraction of a turn CCW from texture +u (axial: [0, 0.5))
+specular_rotation    Y       0..1 = 0..180 deg CCW from texture +u (the spec's unit; axial)
 specular_IOR         Y       ``eta`` per pixel (not normalised)
 specular_color       RGB     F0 tint ``chr(b) rho_s + 1 - rho_s``
 normal               XYZ     unit tangent-space normal, OpenGL (+Y = image up), in [-1, 1]
-transmission         Y       thin-walled transmission weight
-transmission_color   RGB     its tint
+subsurface           Y       thin-walled subsurface weight (Lambertian transmission)
+subsurface_color     RGB     its tint
 opacity              Y       coverage
 ==================== ======= ============================================================
 
@@ -32,15 +32,16 @@ import numpy as np
 
 from dualscale.formats.atomic import write_json
 
-from .exchange import Exchange, standard_surface_anisotropy, standard_surface_transmission
+from .exchange import Exchange, standard_surface_anisotropy, thin_walled_translucency
 from .textures import write_float
 
 CONVENTIONS = {
-    "model": "Autodesk Standard Surface v1.0.1 inputs (thin_walled when transmitting)",
+    "model": "Autodesk Standard Surface v1.0.1 inputs (thin_walled with subsurface when transmitting)",
     "base_color": "linear Rec.709 RGB",
     "specular_roughness": "r, GGX alpha = r^2",
     "specular_anisotropy": "Standard Surface: aspect = sqrt(1 - value), alpha_x = r^2 / aspect",
-    "specular_rotation": "fraction of a full turn, CCW about the normal from texture +u",
+    "specular_rotation": "0..1 = 0..180 degrees CCW about the normal from texture +u (Standard Surface spec)",
+    "subsurface": "thin-walled subsurface weight: Lambertian diffuse transmission",
     "specular_IOR": "index of refraction eta",
     "specular_color": "linear RGB F0 tint",
     "normal": "unit tangent-space XYZ, +X = texture right (+u), +Y = texture up, +Z out (OpenGL)",
@@ -52,7 +53,7 @@ def write(ex: Exchange, ctx, out: Path) -> list[Path]:
     """Write the exchange EXR set of ``ex`` into ``out`` (see the module table); returns the files."""
     out = Path(out)
     files: list[Path] = []
-    trans = standard_surface_transmission(ex)
+    trans = thin_walled_translucency(ex)
     rough, aniso, rot = standard_surface_anisotropy(ex)
     maps: dict[str, tuple[np.ndarray, tuple[str, ...]]] = {
         "base_color": (ex.base_color if trans is None else trans.base_color, ("R", "G", "B")),
@@ -68,8 +69,8 @@ def write(ex: Exchange, ctx, out: Path) -> list[Path]:
     if ex.normal is not None:
         maps["normal"] = (ex.normal, ("X", "Y", "Z"))
     if trans is not None:
-        maps["transmission"] = (trans.weight, ("Y",))
-        maps["transmission_color"] = (trans.color, ("R", "G", "B"))
+        maps["subsurface"] = (trans.weight, ("Y",))
+        maps["subsurface_color"] = (trans.color, ("R", "G", "B"))
     if ex.opacity is not None:
         maps["opacity"] = (ex.opacity, ("Y",))
     for name, (arr, chans) in maps.items():

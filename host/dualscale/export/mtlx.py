@@ -8,9 +8,9 @@ docs/EXPORT.md (MaterialX tables) says, per input, what is exact, approximated a
 Textures (rows top first; MaterialX puts texture coordinate (0, 0) at the image's lower-left,
 so image +y = +v = the bitangent, which makes our OpenGL-style normals and CCW angles right):
 
-* colour -- ``base_color``, ``specular_color``, ``transmission_color``: sRGB-encoded 8-bit PNG,
+* colour -- ``base_color``, ``specular_color``, ``subsurface_color``: sRGB-encoded 8-bit PNG,
   ``colorspace="srgb_texture"`` (MaterialX's name for the IEC 61966-2-1 texture encoding).
-* data -- roughness, anisotropy, rotation, IOR, normal, tangent, transmission weight, opacity:
+* data -- roughness, anisotropy, IOR, normal, tangent, subsurface weight, opacity:
   linear float32 EXR read by ``float``/``vector3`` image nodes.  MaterialX applies colour
   management only to ``color3``/``color4`` images, so these carry no ``colorspace`` (there is
   no ``raw`` in MaterialX's colour-space list; the document's working space ``lin_rec709`` is
@@ -50,7 +50,7 @@ from dualscale.errors import InputError
 from dualscale.formats.atomic import write_text
 
 from . import ExportContext
-from .exchange import Exchange, openpbr_anisotropy, standard_surface_anisotropy, standard_surface_transmission
+from .exchange import Exchange, openpbr_anisotropy, standard_surface_anisotropy, thin_walled_translucency
 from .textures import encode_normal, write_float, write_png
 
 MTLX_VERSION = "1.39"
@@ -136,7 +136,7 @@ def _check_inputs(ex: Exchange, ctx: ExportContext) -> None:
 def plan_textures(ex: Exchange) -> dict[str, _Tex]:
     """The textures of ``ex``, keyed by role (see the module docstring), values in exchange
     conventions: what :func:`write` stores and what the tests decode back."""
-    trans = standard_surface_transmission(ex)
+    trans = thin_walled_translucency(ex)
     ss_rough, ss_aniso, ss_rot = standard_surface_anisotropy(ex)
     op_rough, op_aniso = openpbr_anisotropy(ex)
     tex: dict[str, _Tex] = {
@@ -147,22 +147,21 @@ def plan_textures(ex: Exchange) -> dict[str, _Tex]:
         tex["specular_color"] = _Tex("specular_color", ex.specular_color, "srgb", "color3")
     if ex.ior is not None:
         tex["specular_ior"] = _Tex("specular_ior", ex.ior, "data", "float")
-    if ss_aniso is not None:
+    if ss_aniso is not None:  # the direction goes through the tangent input (specular_rotation stays 0)
         tex["specular_anisotropy"] = _Tex("specular_anisotropy", ss_aniso, "data", "float")
-        tex["specular_rotation"] = _Tex("specular_rotation", ss_rot, "data", "float")
     if op_aniso is not None:
         if not np.array_equal(op_rough, ss_rough):
             tex["openpbr_specular_roughness"] = _Tex("openpbr_specular_roughness", op_rough, "data", "float")
         tex["openpbr_roughness_anisotropy"] = _Tex("openpbr_roughness_anisotropy", op_aniso, "data", "float")
-    if ex.tangent_angle is not None and op_aniso is not None:
+    if ex.tangent_angle is not None and (op_aniso is not None or ss_aniso is not None):
         phi = ex.tangent_angle.astype(np.float64)
         direction = np.stack([np.cos(phi), np.sin(phi), np.zeros_like(phi)], -1)
         tex["tangent"] = _Tex("tangent", encode_normal(direction), "data", "vector3")
     if ex.normal is not None:
         tex["normal"] = _Tex("normal", encode_normal(ex.normal), "data", "vector3")
     if trans is not None:
-        tex["transmission"] = _Tex("transmission", trans.weight, "data", "float")
-        tex["transmission_color"] = _Tex("transmission_color", trans.color, "srgb", "color3")
+        tex["subsurface"] = _Tex("subsurface", trans.weight, "data", "float")
+        tex["subsurface_color"] = _Tex("subsurface_color", trans.color, "srgb", "color3")
     if ex.opacity is not None:
         tex["opacity"] = _Tex("opacity", ex.opacity, "data", "float")
     return tex
@@ -239,7 +238,7 @@ def build_document(ex: Exchange, ctx: ExportContext, textures: dict[str, _Tex]):
         i.setNodeGraphString(graph.getName())
         i.setOutputString(outputs[role])
 
-    transmits = "transmission" in textures
+    transmits = "subsurface" in textures
     # -- Autodesk Standard Surface ------------------------------------------------------------
     ss = doc.addNode("standard_surface", f"SR_{elem}_standard_surface", "surfaceshader")
     ss.setInputValue("base", 1.0, "float")
@@ -258,13 +257,14 @@ def build_document(ex: Exchange, ctx: ExportContext, textures: dict[str, _Tex]):
         ss.setInputValue("specular_IOR", float(ex.ior_scalar), "float")
     if "specular_anisotropy" in textures:
         connect(ss, "specular_anisotropy", "specular_anisotropy", "float")
-        connect(ss, "specular_rotation", "specular_rotation", "float")
+        ss.setInputValue("specular_rotation", 0.0, "float")  # see exchange.standard_surface_anisotropy
+        connect(ss, "tangent", "tangent", "vector3")
     if "normal" in textures:
         connect(ss, "normal", "normal", "vector3")
     if transmits:
-        ss.setInputValue("thin_walled", True, "boolean")
-        connect(ss, "transmission", "transmission", "float")
-        connect(ss, "transmission_color", "transmission_color", "color3")
+        ss.setInputValue("thin_walled", True, "boolean")  # subsurface -> Lambertian translucent_bsdf
+        connect(ss, "subsurface", "subsurface", "float")
+        connect(ss, "subsurface_color", "subsurface_color", "color3")
     if "opacity" in textures:
         connect(ss, "opacity", "opacity_color", "color3")
 
@@ -292,9 +292,9 @@ def build_document(ex: Exchange, ctx: ExportContext, textures: dict[str, _Tex]):
     if "normal" in textures:
         connect(op, "geometry_normal", "normal", "vector3")
     if transmits:
-        op.setInputValue("geometry_thin_walled", True, "boolean")
-        connect(op, "transmission_weight", "transmission", "float")
-        connect(op, "transmission_color", "transmission_color", "color3")
+        op.setInputValue("geometry_thin_walled", True, "boolean")  # thin-walled subsurface: diffuse transmission
+        connect(op, "subsurface_weight", "subsurface", "float")
+        connect(op, "subsurface_color", "subsurface_color", "color3")
     if "opacity" in textures:
         connect(op, "geometry_opacity", "opacity", "float")
 

@@ -125,7 +125,7 @@ def _specular_maps(params: dict, h: int, w: int) -> MaterialMaps:
     tangent = None
     if aniso is not None:
         aniso = _t(np.clip(np.asarray(aniso) / 0.9, 0, 1), torch.float32)
-        tangent = _t(np.remainder(2.0 * np.asarray(params["specular_rotation"]), 1.0), torch.float32)
+        tangent = _t(np.remainder(np.asarray(params["specular_rotation"]), 1.0), torch.float32)  # phi / pi
     eta = params.get("specular_IOR")
     ior = None if eta is None or np.isscalar(eta) else _t((np.asarray(eta) - 1.0) / 2.0, torch.float32)
     normal = _t(params.get("normal"), torch.float32)
@@ -176,7 +176,7 @@ def standard_surface_bsdf(params: dict[str, np.ndarray | float | None], light_di
     """Standard Surface BSDF times cosine (module docstring).  ``params`` use the input names of
     :mod:`.exr`: ``base_color``, ``specular_roughness``, ``specular_anisotropy`` / ``specular_rotation``
     (or None), ``specular_IOR`` (H, W) or float, ``specular_color`` or None, ``normal`` or None,
-    ``transmission`` or None, ``opacity`` or None."""
+    ``subsurface`` (thin-walled) or None, ``opacity`` or None."""
     from dualscale.bsdf.model import evaluate
 
     l = torch.as_tensor(np.asarray(light_dirs), dtype=torch.float64)
@@ -198,7 +198,7 @@ def standard_surface_bsdf(params: dict[str, np.ndarray | float | None], light_di
     cl = (l.reshape(-1, 1, 1, 3) * (n[None] if n is not None else torch.tensor([0.0, 0, 1]).reshape(1, 1, 1, 3))
           ).sum(-1, keepdim=True).clamp_min(0)
     diffuse = base[None] / math.pi * (1 - e_v[None]).clamp_min(0) * cl
-    trans = _t(params.get("transmission"))
+    trans = _t(params.get("subsurface"))
     if trans is not None:
         diffuse = diffuse * (1 - trans[None])
     out = diffuse + spec

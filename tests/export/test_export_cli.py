@@ -1,0 +1,94 @@
+"""``dualscale export``: every format from one maps folder, the manifest, resume, refusals."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dualscale.cli import main
+from dualscale.export.material import ALL_FORMATS, export_material, formats_available, read_export
+from dualscale.formats.exr import read_exr
+from dualscale.formats.maps import load_maps, save_maps
+from dualscale.sim.materials import generate
+
+
+@pytest.fixture(scope="module")
+def twill(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("twill") / "maps"
+    mat = generate("twill", size=32, texel_mm=0.02, seed=1)
+    save_maps(root, mat.maps, {"material": "twill"}, texel_mm=0.02)
+    return root
+
+
+def test_every_format_is_registered():
+    assert set(formats_available()) == set(ALL_FORMATS)
+
+
+def test_export_writes_every_format_and_a_manifest(twill, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["export", str(twill), "-o", str(out), "--name", "twill"]) == 0
+    doc = read_export(out)
+    assert doc["name"] == "twill" and set(doc["formats"]) == {"maps", *ALL_FORMATS}
+    assert doc["repeat_mm"] == pytest.approx([0.64, 0.64]) and not doc["tiled"]
+    for files in doc["formats"].values():
+        assert files and all((out / f).is_file() for f in files)
+    assert not [p for p in out.rglob("*") if p.name.startswith(".tmp-")]
+    text = capsys.readouterr().out
+    assert "0.64 x 0.64 mm" in text and str(out / "glb" / "twill.glb") in text
+    maps, meta = load_maps(out / "maps")  # our own conventions, beside the exchange set
+    assert meta["texel_mm"] == pytest.approx(0.02) and maps.shape == (32, 32)
+
+
+def test_exchange_exr_is_full_precision_standard_surface(twill, tmp_path):
+    export_material(twill, tmp_path, ["exr"])
+    maps, _ = load_maps(twill)
+    ex = json.loads((tmp_path / "exr" / "exchange.json").read_text())
+    assert ex["repeat_mm"] == pytest.approx([0.64, 0.64])
+    np.testing.assert_array_equal(read_exr(tmp_path / "exr" / "base_color.exr", ("R", "G", "B")),
+                                  maps.albedo.numpy())
+    np.testing.assert_array_equal(read_exr(tmp_path / "exr" / "specular_roughness.exr", ("Y",)),
+                                  maps.roughness.numpy())
+    n = read_exr(tmp_path / "exr" / "normal.exr", ("X", "Y", "Z"))
+    np.testing.assert_array_equal(n, maps.normal.numpy())
+
+
+def test_rerun_skips_complete_formats_and_redoes_a_missing_one(twill, tmp_path):
+    out = tmp_path / "out"
+    export_material(twill, out, ["exr", "glb"])
+    glb = next((out / "glb").glob("*.glb"))
+    stamp = glb.stat().st_mtime_ns
+    (out / "exr" / "base_color.exr").unlink()
+    doc = export_material(twill, out, ["exr", "glb"])
+    assert glb.stat().st_mtime_ns == stamp  # unchanged: skipped
+    assert (out / "exr" / "base_color.exr").is_file() and set(doc["formats"]) == {"maps", "exr", "glb"}
+
+
+@pytest.mark.parametrize("argv, says", [
+    (["--format", "obj"], "--format 'obj'"),
+    (["--name", "bad name!"], "material name"),
+    (["--swatch-mm", "-3"], "--swatch-mm"),
+])
+def test_bad_options_exit_2_and_write_nothing(twill, tmp_path, capsys, argv, says):
+    out = tmp_path / "out"
+    assert main(["export", str(twill), "-o", str(out), *argv]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and says in err[0]
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_not_a_maps_folder_exits_2(tmp_path, capsys):
+    assert main(["export", str(tmp_path), "-o", str(tmp_path / "out")]) == 2
+    assert "material.json" in capsys.readouterr().err
+
+
+def test_unknown_size_refuses_u3m_but_not_the_others(tmp_path, capsys):
+    mat = generate("twill", size=16, texel_mm=0.02, seed=1)
+    save_maps(tmp_path / "maps", mat.maps, {})  # no texel size
+    assert main(["export", str(tmp_path / "maps"), "-o", str(tmp_path / "a"), "--format", "u3m"]) == 2
+    assert "texel" in capsys.readouterr().err
+    assert not (tmp_path / "a" / "u3m").exists()
+    assert main(["export", str(tmp_path / "maps"), "-o", str(tmp_path / "b"), "--format", "glb,mtlx"]) == 0
+    assert read_export(tmp_path / "b")["repeat_mm"] is None
