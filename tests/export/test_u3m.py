@@ -21,7 +21,7 @@ import torch
 from dualscale.bsdf import MaterialMaps
 from dualscale.errors import UnitsError
 from dualscale.export import ExportContext, exchange
-from dualscale.export.exchange import f0_from_ior, gltf_transmission, luminance, standard_surface_anisotropy
+from dualscale.export.exchange import f0_from_ior, gltf_transmission, luminance
 from dualscale.export.textures import decode_normal, read_png
 from dualscale.export.u3m import _principled_tint, write
 from dualscale.sim.materials import generate
@@ -371,7 +371,9 @@ def test_principled_tint_inverts_the_principled_formula():
     assert _principled_tint(None, grey) is None
 
 
-def test_rotation_is_the_standard_surface_turn(twill):
+def test_rotation_is_a_fraction_of_a_full_turn(twill, tmp_path):
     # U3M "anisotropy_rotation ... value is in percent, to get to degree, multiply by 360"
-    _, _, rot = standard_surface_anisotropy(twill)
-    assert np.allclose(rot * 360.0, np.degrees(twill.tangent_angle), atol=1e-3)
+    ctx = ExportContext("twill", (1.0, 1.0))
+    path = write(twill, ctx, tmp_path)[0]
+    rot = _scalar(U3ma(path), "anisotropy_rotation", tmp_path)
+    assert np.allclose(rot * 360.0, np.degrees(twill.tangent_angle), atol=0.01)

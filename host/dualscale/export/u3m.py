@@ -14,8 +14,8 @@ with the principled model's definition):
   with transmission the glTF-style split of :func:`.exchange.gltf_transmission` (``b + t``).
 * ``roughness``: ``r`` (principled ``alpha = r^2``, our ``sigma_r``) -- copied.
 * ``anisotropy_value``: our ``a`` (principled ``aspect = sqrt(1 - 0.9 a)``, Burley's, ours) and
-  ``anisotropy_rotation``: a fraction of a full turn CCW from texture +u
-  (:func:`.exchange.standard_surface_anisotropy`'s rotation; axial, so in [0, 0.5)).
+  ``anisotropy_rotation``: a fraction of a full turn CCW from texture +u, ``phi / (2 pi)`` (the
+  schema: "value is in percent, to get to degree, multiply by 360"; axial, so in [0, 0.5)).
 * ``normal``: OpenGL (+Y = image up), the exchange convention -- no flip -- encoded ``(n + 1) / 2``.
 * ``ior``: ``eta`` per pixel; ``specular_value``: principled ``F0 / 0.08`` of that ``eta``
   (the schema: "[0%, 8%] -> 0.0 equals 0%, and 1.0 equals 8%").
@@ -53,7 +53,7 @@ import numpy as np
 from dualscale.errors import UnitsError
 from dualscale.formats.atomic import atomic_path
 
-from .exchange import Exchange, f0_from_ior, gltf_transmission, luminance, standard_surface_anisotropy
+from .exchange import Exchange, f0_from_ior, gltf_transmission, luminance
 from .textures import encode_normal, write_png
 
 SCHEMA_VERSION = "1.1"
@@ -166,7 +166,8 @@ def _visualisation(ex: Exchange, tx: _Textures) -> dict[str, Any]:
         "mode": "multiply", "factor": {"r": 1.0, "g": 1.0, "b": 1.0},
         "image": tx.png("basecolor", base, srgb=True, bits=8)}}
     vis["roughness"] = tx.scalar("roughness", ex.roughness, 0.7)
-    _, _, rotation = standard_surface_anisotropy(ex)
+    # "value is in percent, to get to degree, multiply by 360": a fraction of a full turn
+    rotation = None if ex.tangent_angle is None else (ex.tangent_angle.astype(np.float64) / (2 * math.pi))
     if ex.anisotropy is not None and rotation is not None:
         vis["anisotropy_value"] = tx.scalar("anisotropy", ex.anisotropy, 0.0)
         vis["anisotropy_rotation"] = tx.scalar("anisotropy_rotation", rotation, 0.0)
