@@ -88,6 +88,9 @@ class DigitizeOptions:
     threads: int | None = None
     progress: bool = False
     seed: int = 0
+    export: tuple[str, ...] = ("exr", "mtlx", "gltf", "glb", "u3m")
+    tile: bool = False
+    name: str | None = None
 
     def __post_init__(self) -> None:
         self.input, self.run = Path(self.input), Path(self.run)
@@ -95,6 +98,12 @@ class DigitizeOptions:
         self.guidance = None if self.guidance is None else Path(self.guidance)
         if self.quality not in QUALITIES:
             raise InputError(f"--quality {self.quality!r}: choose one of {', '.join(QUALITIES)}")
+        self.export = tuple(self.export)
+        from dualscale.export.material import ALL_FORMATS
+
+        bad = [f for f in self.export if f not in ALL_FORMATS]
+        if bad:
+            raise InputError(f"--export {','.join(bad)}: choose from {', '.join(ALL_FORMATS)}")
         if self.until is not None and self.until not in STAGES:
             raise InputError(f"--until {self.until!r}: choose one of {', '.join(STAGES)}")
 
@@ -372,21 +381,55 @@ class Digitizer:
 
     def export(self) -> StageResult:
         inputs = {"fit": self._prev("fit"), "propagate": self._prev("propagate")}
-        return self._stage("export", inputs, {}, self._export)
+        params = {"formats": list(self.opts.export), "tile": self.opts.tile, "name": self.material_name()}
+        return self._stage("export", inputs, params, self._export)
+
+    def material_name(self) -> str:
+        """The exported material's name: ``--name``, else the input folder's (its parent's for
+        a ``micro/`` folder), sanitised to a file stem."""
+        import re
+
+        if self.opts.name:
+            return self.opts.name
+        src = self.opts.input.resolve()
+        stem = src.parent.name if src.name == "micro" else src.name
+        return re.sub(r"[^A-Za-z0-9_.-]", "_", stem).strip("._-") or "material"
 
     def _export(self, work: Path) -> dict[str, Any]:
-        from dualscale.formats.maps import load_maps, save_maps
+        """Both scales in every requested format (:func:`dualscale.export.material.export_material`):
+        ``RUN/export/micro`` from the fit, ``RUN/export/mesoscale`` from propagation.  The seamless
+        tile (``--tile``) is cut from the mesoscale maps, the only ones spanning several repeats;
+        where no repeat is found the untiled maps are exported and the stage records why.  U3M
+        needs the physical size: without a texel size it is left out, with a warning."""
+        from dualscale.errors import InputError as _InputError
+        from dualscale.export.material import export_material
+        from dualscale.formats.maps import read_material_json
 
-        files = []
+        summary: dict[str, Any] = {"formats": list(self.opts.export), "exports": {}}
+        notes: list[str] = []
         sources = {"micro": self.out("fit") / "maps", "mesoscale": self.out("propagate") / "maps"}
-        for name, src in sources.items():
+        for scale, src in sources.items():
             if not (src / "material.json").is_file():
                 continue
-            maps, meta = load_maps(src)
-            save_maps(work / name, maps, {k: v for k, v in meta.items() if k not in ("texel_mm", "field_mm")},
-                      texel_mm=meta.get("texel_mm"))
-            files += sorted(str(p.relative_to(work)) for p in (work / name).iterdir())
-        return {"files": files, "formats": ["OpenEXR maps (dualscale-maps)", "PNG previews"]}
+            formats = list(self.opts.export)
+            if "u3m" in formats and not read_material_json(src).get("texel_mm"):
+                formats.remove("u3m")
+                notes.append(f"{scale}: U3M left out: the texel size is unknown (import with --texel-mm)")
+            if not formats:
+                continue
+            name = self.material_name() + ("" if scale == "mesoscale" else "_micro")
+            tile = self.opts.tile and scale == "mesoscale"
+            try:
+                doc = export_material(src, work / scale, formats, name=name, tile=tile)
+            except _InputError as e:
+                if not tile:
+                    raise
+                notes.append(f"{scale}: no seamless tile ({e}); exported the untiled maps")
+                doc = export_material(src, work / scale, formats, name=name, tile=False)
+            summary["exports"][scale] = {"name": doc["name"], "repeat_mm": doc["repeat_mm"], "tiled": doc["tiled"],
+                                         "tile": doc["tile"], "files": doc["formats"]}
+        summary["warnings"] = notes
+        return summary
 
     def report(self) -> StageResult:
         inputs = {s: self._prev(s) for s in STAGES[:-1]}

@@ -79,15 +79,18 @@ def test_standard_surface_and_openpbr_anisotropy_are_exact():
 def test_transmission_splits_keep_the_energy():
     m = _maps(trans=True)
     ex = exchange(m)
-    g = gltf_transmission(ex)
     b, t = ex.base_color.astype(np.float64), ex.transmittance.astype(np.float64)
-    # glTF: (1 - T) base reflects, T base transmits: equal to ours in luminance
-    np.testing.assert_allclose(luminance(g.base_color) * (1 - g.weight), luminance(b), rtol=1e-4)
-    np.testing.assert_allclose(luminance(g.base_color) * g.weight, luminance(t), rtol=1e-4, atol=1e-6)
+    g = gltf_transmission(ex)
+    # glTF: (1 - T) base reflects -- ours exactly -- and T base transmits: ours in luminance where T was
+    # not lowered to keep base below 1
+    np.testing.assert_allclose(g.base_color * (1 - g.weight[..., None]), b, rtol=1e-4, atol=1e-6)
+    free = g.weight < 1 - b.max(-1) - 1e-6
+    assert free.any()
+    np.testing.assert_allclose((luminance(g.base_color) * g.weight)[free], luminance(t)[free], rtol=1e-4)
     s = thin_walled_translucency(ex)
-    ok = (b / (1 - s.weight[..., None]) <= 1).all(-1) & (s.color < 1).all(-1)
+    ok = b.max(-1) + t.max(-1) <= 1  # a split exact per channel exists
     assert ok.any()
-    np.testing.assert_allclose((s.base_color * (1 - s.weight[..., None]))[ok], b[ok], rtol=1e-4)  # exact per channel
+    np.testing.assert_allclose((s.base_color * (1 - s.weight[..., None]))[ok], b[ok], rtol=1e-4, atol=1e-6)
     np.testing.assert_allclose((s.color * s.weight[..., None])[ok], t[ok], rtol=1e-4, atol=1e-6)
     assert gltf_transmission(exchange(_maps())) is None
 

@@ -41,7 +41,14 @@ def test_digitize_runs_every_stage_and_records_it(sample, tmp_path, capsys):
     assert 0 < fit["heldout_relative_l1"] < 0.2 and fit["heldout_images"] > 0
     assert (run / "fit" / "maps" / "material.json").is_file() and (run / "fit" / "residual.exr").is_file()
     assert json.loads((run / "fit" / "maps" / "material.json").read_text())["texel_mm"] == pytest.approx(0.009)
-    assert (run / "export" / "micro" / "albedo.exr").is_file()
+    assert (run / "export" / "micro" / "maps" / "albedo.exr").is_file()
+    exp = recs["export"]["summary"]["exports"]
+    assert set(exp) == {"micro", "mesoscale"}
+    for scale, e in exp.items():
+        doc = json.loads((run / "export" / scale / "export.json").read_text())
+        assert set(doc["formats"]) == {"maps", "exr", "mtlx", "gltf", "glb", "u3m"} and doc["name"] == e["name"]
+        assert doc["repeat_mm"][0] > 0 and all((run / "export" / scale / f).is_file()
+                                               for files in doc["formats"].values() for f in files)
     assert (run / "report" / "index.html").is_file()
     assert not (run / "work").exists() or not any((run / "work").iterdir())
     out = capsys.readouterr().out

@@ -132,6 +132,9 @@ def build_parser() -> argparse.ArgumentParser:
     from .importer import register as register_import
 
     register_import(sub)
+    from .tile import register as register_tile
+
+    register_tile(sub)
     from .export import register as register_export
 
     register_export(sub)

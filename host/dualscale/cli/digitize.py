@@ -18,11 +18,14 @@ def _line(st) -> str:
 
 
 def cmd_digitize(a: argparse.Namespace) -> int:
+    from .export import parse_formats
+
     from dualscale.pipeline import DigitizeOptions, digitize
 
     opts = DigitizeOptions(input=a.input, run=a.output, calibration=a.calibration, guidance=a.guidance,
                            guidance_transfer=a.transfer, guidance_texel_mm=a.guidance_texel_mm, quality=a.quality,
-                           until=a.until, threads=apply_threads(a), progress=want_progress(a), seed=a.seed)
+                           until=a.until, threads=apply_threads(a), progress=want_progress(a), seed=a.seed,
+                           export=tuple(parse_formats(a.export)), tile=a.tile, name=a.name)
     res = digitize(opts, on_stage=lambda st: print(_line(st), flush=True),
                    on_start=lambda: print(f"digitize {opts.input} -> {opts.run} (quality {opts.quality})", flush=True))
     run = Path(a.output)
@@ -32,8 +35,13 @@ def cmd_digitize(a: argparse.Namespace) -> int:
         rel = s.get("heldout_relative_l1")
         print(f"fit: preset {s['preset']}, held-out relative L1 "
               f"{'n/a' if rel is None else f'{rel:.3f}'} over {s['heldout_images']} held-out images")
-    if res.record("export") is not None:
-        print(f"maps:   {run / 'export'}")
+    exp = res.record("export")
+    if exp is not None:
+        for scale, e in exp["summary"].get("exports", {}).items():
+            size = e.get("repeat_mm")
+            where = f"{size[0]:.3g} x {size[1]:.3g} mm" if size else "size unknown"
+            print(f"export: {run / 'export' / scale} ({e['name']}, {'tile ' if e.get('tiled') else ''}{where}: "
+                  f"{', '.join(f for f in e['files'] if f != 'maps')})")
     if res.record("report") is not None:
         print(f"report: {run / 'report' / 'index.html'}")
     return 0
@@ -43,9 +51,12 @@ def register(sub) -> None:
     """Add ``digitize`` to an argparse subparsers object."""
     from dualscale.pipeline import QUALITIES, STAGES
 
+    from .export import FORMATS_HELP
+
     d = sub.add_parser("digitize", help="the whole job: calibrate, fit, fly-outs, propagate, export, report "
                                         "(resumable: rerun the same command to continue)",
-                       description="Turn a photometric capture into SVBSDF maps: RUN/export/ holds the maps, "
+                       description="Turn a photometric capture into SVBSDF maps and materials: RUN/export/{micro,mesoscale}/ "
+                                   "hold the maps and the MaterialX, glTF/GLB, U3M and EXR exports (docs/EXPORT.md), "
                                    "RUN/report/index.html the report. Rerunning the same command skips finished "
                                    "stages and resumes an interrupted one. Exit codes: 0 done, 2 bad input, "
                                    "130 interrupted (see README).")
@@ -63,5 +74,10 @@ def register(sub) -> None:
                    help="coherent presets across stages (default: standard; docs/DIGITIZE.md measures them)")
     d.add_argument("--until", choices=STAGES, default=None, help="stop after this stage")
     d.add_argument("--seed", type=int, default=0, help="random seed of the fit and the training (default: 0)")
+    d.add_argument("--export", default="all", metavar="FORMATS",
+                   help=f"export formats, comma-separated: {FORMATS_HELP}; or 'all' (default)")
+    d.add_argument("--tile", action="store_true",
+                   help="export a seamless tile of whole repeats of the propagated maps (docs/TILE.md)")
+    d.add_argument("--name", default=None, help="material name in the exports (default: the input folder's name)")
     add_work_options(d)
     d.set_defaults(fn=cmd_digitize)

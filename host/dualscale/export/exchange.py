@@ -190,18 +190,21 @@ def gltf_transmission(ex: Exchange) -> Transmission | None:
     """``KHR_materials_transmission`` on a thin-walled surface (no ``KHR_materials_volume``).
 
     glTF scatters ``(1 - T) base`` diffusely and transmits ``T base`` (tinted by the base colour,
-    through a microfacet BTDF of the same roughness).  Energy per channel is matched in luminance:
-    ``base = b + t`` (clipped to 1) and ``T = Y(t) / Y(b + t)``; the chromaticity of ``t`` is lost
-    (glTF transmits with the base colour).  ``None`` when the sample does not transmit.
+    through a microfacet BTDF of the same roughness).  One colour cannot hold both our ``b`` and
+    ``t``, so the reflection, what most views see, is kept exactly: ``base = b / (1 - T)``, with
+    ``T = Y(t) / Y(b + t)`` (the transmitted luminance ``Y(base) T = Y(t)`` is then ours too),
+    lowered where needed to ``1 - max(b)`` so that no channel of ``base`` clips (then less is
+    transmitted).  Lost: the chromaticity of ``t`` (glTF transmits with the base colour) and its
+    diffuse angular shape.  ``None`` when the sample does not transmit.
     """
     if ex.transmittance is None:
         return None
     b, t = ex.base_color.astype(np.float64), ex.transmittance.astype(np.float64)
-    total = b + t
-    yt, ytot = t @ LUMINANCE, total @ LUMINANCE
+    yt, ytot = t @ LUMINANCE, (b + t) @ LUMINANCE
     weight = np.where(ytot > 1e-6, yt / np.maximum(ytot, 1e-6), 0.0)
-    return Transmission(np.clip(total, 0, 1).astype(np.float32), weight.astype(np.float32),
-                        np.clip(total, 0, 1).astype(np.float32))
+    weight = np.minimum(weight, np.clip(1.0 - b.max(-1), 0.0, 1.0))
+    base = np.clip(b / np.maximum(1.0 - weight, 1e-6)[..., None], 0, 1)
+    return Transmission(base.astype(np.float32), weight.astype(np.float32), base.astype(np.float32))
 
 
 def thin_walled_translucency(ex: Exchange) -> Transmission | None:
@@ -209,16 +212,20 @@ def thin_walled_translucency(ex: Exchange) -> Transmission | None:
     ``thin_walled = 1`` (whose subsurface becomes a Lambertian ``translucent_bsdf``) and OpenPBR's
     thin-walled subsurface -- the same diffuse transmission as ours (seed Sec. 5, ``t / pi``).
 
-    ``weight = S = Y(t) / Y(b + t)`` (``subsurface`` / ``subsurface_weight``),
-    ``base_color = b / (1 - S)`` and ``color = t / S`` (``subsurface_color``), each clipped to
-    [0, 1]: exact per channel unless a clip bites (then the reflected or transmitted energy is
-    reduced).  ``None`` when opaque.
+    ``weight = S``, ``base_color = b / (1 - S)`` and ``color = t / S`` (``subsurface_color``): exact
+    per channel whenever some ``S`` in ``[max(t), 1 - max(b)]`` exists (i.e. ``max b + max t <= 1``);
+    we take ``S = Y(t) / Y(b + t)`` clamped to that interval.  Where it is empty (very bright
+    samples) ``S = 1 - max(b)`` keeps the reflection exact and the transmission colour clips
+    (less is transmitted), as in :func:`gltf_transmission`.  ``None`` when opaque.
     """
     if ex.transmittance is None:
         return None
     b, t = ex.base_color.astype(np.float64), ex.transmittance.astype(np.float64)
     yt, ytot = t @ LUMINANCE, (b + t) @ LUMINANCE
     w = np.where(ytot > 1e-6, yt / np.maximum(ytot, 1e-6), 0.0)
+    lo, hi = t.max(-1), 1.0 - b.max(-1)
+    w = np.where(lo <= hi, np.clip(w, lo, hi), hi)
+    w = np.clip(w, 0.0, 1.0)
     base = b / np.maximum(1.0 - w, 1e-6)[..., None]
     col = np.where(w[..., None] > 1e-6, t / np.maximum(w, 1e-6)[..., None], 1.0)
     return Transmission(np.clip(base, 0, 1).astype(np.float32), w.astype(np.float32),

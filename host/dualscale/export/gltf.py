@@ -57,7 +57,7 @@ import pygltflib as g
 
 from dualscale import __version__
 from dualscale.errors import InputError, UnitsError
-from dualscale.formats.atomic import atomic_path, write_bytes, write_text
+from dualscale.formats.atomic import write_bytes, write_text
 
 from .exchange import Exchange, gltf_anisotropy, gltf_transmission, specular_f0_color
 from .swatch import SwatchMesh, swatch_mesh
@@ -84,40 +84,6 @@ class _Tex:
     bits: int
 
 
-def _write_rgba_srgb(path: Path, rgb: np.ndarray, alpha: np.ndarray) -> Path:
-    """Base colour with coverage as an 8-bit RGBA PNG: RGB sRGB-encoded, alpha *linear* and
-    *unassociated* (glTF 2.0 spec Sec. 3.9.2: "The fourth component (A) is the linear alpha
-    coverage"; PNG stores straight alpha).
-
-    Not :func:`.textures.write_png`, which (a) sRGB-encodes the alpha channel too and (b) lets
-    OpenImageIO treat the buffer as premultiplied: its PNG writer divides RGB by alpha unless
-    ``oiio:UnassociatedAlpha`` is set (and its reader multiplies back).  To move into
-    ``textures.write_png`` / ``read_png`` once they handle alpha.
-    """
-    import colour
-    import OpenImageIO as oiio
-
-    img = np.concatenate([np.asarray(rgb, np.float64), np.asarray(alpha, np.float64)[..., None]], -1)
-    if not np.isfinite(img).all() or img.min() < -1e-4 or img.max() > 1 + 1e-4:
-        raise ValueError(f"texture {Path(path).name}: values must be finite and in [0, 1]")
-    img = np.clip(img, 0.0, 1.0)
-    img[..., :3] = np.clip(colour.models.eotf_inverse_sRGB(img[..., :3]), 0.0, 1.0)
-    q = np.round(img * 255.0).astype(np.uint8)
-    spec = oiio.ImageSpec(q.shape[1], q.shape[0], 4, oiio.UINT8)
-    spec.attribute("oiio:ColorSpace", "srgb_rec709_scene")
-    spec.attribute("oiio:UnassociatedAlpha", 1)  # store the values as given: no un-premultiply
-    with atomic_path(path) as tmp:
-        out = oiio.ImageOutput.create(str(tmp))
-        if out is None or not out.open(str(tmp), spec):
-            raise OSError(f"cannot write {path}: {oiio.geterror()}")
-        try:
-            if not out.write_image(np.ascontiguousarray(q)):
-                raise OSError(f"cannot write {path}: {out.geterror()}")
-        finally:
-            out.close()
-    return Path(path)
-
-
 def _textures(ex: Exchange) -> tuple[list[_Tex], dict]:
     """The texture images and the scalar parameters of the material (module docstring)."""
     h, w = ex.shape
@@ -133,7 +99,7 @@ def _textures(ex: Exchange) -> tuple[list[_Tex], dict]:
     base = ex.base_color if trans is None else trans.base_color
     if ex.opacity is not None and float(ex.opacity.min()) < 1.0 - OPAQUE_TOL:
         params["alpha_mode"] = "BLEND"
-        rgba = np.concatenate([base, ex.opacity[..., None]], -1)  # written by _write_rgba_srgb
+        rgba = np.concatenate([base, ex.opacity[..., None]], -1)  # alpha linear, unassociated (write_png)
         texs.append(_Tex("base_color", rgba, True, 8))
     else:
         texs.append(_Tex("base_color", base, True, 8))
@@ -292,11 +258,7 @@ def _document(ex: Exchange, ctx, params: dict,
 def _write_pngs(texs: list[_Tex], folder: Path, stem: str) -> list[tuple[_Tex, Path]]:
     out = []
     for t in texs:
-        path = folder / f"{stem}_{t.key}.png"
-        if t.image.ndim == 3 and t.image.shape[-1] == 4:
-            out.append((t, _write_rgba_srgb(path, t.image[..., :3], t.image[..., 3])))
-        else:
-            out.append((t, write_png(path, t.image, srgb=t.srgb, bits=t.bits)))
+        out.append((t, write_png(folder / f"{stem}_{t.key}.png", t.image, srgb=t.srgb, bits=t.bits)))
     return out
 
 

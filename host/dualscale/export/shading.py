@@ -18,7 +18,13 @@ result is ``(L, H, W, 3)`` [1/sr], comparable with our model's render of the sam
   ``1 - E_spec(v)``, the specular lobe's directional albedo at the view (integrated numerically
   here; MaterialX uses a fitted table).  No multiple-scattering compensation.
 
-Both reuse the microfacet functions of :mod:`dualscale.bsdf.ggx` (one GGX for the project).
+* :func:`principled_bsdf` -- the Principled BSDF (Burley 2012, Disney; Blender's Principled)
+  that U3M's ``"principled"`` shader names: Burley's diffuse with retro-reflection (which
+  expands to exactly our diffuse term), ``(1 - transmission)`` in reflection, GGX with
+  Burley's anisotropy (ours) rotated by ``2 pi * rotation``, Schlick Fresnel from
+  ``F0 = 0.08 specular mix(1, base / Y(base), specular_tint)`` to 1, diffuse not attenuated.
+
+All reuse the microfacet functions of :mod:`dualscale.bsdf.ggx` (one GGX for the project).
 Directions below the horizon are refused (``GeometryError``).
 """
 
@@ -206,6 +212,55 @@ def standard_surface_bsdf(params: dict[str, np.ndarray | float | None], light_di
     if opacity is not None:
         out = out * opacity[None]
     return out.numpy()
+
+
+def principled_bsdf(params: dict[str, np.ndarray | float | None], light_dirs: np.ndarray,
+                    view: np.ndarray) -> np.ndarray:
+    """Principled BSDF times cosine (module docstring).  ``params`` as read from U3M
+    (:func:`.readback.read_u3ma`): ``base_color`` (H, W, 3) linear, ``roughness``, ``anisotropy``,
+    ``rotation`` (fraction of a full turn CCW from +u), ``normal`` or None, ``specular``
+    (F0 / 0.08), ``specular_tint``, ``transmission``, ``alpha`` -- arrays (H, W) or floats."""
+    from dualscale.bsdf.terms import diffuse as burley_diffuse
+
+    l = torch.as_tensor(np.asarray(light_dirs), dtype=torch.float64)
+    v = torch.as_tensor(np.asarray(view), dtype=torch.float64)
+    _check(l, v)
+    base = _t(params["base_color"])
+    h, w = base.shape[:2]
+
+    def field(key: str, default: float) -> Tensor:
+        val = params.get(key, default)
+        if val is None:
+            val = default
+        if np.isscalar(val):
+            return torch.full((h, w, 1), float(val), dtype=torch.float64)
+        return _t(val)
+
+    r, a = field("roughness", 0.5), field("anisotropy", 0.0).clamp(0, 1)
+    aspect = torch.sqrt(1 - 0.9 * a)
+    at, ab = r * r / aspect, r * r * aspect
+    phi = 2 * math.pi * field("rotation", 0.0)
+    direction = torch.cat([torch.cos(phi), torch.sin(phi)], -1)
+    t, b, n = _frame(_t(params.get("normal")), direction, (h, w))
+    l4, v4 = l.reshape(-1, 1, 1, 3), v.reshape(1, 1, 1, 3)
+    dv, cos_d, cl, cv = _microfacet(l4, v4, t, b, n, at[None], ab[None])
+    lum = (base * torch.as_tensor(_luminance(), dtype=torch.float64)).sum(-1, keepdim=True)
+    ctint = torch.where(lum > 1e-6, base / lum.clamp_min(1e-6), torch.ones_like(base))
+    st = field("specular_tint", 0.0)
+    f0 = 0.08 * field("specular", 0.5) * (1 - st + st * ctint)
+    fr = f0[None] + (1 - f0[None]) * (1 - cos_d) ** 5
+    clv = (l4 * v4).sum(-1, keepdim=True)
+    diff = burley_diffuse(base[None], r[None], cl, cv, clv) * (1 - field("transmission", 0.0)[None])
+    f = diff + fr * dv
+    front = (cl > 0) & (cv > 0) & (l4[..., 2:3] > 0)
+    out = torch.where(front, f * cl.clamp_min(0), torch.zeros_like(f)) * field("alpha", 1.0)[None]
+    return out.numpy()
+
+
+def _luminance() -> np.ndarray:
+    from .exchange import LUMINANCE
+
+    return LUMINANCE
 
 
 def relative_error(a: np.ndarray, ref: np.ndarray) -> np.ndarray:

@@ -43,21 +43,29 @@ def _check(name: str, img: np.ndarray) -> np.ndarray:
 def write_png(path: str | Path, image: np.ndarray, srgb: bool, bits: int = 8) -> Path:
     """Write ``(H, W[, C])`` values in [0, 1] as a PNG: ``srgb=True`` encodes with the sRGB
     transfer (colour textures), ``False`` stores the values linearly (data textures).
-    ``bits``: 8 or 16.  Returns the path."""
+    ``bits``: 8 or 16.  A 2- or 4-channel image's last channel is *alpha*: stored linear (glTF 2.0
+    Sec. 3.9.2, "the linear alpha coverage") and unassociated (PNG's straight alpha; OpenImageIO
+    would otherwise treat the buffer as premultiplied and divide the colour by it).  Returns the
+    path."""
     import OpenImageIO as oiio
 
     if bits not in (8, 16):
         raise ValueError(f"bits must be 8 or 16, got {bits}")
     path = Path(path)
     img = _check(path.name, image)
+    alpha = img.shape[2] in (2, 4)
     if srgb:
         import colour
 
-        img = np.clip(colour.models.eotf_inverse_sRGB(img), 0.0, 1.0)
+        colour_part = img[..., :-1] if alpha else img
+        enc = np.clip(colour.models.eotf_inverse_sRGB(colour_part), 0.0, 1.0)
+        img = np.concatenate([enc, img[..., -1:]], -1) if alpha else enc
     scale = 255.0 if bits == 8 else 65535.0
     q = np.round(img * scale).astype(np.uint8 if bits == 8 else np.uint16)
     spec = oiio.ImageSpec(q.shape[1], q.shape[0], q.shape[2], oiio.UINT8 if bits == 8 else oiio.UINT16)
     spec.attribute("oiio:ColorSpace", "srgb_rec709_scene" if srgb else "lin_rec709_scene")
+    if alpha:
+        spec.attribute("oiio:UnassociatedAlpha", 1)  # the values as given: no un-premultiply
     with atomic_path(path) as tmp:
         out = oiio.ImageOutput.create(str(tmp))
         if out is None or not out.open(str(tmp), spec):
@@ -72,12 +80,18 @@ def write_png(path: str | Path, image: np.ndarray, srgb: bool, bits: int = 8) ->
 
 def read_png(path: str | Path, srgb: bool) -> np.ndarray:
     """Read a texture written by :func:`write_png` back to float64 ``(H, W, C)`` in [0, 1]
-    (decoding the sRGB transfer when ``srgb``).  Used to measure what an export keeps."""
+    (decoding the sRGB transfer of the colour channels when ``srgb``; alpha stays linear and
+    unassociated).  Used to measure what an export keeps."""
     import OpenImageIO as oiio
 
-    from dualscale.formats.exr import open_image
-
-    inp = open_image(path)
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"texture not found: {path}")
+    config = oiio.ImageSpec()
+    config.attribute("oiio:UnassociatedAlpha", 1)
+    inp = oiio.ImageInput.open(str(path), config)
+    if inp is None:
+        raise OSError(f"cannot read {path}: {oiio.geterror()}")
     try:
         fmt = inp.spec().format
         data = inp.read_image(fmt)
@@ -87,10 +101,14 @@ def read_png(path: str | Path, srgb: bool) -> np.ndarray:
         raise OSError(f"cannot read {path}: {oiio.geterror()}")
     scale = 255.0 if data.dtype == np.uint8 else 65535.0
     img = np.asarray(data, np.float64) / scale
+    if img.ndim == 2:
+        img = img[..., None]
     if srgb:
         import colour
 
-        img = colour.models.eotf_sRGB(img)
+        alpha = img.shape[2] in (2, 4)
+        dec = colour.models.eotf_sRGB(img[..., :-1] if alpha else img)
+        img = np.concatenate([dec, img[..., -1:]], -1) if alpha else dec
     return img
 
 

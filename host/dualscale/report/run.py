@@ -6,7 +6,7 @@
   summary);
 * ``fit/maps/`` (maps folder, ``fit.json``), ``fit/residual.exr``, ``fit/heldout/``;
 * ``flyouts/`` and ``propagate/`` when those stages ran (a skipped stage says why in its summary);
-* ``export/`` (the files list of its summary).
+* ``export/`` (the exports of its summary: per scale, the files of each format).
 
 Required: ``run.json``, the ``calibrate`` and ``fit`` stage records, the fit maps, the fit
 residual and the held-out lights listed in ``heldout.json``. A missing or unreadable required
@@ -408,17 +408,24 @@ def write_run_report(run_dir: str | Path, out: str | Path | None = None) -> Path
     st = stages.get("export")
     exp["note"] = _not_done(st, "The maps were not exported.", "Export")
     if not exp["note"]:
-        files = [str(f) for f in (st.summary.get("files") or [])]
-        if not files:
+        exports = st.summary.get("exports") or {}
+        if not exports:
             exp["note"] = "The export stage wrote no files."
         rows = []
-        for f in files:
-            p = next((c for c in (run / f, run / "export" / f) if c.is_file()), None)
-            rows.append([f, _size(p.stat().st_size) if p else "missing"])
-            if p is None:
-                note(f"export lists {f}, which is not in the run folder")
+        for scale, e in exports.items():
+            size = e.get("repeat_mm")
+            for fmt_name, files in (e.get("files") or {}).items():
+                paths = [run / "export" / scale / f for f in files]
+                missing = [str(p.relative_to(run)) for p in paths if not p.is_file()]
+                for m_ in missing:
+                    note(f"export lists {m_}, which is not in the run folder")
+                main = next((f for f in files if Path(f).suffix in (".mtlx", ".gltf", ".glb", ".u3ma", ".json")),
+                            files[0] if files else "")
+                rows.append([scale, fmt_name, f"export/{scale}/{main}", _size(sum(p.stat().st_size for p in paths
+                                                                                  if p.is_file())),
+                             (fmt.size_mm(size) if size else fmt.DASH) + (" (seamless tile)" if e.get("tiled") else "")])
         if rows:
-            exp["table"] = Table(["file", "size"], rows, {1})
+            exp["table"] = Table(["scale", "format", "file", "size", "repeat"], rows, {3})
         if st.summary.get("formats"):
             exp["formats"] = fmt.value(st.summary["formats"])
 
