@@ -107,7 +107,10 @@ class Page:
                    and e["params"].get("type") in ("error", "assert")]
         errors += [e["params"]["entry"] for e in ev if e.get("method") == "Log.entryAdded"
                    and e["params"]["entry"].get("level") == "error"]
-        failed = [e["params"] for e in ev if e.get("method") == "Network.loadingFailed"]
+        urls = {e["params"]["requestId"]: e["params"]["request"]["url"] for e in ev
+                if e.get("method") == "Network.requestWillBeSent"}
+        failed = [(urls.get(e["params"]["requestId"]), e["params"].get("errorText"), e["params"].get("canceled"))
+                  for e in ev if e.get("method") == "Network.loadingFailed"]
         failed += [(e["params"]["response"]["url"], e["params"]["response"]["status"]) for e in ev
                    if e.get("method") == "Network.responseReceived" and e["params"]["response"]["status"] >= 400]
         requested = [e["params"]["request"]["url"] for e in ev if e.get("method") == "Network.requestWillBeSent"]
@@ -176,7 +179,9 @@ class Browser:
 
 
 def open_viewer(page: Page, url: str, timeout: float = 60.0) -> dict:
-    """Navigate to the viewer and wait until it has loaded its material; returns its info()."""
+    """Navigate to the viewer (forgetting earlier events) and wait until it has loaded its
+    material; returns its info()."""
+    page.events.clear()
     page.send("Page.navigate", {"url": url})
     page.wait_event("Page.loadEventFired", timeout)
     deadline = time.monotonic() + timeout

@@ -83,15 +83,22 @@ def test_page_loads_without_errors(browser, run, tmp_path):
     assert not external, external
 
 
-def test_export_folder_says_there_is_no_capture(browser, tmp_path):
-    out = export_folder(tmp_path / "OUT", maps_folder(tmp_path / "maps", "plain"))
+def test_export_folder_gltf_without_capture(browser, tmp_path):
+    """A .gltf export (JSON + .bin + PNG textures by relative URI) loads; the page says why there
+    is no side-by-side."""
+    out = export_folder(tmp_path / "OUT", maps_folder(tmp_path / "maps", "plain"), ("gltf",))
     with _serve(out) as v:
-        open_viewer(browser, v.url)
+        info = open_viewer(browser, v.url)
         hidden, text = browser.evaluate("""[document.getElementById('led-panel').hidden,
             document.getElementById('led-absent').textContent]""")
         problems = browser.problems(v.url)
+    assert info["texture"] == [64, 64] and any(m.startswith("normal") for m in info["maps"])
     assert hidden and text.startswith("No side-by-side: this is an export folder, not a digitize run")
+    for suffix in ("gltf/swatch.gltf", "gltf/swatch.bin", "gltf/swatch_base_color.png"):
+        assert v.url + "files/export/" + suffix in problems["requested"], suffix
     assert not problems["errors"], problems["errors"][:3]
+    assert not problems["failed"], problems["failed"][:3]
+    assert not problems["external"], problems["external"]
 
 
 def test_swatch_renders(browser, run):
