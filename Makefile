@@ -110,7 +110,7 @@ demo: deps
 	    --texel-um $(DEMO_TEXEL_UM) --dataset --lights mod$(DEMO_LED_STEP) --mid --mid-size $(DEMO_MID_SIZE) \
 	    --mid-field-mm $(DEMO_MID_FIELD_MM) --realistic --threads $(DEMO_THREADS)
 	$(DS) digitize $(DEMO)/sample/micro -o $(DEMO)/run --calibration $(DEMO)/calibration.json \
-	    --guidance $(DEMO)/sample/mid --quality $(DEMO_QUALITY) --threads $(DEMO_THREADS)
+	    --guidance $(DEMO)/sample/mid --quality $(DEMO_QUALITY) --tile --threads $(DEMO_THREADS)
 
 # Every benchmark prints a markdown table for the doc it belongs to (see each script's docstring).
 bench: deps

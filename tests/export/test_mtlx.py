@@ -187,6 +187,8 @@ def test_graph_connects_each_claimed_input(exported):
     transmits = ex.transmittance is not None
     assert bool(ss.getInputValue("thin_walled")) == transmits
     assert bool(op.getInputValue("geometry_thin_walled")) == transmits
+    if transmits:  # OpenPBR thin-walled subsurface: (1 + g) / 2 transmits; g = 1 is Standard Surface's split
+        assert op.getInputValue("subsurface_scatter_anisotropy") == 1.0
     if ex.ior is None:  # one IOR for the whole sample
         assert ss.getInputValue("specular_IOR") == pytest.approx(ex.ior_scalar)
         assert op.getInputValue("specular_ior") == pytest.approx(ex.ior_scalar)

@@ -138,6 +138,9 @@ def build_parser() -> argparse.ArgumentParser:
     from .export import register as register_export
 
     register_export(sub)
+    from .view import register as register_view
+
+    register_view(sub)
     return p
 
 

@@ -3,7 +3,7 @@
 
 Written with ``pygltflib``; the tests run the Khronos glTF-Validator on every export.  The
 parameters come from :mod:`.exchange` (one conversion for all formats); this module only
-encodes them.  docs/export_gltf.md tabulates what is exact, approximated and lost.
+encodes them.  docs/EXPORT.md tabulates what is exact, approximated and lost.
 
 Material (glTF 2.0 spec Sec. 3.9 and the Khronos extensions named):
 
@@ -24,7 +24,7 @@ Material (glTF 2.0 spec Sec. 3.9 and the Khronos extensions named):
   Without ``KHR_materials_volume`` the surface is thin-walled (transmission spec, "Thin-walled
   materials"): right for a fabric sheet.  ``KHR_materials_volume`` is *not* written: it needs a
   closed mesh with a thickness and an attenuation, and our swatch is a single sheet and the rig
-  measures neither (docs/export_gltf.md).
+  measures neither (docs/EXPORT.md).
 * Opacity (coverage of the yarns) is the base colour's alpha with ``alphaMode "BLEND"``: it is
   fractional at the texel scale (gaps between yarns), which ``MASK`` would binarise; maps
   without opacity, or fully opaque, are ``OPAQUE``.

@@ -293,6 +293,10 @@ def build_document(ex: Exchange, ctx: ExportContext, textures: dict[str, _Tex]):
         connect(op, "geometry_normal", "normal", "vector3")
     if transmits:
         op.setInputValue("geometry_thin_walled", True, "boolean")  # thin-walled subsurface: diffuse transmission
+        # OpenPBR's thin-walled subsurface mixes a diffuse reflection weighted (1 - g)/2 and a
+        # translucent transmission weighted (1 + g)/2 of subsurface_color; g = 1 transmits all of it,
+        # Standard Surface's thin-walled split (our reflectance stays in base_color)
+        op.setInputValue("subsurface_scatter_anisotropy", 1.0, "float")
         connect(op, "subsurface_weight", "subsurface", "float")
         connect(op, "subsurface_color", "subsurface_color", "color3")
     if "opacity" in textures:

@@ -4,7 +4,7 @@ Source: the U3M 1.1 specification (Vizoo GmbH, BSD-3): ``u3m_schema.json`` (JSON
 ``u3m_additional_spec.txt`` (colour spaces, paths), ``u3m_additional_spec_u3m.txt`` (baseline image
 formats, "All normals are in OpenGL convention", normal encoding ``(n + 1) / 2``, factor/offset:
 ``final = offset + average(pixel) * factor``) and ``u3m_additional_spec_u3ma.txt`` (the zip subset).
-docs/export_u3m.md tabulates what is exact, approximated and lost.
+docs/EXPORT.md tabulates what is exact, approximated and lost.
 
 What is written (``material.front``, ``shader: "principled"`` -- the Disney 2012 / Blender
 Principled parameters; the spec gives names and ranges, not formulas, so we read each parameter
