@@ -13,7 +13,6 @@ from dualscale.errors import InputError
 from dualscale.formats.maps import load_maps, save_maps
 from dualscale.tile import make_tile, save_tile, seam_score
 from test_lattice import lattice_image
-from tile_known import known_lattice_px
 
 
 @pytest.fixture(scope="module")
@@ -82,8 +81,6 @@ def test_too_many_repeats_refused(twill):
 
 
 def _cli(*args):
-    import argparse
-
     from dualscale.cli import _Parser, exit_code
     from dualscale.cli.tile import register
 
