@@ -8,19 +8,17 @@ from __future__ import annotations
 import functools
 import html.parser
 import http.server
-import json
 import re
 import shutil
-import subprocess
 import threading
-import time
-import urllib.request
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from dualscale.report import format as fmt
+
+from tests.cdp import Browser
 
 from .runfolder import make_run
 
@@ -342,122 +340,35 @@ def test_device_report_without_optional_parts(tmp_path):
 # ---------------------------------------------------------------------------------------------
 # headless browser (Chrome DevTools Protocol)
 
-def _chromium() -> str | None:
-    for name in ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable"):
-        if shutil.which(name):
-            return shutil.which(name)
-    return None
-
-
 class _Quiet(http.server.SimpleHTTPRequestHandler):
     def log_message(self, *args):  # keep pytest output clean
         pass
 
 
-class _Cdp:
-    """A minimal DevTools Protocol client over one page's websocket."""
-
-    def __init__(self, ws_url: str, timeout: float):
-        import websocket
-
-        self.ws = websocket.create_connection(ws_url, timeout=timeout, suppress_origin=True)
-        self.events: list[dict] = []
-        self._id = 0
-
-    def send(self, method: str, params: dict | None = None, deadline: float | None = None) -> dict:
-        self._id += 1
-        self.ws.send(json.dumps({"id": self._id, "method": method, "params": params or {}}))
-        while True:
-            if deadline and time.monotonic() > deadline:
-                raise TimeoutError(method)
-            msg = json.loads(self.ws.recv())
-            if msg.get("id") == self._id:
-                if "error" in msg:
-                    raise RuntimeError(f"{method}: {msg['error']}")
-                return msg.get("result", {})
-            self.events.append(msg)
-
-    def wait_event(self, method: str, deadline: float) -> dict:
-        for e in self.events:
-            if e.get("method") == method:
-                return e
-        while time.monotonic() < deadline:
-            msg = json.loads(self.ws.recv())
-            self.events.append(msg)
-            if msg.get("method") == method:
-                return msg
-        raise TimeoutError(method)
-
-
 def test_report_loads_in_headless_browser(run_report, tmp_path):
     """The page served on 127.0.0.1 loads in headless Chromium with no console error, no failed
     or external request, every image decoded (naturalWidth > 0) and no horizontal overflow."""
-    exe = _chromium()
-    if exe is None:
-        pytest.skip("no chromium binary on PATH (Debian: apt-get install chromium; `make deps` installs it)")
-    pytest.importorskip("websocket", reason="websocket-client is not installed (pip install -e '.[dev]')")
     run, page, _ = run_report
     handler = functools.partial(_Quiet, directory=str(page.parent))
     server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
     thread = threading.Thread(target=server.serve_forever, daemon=True)
     thread.start()
     base = f"http://127.0.0.1:{server.server_address[1]}/"
-    profile = tmp_path / "profile"
-    proc = subprocess.Popen([exe, "--headless=new", "--no-sandbox", "--disable-gpu", "--no-first-run",
-                             "--disable-extensions", "--disable-background-networking", "--disable-sync",
-                             "--remote-debugging-port=0", "--remote-debugging-address=127.0.0.1",
-                             f"--user-data-dir={profile}", "--window-size=1280,900", "about:blank"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    deadline = time.monotonic() + 25
-    cdp = None
     try:
-        port_file = profile / "DevToolsActivePort"
-        while not (port_file.is_file() and port_file.read_text().strip()):
-            if proc.poll() is not None:  # e.g. Ubuntu's snap wrapper, which cannot run here
-                pytest.skip(f"{exe} exited with code {proc.returncode} before opening its DevTools port")
-            assert time.monotonic() < deadline, "chromium did not open its DevTools port"
-            time.sleep(0.1)
-        port = int(port_file.read_text().split()[0])
-        targets = []
-        while not targets:
-            assert time.monotonic() < deadline, "no page target"
-            with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=5) as r:
-                targets = [t for t in json.load(r) if t.get("type") == "page"]
-            time.sleep(0.05)
-        cdp = _Cdp(targets[0]["webSocketDebuggerUrl"], timeout=10)
-        for domain in ("Page", "Runtime", "Log", "Network"):
-            cdp.send(f"{domain}.enable", deadline=deadline)
-        cdp.send("Page.navigate", {"url": base + "index.html"}, deadline=deadline)
-        cdp.wait_event("Page.loadEventFired", deadline)
-        state = cdp.send("Runtime.evaluate", {"returnByValue": True, "expression": """(() => ({
-            images: Array.from(document.images).map(i => [i.getAttribute('src'), i.complete, i.naturalWidth]),
-            overflow: document.documentElement.scrollWidth - window.innerWidth,
-            title: document.title}))()"""}, deadline=deadline)["result"]["value"]
+        with Browser(tmp_path / "profile", window=(1280, 900), vendor=False) as cdp:
+            cdp.send("Page.navigate", {"url": base + "index.html"})
+            cdp.wait_event("Page.loadEventFired", 25)
+            state = cdp.evaluate("""(() => ({
+                images: Array.from(document.images).map(i => [i.getAttribute('src'), i.complete, i.naturalWidth]),
+                overflow: document.documentElement.scrollWidth - window.innerWidth,
+                title: document.title}))()""")
+            problems = cdp.problems(base)
     finally:
-        if cdp is not None:
-            cdp.ws.close()
-        proc.terminate()
-        try:
-            proc.wait(5)
-        except subprocess.TimeoutExpired:
-            proc.kill()
         server.shutdown()
         server.server_close()
-    ev = cdp.events
-    errors = [e["params"] for e in ev if e.get("method") == "Runtime.exceptionThrown"]
-    errors += [e["params"] for e in ev if e.get("method") == "Runtime.consoleAPICalled"
-               and e["params"].get("type") in ("error", "assert")]
-    errors += [e["params"]["entry"] for e in ev if e.get("method") == "Log.entryAdded"
-               and e["params"]["entry"].get("level") == "error"]
-    assert not errors, errors[:3]
-    failed = [e["params"] for e in ev if e.get("method") == "Network.loadingFailed"]
-    assert not failed, failed[:3]
-    bad_status = [(e["params"]["response"]["url"], e["params"]["response"]["status"]) for e in ev
-                  if e.get("method") == "Network.responseReceived" and e["params"]["response"]["status"] >= 400]
-    assert not bad_status, bad_status
-    requested = [e["params"]["request"]["url"] for e in ev if e.get("method") == "Network.requestWillBeSent"]
-    external = [u for u in requested if not (u.startswith(base) or u.startswith("data:"))]
-    assert not external, external
+    assert not problems["errors"], problems["errors"][:3]
+    assert not problems["failed"], problems["failed"][:3]
+    assert not problems["external"], problems["external"]
     assert state["title"].startswith("dualscale run")
     imgs = state["images"]
     assert len(imgs) >= 14

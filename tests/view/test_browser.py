@@ -26,7 +26,7 @@ import math
 import numpy as np
 import pytest
 
-from .cdp import Browser, open_viewer, require_browser
+from tests.cdp import Browser, open_viewer, require_browser
 from .folders import export_folder, maps_folder, run_folder
 
 ELEVATIONS = (15, 30, 45, 60, 75, 89)

@@ -20,8 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dualscale.formats.atomic import atomic_path
-from dualscale.formats.exr import write_exr
+from dualscale.formats.exr import write_exr, write_pixels
 
 _RANGE_TOL = 1e-4
 
@@ -66,15 +65,7 @@ def write_png(path: str | Path, image: np.ndarray, srgb: bool, bits: int = 8) ->
     spec.attribute("oiio:ColorSpace", "srgb_rec709_scene" if srgb else "lin_rec709_scene")
     if alpha:
         spec.attribute("oiio:UnassociatedAlpha", 1)  # the values as given: no un-premultiply
-    with atomic_path(path) as tmp:
-        out = oiio.ImageOutput.create(str(tmp))
-        if out is None or not out.open(str(tmp), spec):
-            raise OSError(f"cannot write {path}: {oiio.geterror()}")
-        try:
-            if not out.write_image(np.ascontiguousarray(q)):
-                raise OSError(f"cannot write {path}: {out.geterror()}")
-        finally:
-            out.close()
+    write_pixels(path, q, spec)
     return path
 
 

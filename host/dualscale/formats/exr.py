@@ -37,15 +37,25 @@ def write_exr(path: str | Path, image: np.ndarray, channels: Sequence[str] | Non
     spec.attribute("compression", "zip")
     for k, v in (attributes or {}).items():
         spec.attribute(k, str(v))
+    write_pixels(path, img, spec)
+
+
+def write_pixels(path: str | Path, pixels: np.ndarray, spec) -> Path:
+    """Write ``pixels`` ``(H, W, C)`` (dtype matching ``spec.format``) with the OpenImageIO
+    ``ImageSpec`` ``spec`` (its attributes: compression, colour space, ...), atomically; the file
+    type follows the suffix.  ``OSError`` naming the file when OpenImageIO refuses."""
+    import OpenImageIO as oiio
+
     with atomic_path(path) as tmp:
         out = oiio.ImageOutput.create(str(tmp))
         if out is None or not out.open(str(tmp), spec):
             raise OSError(f"cannot write {path}: {oiio.geterror()}")
         try:
-            if not out.write_image(np.ascontiguousarray(img)):
+            if not out.write_image(np.ascontiguousarray(pixels)):
                 raise OSError(f"cannot write {path}: {out.geterror()}")
         finally:
             out.close()
+    return Path(path)
 
 
 def open_image(path: str | Path):
@@ -129,12 +139,4 @@ def write_png_preview(path: str | Path, image: np.ndarray, srgb: bool = True, ex
         img = np.concatenate([img, np.zeros_like(img[..., :1])], -1)
     img = srgb_encode(img) if srgb else np.clip(img, 0, 1)
     u8 = np.ascontiguousarray(np.round(img * 255).astype(np.uint8))
-    spec = oiio.ImageSpec(u8.shape[1], u8.shape[0], u8.shape[2], "uint8")
-    with atomic_path(path) as tmp:
-        out = oiio.ImageOutput.create(str(tmp))
-        if out is None or not out.open(str(tmp), spec):
-            raise OSError(f"cannot write {path}: {oiio.geterror()}")
-        try:
-            out.write_image(u8)
-        finally:
-            out.close()
+    write_pixels(path, u8, oiio.ImageSpec(u8.shape[1], u8.shape[0], u8.shape[2], "uint8"))

@@ -1,5 +1,5 @@
 """Headless Chromium driven over the Chrome DevTools Protocol (websocket-client), with WebGL
-through SwiftShader, for the viewer tests (the approach of tests/report/test_report.py).
+through SwiftShader: the one browser harness of the report's and the viewer's tests.
 
 WebGL in headless Chromium has no GPU here: ``--use-angle=swiftshader --enable-unsafe-swiftshader
 --use-gl=angle`` gives WebGL 2 with float render targets (docs/VIEWER.md).
@@ -27,16 +27,16 @@ def chromium() -> str | None:
     return None
 
 
-def require_browser() -> str:
-    """The chromium binary, or skip (with the reason) when it, websocket-client or the three.js
-    vendor files are missing."""
+def require_browser(vendor: bool = True) -> str:
+    """The chromium binary, or skip (with the reason) when it, websocket-client or (``vendor``)
+    the viewer's three.js vendor files are missing."""
     from dualscale.view.server import VENDOR_HINT, vendor_missing
 
     exe = chromium()
     if exe is None:
         pytest.skip("no chromium binary on PATH (Debian: apt-get install chromium; `make deps` installs it)")
     pytest.importorskip("websocket", reason="websocket-client is not installed (pip install -e '.[dev]')")
-    missing = vendor_missing()
+    missing = vendor_missing() if vendor else []
     if missing:
         pytest.skip(f"three.js vendor files missing ({', '.join(missing)}): {VENDOR_HINT}")
     return exe
@@ -122,8 +122,8 @@ class Browser:
     """``with Browser(tmp_path) as page:`` a headless Chromium (WebGL via SwiftShader) with one
     page whose Page, Runtime, Log and Network domains are enabled."""
 
-    def __init__(self, profile: Path, window: tuple[int, int] = (1200, 800)):
-        self.exe = require_browser()
+    def __init__(self, profile: Path, window: tuple[int, int] = (1200, 800), vendor: bool = True):
+        self.exe = require_browser(vendor)
         self.profile = Path(profile)
         self.window = window
         self.proc = None
