@@ -92,3 +92,32 @@ def test_unknown_size_refuses_u3m_but_not_the_others(tmp_path, capsys):
     assert not (tmp_path / "a" / "u3m").exists()
     assert main(["export", str(tmp_path / "maps"), "-o", str(tmp_path / "b"), "--format", "glb,mtlx"]) == 0
     assert read_export(tmp_path / "b")["repeat_mm"] is None
+
+
+def test_tile_carries_its_physical_size_into_every_format(tmp_path, capsys):
+    """A 2/2 twill of 0.3 mm pitch repeats every 1.2 mm: the tile is 1.2 mm square in every format
+    (glTF swatch of 2 x 2 tiles, U3M width/height, MaterialX real-world size, EXR record)."""
+    import zipfile
+
+    mat = generate("twill", size=80, texel_mm=0.035, seed=3)
+    save_maps(tmp_path / "maps", mat.maps, {}, texel_mm=0.035)
+    out = tmp_path / "out"
+    assert main(["export", str(tmp_path / "maps"), "-o", str(out), "--tile", "--name", "tw"]) == 0
+    assert "seamless tile, 1.2 x 1.2 mm" in capsys.readouterr().out
+    doc = read_export(out)
+    assert doc["tiled"] and doc["repeat_mm"] == pytest.approx([1.2, 1.2], abs=0.002)
+    assert doc["tile"]["seam"]["tile"] <= 1.1
+    _, meta = load_maps(out / "maps")
+    assert meta["tile"]["size_mm"] == pytest.approx([1.2, 1.2], abs=0.002)
+    gltf = json.loads((out / "gltf" / "tw.gltf").read_text())
+    ext = gltf["asset"]["extras"]["dualscale"]
+    assert ext["repeat_mm"] == pytest.approx([1.2, 1.2], abs=0.002) and ext["repeats"] == [2.0, 2.0]
+    pos = np.array(gltf["accessors"][gltf["meshes"][0]["primitives"][0]["attributes"]["POSITION"]]["max"])
+    assert 2 * pos[0] == pytest.approx(0.0024, abs=4e-6)  # metres: 2 tiles of 1.2 mm
+    with zipfile.ZipFile(out / "u3m" / "tw.u3ma") as z:
+        u3m = json.loads(z.read("tw.u3m"))
+    img = u3m["material"]["front"]["basecolor"]["texture"]["image"]
+    assert img["width"] == pytest.approx(1.2, abs=0.002) and img["height"] == pytest.approx(1.2, abs=0.002)
+    assert "realworldimagesize" in (out / "mtlx" / "tw.mtlx").read_text()
+    ex = json.loads((out / "exr" / "exchange.json").read_text())
+    assert ex["tiled"] and ex["repeat_mm"] == pytest.approx([1.2, 1.2], abs=0.002)

@@ -3,13 +3,13 @@
 Layout of an export folder ``OUT``::
 
     OUT/export.json          manifest (written last: a folder with it is complete)
-    OUT/maps/                the exported maps in our own conventions (dualscale-maps)
+    OUT/maps/                the exported maps in our own conventions (dualscale-maps); with
+                             ``tile``, the seamless tile, its record in ``meta.tile``
     OUT/exr/                 exchange EXR set (+ exchange.json)
     OUT/mtlx/<name>.mtlx     + textures
     OUT/gltf/<name>.gltf     + <name>.bin + textures
     OUT/glb/<name>.glb
     OUT/u3m/<name>.u3ma
-    OUT/tile/                the seamless tile's maps (``--tile``), in our own conventions
 
 Each format folder is written in a temporary folder and renamed (:func:`atomic_dir`), so a
 rerun after an interruption redoes only what is missing; a format whose folder is complete
@@ -97,13 +97,10 @@ def export_material(maps_dir: str | Path, out: str | Path, formats: Sequence[str
     out.mkdir(parents=True, exist_ok=True)
     tile_info = None
     if tile:
-        from dualscale.tile import make_tile, save_tile
+        from dualscale.tile import make_tile
 
         t = make_tile(maps, texel, **(tile_options or {}))
         maps, texel, tile_info = t.maps, t.texel_mm, t.meta()
-        if "tile" not in previous:
-            with atomic_dir(out / "tile") as tmp:
-                save_tile(t, tmp)
     ex = exchange(maps, texel)
     repeat = ex.size_mm
     ctx = ExportContext(name=name, repeat_mm=repeat, tiled=bool(tile), swatch_mm=swatch_mm,
@@ -139,8 +136,6 @@ def _previous(out: Path, source_sha: str, options: dict) -> dict[str, list[str]]
     if doc.get("source_sha256") != source_sha or doc.get("options") != options:
         return {}
     done = dict(doc["formats"])
-    if doc.get("tiled"):
-        done["tile"] = []
     return {f: files for f, files in done.items() if all((out / p).is_file() for p in files)}
 
 
