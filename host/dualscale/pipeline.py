@@ -104,6 +104,10 @@ class DigitizeOptions:
         bad = [f for f in self.export if f not in ALL_FORMATS]
         if bad:
             raise InputError(f"--export {','.join(bad)}: choose from {', '.join(ALL_FORMATS)}")
+        if self.name is not None:
+            from dualscale.export.material import check_name
+
+            check_name(self.name)
         if self.until is not None and self.until not in STAGES:
             raise InputError(f"--until {self.until!r}: choose one of {', '.join(STAGES)}")
 
@@ -403,7 +407,6 @@ class Digitizer:
         needs the physical size: without a texel size it is left out, with a warning."""
         from dualscale.errors import InputError as _InputError
         from dualscale.export.material import export_material
-        from dualscale.formats.maps import read_material_json
 
         summary: dict[str, Any] = {"formats": list(self.opts.export), "exports": {}}
         notes: list[str] = []
@@ -412,20 +415,16 @@ class Digitizer:
             if not (src / "material.json").is_file():
                 continue
             formats = list(self.opts.export)
-            if "u3m" in formats and not read_material_json(src).get("texel_mm"):
-                formats.remove("u3m")
-                notes.append(f"{scale}: U3M left out: the texel size is unknown (import with --texel-mm)")
-            if not formats:
-                continue
             name = self.material_name() + ("" if scale == "mesoscale" else "_micro")
             tile = self.opts.tile and scale == "mesoscale"
             try:
-                doc = export_material(src, work / scale, formats, name=name, tile=tile)
+                doc = export_material(src, work / scale, formats, name=name, tile=tile, skip_unsized=True)
             except _InputError as e:
                 if not tile:
                     raise
                 notes.append(f"{scale}: no seamless tile ({e}); exported the untiled maps")
-                doc = export_material(src, work / scale, formats, name=name, tile=False)
+                doc = export_material(src, work / scale, formats, name=name, tile=False, skip_unsized=True)
+            notes += [f"{scale}: {fmt} left out: {why}" for fmt, why in doc.get("skipped", {}).items()]
             summary["exports"][scale] = {"name": doc["name"], "repeat_mm": doc["repeat_mm"], "tiled": doc["tiled"],
                                          "tile": doc["tile"], "files": doc["formats"]}
         summary["warnings"] = notes

@@ -84,14 +84,45 @@ def test_not_a_maps_folder_exits_2(tmp_path, capsys):
     assert "material.json" in capsys.readouterr().err
 
 
-def test_unknown_size_refuses_u3m_but_not_the_others(tmp_path, capsys):
+def test_unknown_size_refuses_u3m_before_writing_and_all_leaves_it_out(tmp_path, capsys):
     mat = generate("twill", size=16, texel_mm=0.02, seed=1)
     save_maps(tmp_path / "maps", mat.maps, {})  # no texel size
-    assert main(["export", str(tmp_path / "maps"), "-o", str(tmp_path / "a"), "--format", "u3m"]) == 2
-    assert "texel" in capsys.readouterr().err
-    assert not (tmp_path / "a" / "u3m").exists()
-    assert main(["export", str(tmp_path / "maps"), "-o", str(tmp_path / "b"), "--format", "glb,mtlx"]) == 0
-    assert read_export(tmp_path / "b")["repeat_mm"] is None
+    assert main(["export", str(tmp_path / "maps"), "-o", str(tmp_path / "a"), "--format", "gltf,u3m"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "texel" in err[0] and "U3M" in err[0]
+    assert not (tmp_path / "a").exists()  # refused before anything was written
+    assert main(["export", str(tmp_path / "maps"), "-o", str(tmp_path / "b")]) == 0  # all: U3M left out, said so
+    assert "u3m   left out: U3M needs the physical size" in capsys.readouterr().out
+    doc = read_export(tmp_path / "b")
+    assert doc["repeat_mm"] is None and "u3m" in doc["skipped"]
+    assert set(doc["formats"]) == {"maps", "exr", "mtlx", "gltf", "glb"}
+
+
+def test_an_output_folder_holding_the_source_is_refused(twill, tmp_path, capsys):
+    """Exporting into the folder above the maps (e.g. -o RUN/fit for RUN/fit/maps) would replace
+    the source maps: refused, and the source is untouched."""
+    import shutil
+
+    src = tmp_path / "run" / "fit" / "maps"
+    shutil.copytree(twill, src)
+    (src / "geometry.exr").write_bytes(b"keep")
+    before = sorted(p.name for p in src.iterdir())
+    for out in (src.parent, src, tmp_path / "run"):
+        assert main(["export", str(src), "-o", str(out)]) == 2
+        assert "holds the source maps" in capsys.readouterr().err
+    assert sorted(p.name for p in src.iterdir()) == before and (src / "geometry.exr").read_bytes() == b"keep"
+
+
+def test_manifest_keeps_earlier_formats_and_drops_stale_ones(twill, tmp_path):
+    out = tmp_path / "out"
+    export_material(twill, out, ["mtlx"])
+    doc = export_material(twill, out, ["glb"])  # same source: mtlx stays in the manifest
+    assert {"mtlx", "glb"} <= set(doc["formats"]) and (out / "mtlx").is_dir()
+    other = tmp_path / "other" / "maps"
+    save_maps(other, generate("satin", size=16, texel_mm=0.02, seed=4).maps, {}, texel_mm=0.02)
+    doc = export_material(other, out, ["gltf"])  # another source: the stale formats go
+    assert set(doc["formats"]) == {"maps", "gltf"}
+    assert not (out / "mtlx").exists() and not (out / "glb").exists()
 
 
 def test_tile_carries_its_physical_size_into_every_format(tmp_path, capsys):
@@ -106,6 +137,7 @@ def test_tile_carries_its_physical_size_into_every_format(tmp_path, capsys):
     assert "seamless tile, 1.2 x 1.2 mm" in capsys.readouterr().out
     doc = read_export(out)
     assert doc["tiled"] and doc["repeat_mm"] == pytest.approx([1.2, 1.2], abs=0.002)
+    assert doc["repeat_mm"] == pytest.approx(doc["tile"]["size_mm"], abs=1e-6)  # the tile's own size
     assert doc["tile"]["seam"]["tile"] <= 1.1
     _, meta = load_maps(out / "maps")
     assert meta["tile"]["size_mm"] == pytest.approx([1.2, 1.2], abs=0.002)

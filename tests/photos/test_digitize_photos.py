@@ -22,10 +22,15 @@ def test_digitize_imported_photos(sphere_set, tmp_path, texel):
     stages = {s: json.loads((run / "stages" / f"{s}.json").read_text())["summary"]
               for s in ("flyouts", "propagate")}
     assert "polarised" in stages["flyouts"]["skipped"] and "guidance" in stages["propagate"]["skipped"]
-    _, meta = load_maps(run / "export" / "micro")
-    if texel is None:
+    _, meta = load_maps(run / "export" / "micro" / "maps")
+    exp = json.loads((run / "export" / "micro" / "export.json").read_text())
+    warnings = json.loads((run / "stages" / "export.json").read_text())["warnings"]
+    if texel is None:  # no physical size: every format but U3M, which needs one (a warning says so)
         assert meta["texel_mm"] is None and meta["field_mm"] is None
+        assert "u3m" not in exp["formats"] and "u3m" in exp["skipped"] and any("U3M" in w for w in warnings)
+        assert {"exr", "mtlx", "gltf", "glb"} <= set(exp["formats"])
     else:
+        assert set(exp["formats"]) == {"maps", "exr", "mtlx", "gltf", "glb", "u3m"}
         assert meta["texel_mm"] == pytest.approx(0.05) and meta["field_mm"] == pytest.approx([2.0, 2.0])
     assert (run / "report" / "index.html").is_file()
 

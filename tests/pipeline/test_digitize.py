@@ -118,7 +118,9 @@ def test_inputs_a_later_stage_would_refuse_are_refused_before_anything_is_writte
     bad_cal.write_text("{}")
     cases = [([str(raw / "micro")], "--calibration"),
              ([str(raw / "micro"), "--calibration", str(bad_cal)], "not a dualscale-calibration"),
-             ([str(sample / "micro"), "--guidance", str(png)], "--transfer")]
+             ([str(sample / "micro"), "--guidance", str(png)], "--transfer"),
+             ([str(sample / "micro"), "--export", "gltf,fbx"], "--export 'gltf,fbx'"),
+             ([str(sample / "micro"), "--name", "../x"], "material name '../x'")]
     for args, words in cases:
         run = tmp_path / "run"
         capsys.readouterr()

@@ -166,3 +166,19 @@ def test_non_unit_normals_in_maps(tmp_path, capsys):
     assert rc == 2, err
     assert "normal" in err and "not unit vectors" in err and "row 2, col 5" in err
     assert nothing_written(out)
+
+
+def test_malformed_camera_record_is_refused_naming_the_field(dataset, tmp_path, capsys):
+    """A camera whose field_mm is null (a hand-edited manifest) was an internal error (exit 5):
+    the one camera reader refuses it, naming the camera and the field."""
+    from dualscale.geometry.cameras import Camera
+
+    with pytest.raises(ValueError, match="camera 'micro' is malformed.*field_mm"):
+        Camera.from_json("micro", {"kind": "orthographic", "width": 8, "height": 8, "field_mm": None}, "m.json")
+    with pytest.raises(ValueError, match="has no 'width'"):
+        Camera.from_json("micro", {"kind": "orthographic", "field_mm": [1, 1]}, "m.json")
+    edit_manifest(dataset, lambda m: [c.update(field_mm=None) for c in m["cameras"].values()])
+    run = tmp_path / "run"
+    rc = main(["digitize", str(dataset), "-o", str(run), "--quality", "draft", "--threads", "1", "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "field_mm" in err and "Traceback" not in err, err

@@ -91,11 +91,8 @@ class _Plan:
     applied: list[str] = field(default_factory=list)
 
 
-def _camera(name: str, d: dict[str, Any]) -> Camera:
-    fx, fy = (float(x) for x in d["field_mm"])
-    px, py, pz = (float(x) for x in d.get("position_mm", (0.0, 0.0, 400.0)))
-    return Camera(name=name, kind=str(d["kind"]), width=int(d["width"]), height=int(d["height"]),
-                  field_mm=(fx, fy), position_mm=(px, py, pz), has_analyzer=bool(d.get("has_analyzer", False)))
+def _camera(name: str, d: dict[str, Any], where: str = "dataset manifest") -> Camera:
+    return Camera.from_json(name, d, where)
 
 
 def _is_raw(rec: ImageRecord) -> bool:
@@ -254,7 +251,8 @@ def to_radiance(dataset_dir: str | Path, out_dir: str | Path, calibration: str |
     if out.resolve() == src.resolve():
         raise InputError(f"to_radiance: the output {out} is the input dataset; write elsewhere")
     plan = _plan(ds, calibration)
-    cameras = {name: _camera(name, d) for name, d in (ds.manifest.get("cameras") or {}).items()}
+    where = str(src / "manifest.json")
+    cameras = {name: _camera(name, d, where) for name, d in (ds.manifest.get("cameras") or {}).items()}
     for rec in ds.records:
         if rec.camera not in cameras:
             raise InputError(f"dataset {ds.root}: image {rec.file}: camera {rec.camera!r} is not in the manifest's "

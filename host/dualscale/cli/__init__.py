@@ -177,6 +177,13 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as e:  # --help (0) or a usage error (2, already printed on one line)
         return e.code if isinstance(e.code, int) else EXIT_CODES["input"]
     cmd = " ".join(x for x in (args.cmd, getattr(args, "propagate_cmd", None), getattr(args, "study", None)) if x)
+    import warnings
+
+    def one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
+        print(f"dualscale {cmd}: warning: {_one_line(message) if isinstance(message, BaseException) else message}",
+              file=sys.stderr)
+
+    shown, warnings.showwarning = warnings.showwarning, one_line_warning
     try:
         return args.fn(args)
     except (Exception, KeyboardInterrupt) as e:  # noqa: BLE001 -- the one place errors meet the user
@@ -192,6 +199,8 @@ def main(argv: list[str] | None = None) -> int:
         else:
             print(f"dualscale {cmd}: error: {_one_line(e)}", file=sys.stderr)
         return code
+    finally:
+        warnings.showwarning = shown
 
 
 def run() -> None:

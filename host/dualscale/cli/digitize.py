@@ -14,7 +14,11 @@ def _line(st) -> str:
     if "skipped" in s:
         state += f" (skipped: {s['skipped']})"
     warn = f", {len(rec['warnings'])} warning(s)" if rec.get("warnings") else ""
-    return f"  {st.name:<10s} {state}{warn}"
+    lines = [f"  {st.name:<10s} {state}{warn}"]
+    lines += [f"             warning: {w}" for w in (rec.get("warnings") or [])[:5]]
+    if len(rec.get("warnings") or []) > 5:
+        lines.append(f"             ... and {len(rec['warnings']) - 5} more in RUN/stages/{st.name}.json")
+    return "\n".join(lines)
 
 
 def cmd_digitize(a: argparse.Namespace) -> int:
@@ -25,7 +29,7 @@ def cmd_digitize(a: argparse.Namespace) -> int:
     opts = DigitizeOptions(input=a.input, run=a.output, calibration=a.calibration, guidance=a.guidance,
                            guidance_transfer=a.transfer, guidance_texel_mm=a.guidance_texel_mm, quality=a.quality,
                            until=a.until, threads=apply_threads(a), progress=want_progress(a), seed=a.seed,
-                           export=tuple(parse_formats(a.export)), tile=a.tile, name=a.name)
+                           export=tuple(parse_formats(a.export, '--export')), tile=a.tile, name=a.name)
     res = digitize(opts, on_stage=lambda st: print(_line(st), flush=True),
                    on_start=lambda: print(f"digitize {opts.input} -> {opts.run} (quality {opts.quality})", flush=True))
     run = Path(a.output)

@@ -12,14 +12,15 @@ from .common import add_output
 FORMATS_HELP = "exr (Standard Surface inputs, float), mtlx (MaterialX), gltf, glb, u3m (.u3ma)"
 
 
-def parse_formats(text: str) -> list[str]:
-    """``"gltf,mtlx"`` or ``"all"`` -> the list of format names (order kept, duplicates dropped)."""
+def parse_formats(text: str, option: str = "--format") -> list[str]:
+    """``"gltf,mtlx"`` or ``"all"`` -> the list of format names (order kept, duplicates dropped);
+    ``option`` names the command's option in the error."""
     from dualscale.export.material import ALL_FORMATS
 
     names = list(ALL_FORMATS) if text.strip() == "all" else [t.strip() for t in text.split(",") if t.strip()]
     bad = [n for n in names if n not in ALL_FORMATS]
     if bad or not names:
-        raise InputError(f"--format {text!r}: choose from {', '.join(ALL_FORMATS)} or 'all' (comma-separated)")
+        raise InputError(f"{option} {text!r}: choose from {', '.join(ALL_FORMATS)} or 'all' (comma-separated)")
     return list(dict.fromkeys(names))
 
 
@@ -43,18 +44,20 @@ def cmd_export(args: argparse.Namespace) -> int:
 
     formats = parse_formats(args.format)
     doc = export_material(args.maps, args.output, formats, name=args.name, tile=args.tile,
-                          swatch_mm=parse_size_mm(args.swatch_mm))
+                          swatch_mm=parse_size_mm(args.swatch_mm), skip_unsized=args.format.strip() == "all")
     size = doc["repeat_mm"]
     where = f"{size[0]:.3g} x {size[1]:.3g} mm" if size else "physical size unknown (no texel size)"
     print(f"exported {doc['name']} ({'seamless tile, ' if doc['tiled'] else ''}{where}):")
     for fmt, files in doc["formats"].items():
         main = next((f for f in files if Path(f).suffix in (".mtlx", ".gltf", ".glb", ".u3ma", ".json")), files[0])
-        print(f"  {fmt:5s} {Path(args.output) / main}")
+        print(f"  {fmt:5s} {Path(args.output) / main}{'  (unchanged, kept)' if fmt in doc['reused'] else ''}")
+    for fmt, why in doc.get("skipped", {}).items():
+        print(f"  {fmt:5s} left out: {why}")
     if doc["tiled"] and doc.get("tile"):
         seam = doc["tile"].get("seam", {})
-        if seam:
-            print("  tile seam score " + ", ".join(f"{k} {v:.3g}" for k, v in seam.items()
-                                                   if isinstance(v, (int, float))))
+        if "tile" in seam:
+            print(f"  tile seam score {seam['tile']:.3g} (goal <= {seam.get('goal', 1.1)}; the untreated crop of the "
+                  f"same size: {seam['untreated']:.3g}; 1 = a border like the inside, docs/TILE.md)")
     return 0
 
 
@@ -66,11 +69,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "a rerun skips formats that are complete and unchanged.")
     p.add_argument("maps", help="maps folder (with material.json)")
     add_output(p, "export folder")
-    p.add_argument("--format", default="all", help=f"comma-separated: {FORMATS_HELP}; or 'all' (default)")
+    p.add_argument("--format", default="all", help=f"comma-separated: {FORMATS_HELP}; or 'all' (default: every "
+                                                   "format; U3M is left out when the texel size is unknown)")
     p.add_argument("--tile", action="store_true",
                    help="cut a seamless tile of whole weave/knit repeats first and export it (its physical "
                         "size goes into every format)")
-    p.add_argument("--name", default=None, help="material name (file stem; default: the maps folder's name)")
+    p.add_argument("--name", default=None, help="material name (file stem; default: the maps folder's name, or "
+                                                "its parent's when it is called maps)")
     p.add_argument("--swatch-mm", default=None, metavar="W[xH]",
                    help="size of the glTF swatch in mm (default: one repeat, or 2 x 2 tiles)")
     p.set_defaults(fn=cmd_export)

@@ -22,7 +22,15 @@ def cmd_view(args: argparse.Namespace) -> int:
             raise InputError(f"--led {args.led}: no side-by-side for {args.path} ({scene.no_capture})")
         if args.led not in ids:
             raise InputError(f"--led {args.led}: the dataset {scene.dataset} has LEDs {ids[0]}..{ids[-1]}")
-    server = ViewerServer(scene, port=args.port)
+    try:
+        server = ViewerServer(scene, port=args.port)
+    except OSError as e:
+        import errno
+
+        if e.errno == errno.EADDRINUSE:
+            raise InputError(f"--port {args.port}: the port is in use on 127.0.0.1; choose another, or 0 for any "
+                             "free port") from e
+        raise
     url = server.url + (f"?led={args.led}" if args.led is not None else "")
     try:
         print(f"dualscale view: serving {scene.root} at {url} (Ctrl-C to stop)", flush=True)

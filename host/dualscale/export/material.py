@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import hashlib
 import re
+import shutil
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
@@ -66,16 +67,26 @@ def read_export(out: str | Path) -> dict[str, Any]:
 
 def export_material(maps_dir: str | Path, out: str | Path, formats: Sequence[str] = ALL_FORMATS, *,
                     name: str | None = None, tile: bool = False, swatch_mm: tuple[float, float] | None = None,
-                    meta: dict[str, Any] | None = None, tile_options: dict[str, Any] | None = None) -> dict[str, Any]:
+                    meta: dict[str, Any] | None = None, tile_options: dict[str, Any] | None = None,
+                    skip_unsized: bool = False) -> dict[str, Any]:
     """Export the maps folder ``maps_dir`` into ``out`` in each of ``formats``; returns the manifest.
 
     ``tile``: first cut a seamless tile of whole repeats (:func:`dualscale.tile.make_tile`, with
-    ``tile_options``) and export the tile, whose physical size then goes into every format.
-    ``name``: the material's file stem (default: the maps folder's parent name, sanitised).
-    Raises ``InputError`` for an unknown format or name, ``UnitsError`` from a format that
-    needs the physical size when the texel size is unknown (U3M), and the maps' own
-    ``FormatError``/``GeometryError``.
+    ``tile_options``) and export the tile, whose physical size (``Tile.size_mm``) then goes into
+    every format.  ``name``: the material's file stem (default: the maps folder's name, or its
+    parent's when it is called ``maps``, sanitised).  ``skip_unsized``: leave out the formats that
+    need a physical size (U3M) when the texel size is unknown, and list them under ``skipped``
+    (else that is a ``UnitsError``).
+
+    Every check happens before anything is written: ``InputError`` for an unknown format or name,
+    or an ``out`` that holds the source maps (writing there would replace them); ``UnitsError``
+    for U3M without a physical size; the maps' own ``FormatError``/``GeometryError``.  A rerun
+    keeps the formats of an earlier export of the same source and options (``reused``); after an
+    export of another source or options, the format folders it does not rewrite are removed, so
+    nothing stale is left beside the manifest.
     """
+    from dualscale.errors import UnitsError
+
     maps_dir, out = Path(maps_dir), Path(out)
     reg = formats_available()
     unknown = [f for f in formats if f not in reg]
@@ -83,29 +94,44 @@ def export_material(maps_dir: str | Path, out: str | Path, formats: Sequence[str
         raise InputError(f"unknown export format(s) {unknown}; choose from {sorted(reg)}")
     if not formats:
         raise InputError("no export format given")
+    src, dst = maps_dir.resolve(), out.resolve()
+    if src == dst or dst in src.parents:
+        raise InputError(f"output folder {out} holds the source maps {maps_dir}: the export would replace "
+                         "them; choose another output folder")
     if name is None:
-        stem = maps_dir.resolve().parent.name if maps_dir.name == "maps" else maps_dir.resolve().name
+        stem = src.parent.name if src.name == "maps" else src.name
         name = re.sub(r"[^A-Za-z0-9_.-]", "_", stem).strip("._-") or "material"
-    if not _NAME.match(name):
-        raise InputError(f"material name {name!r}: use letters, digits, '_', '.', '-' (at most 64)")
+    check_name(name)
     maps, mmeta = load_maps(maps_dir)
     texel = mmeta.get("texel_mm")
+    formats = list(dict.fromkeys(formats))
+    skipped: dict[str, str] = {}
+    if not texel and "u3m" in formats:
+        why = (f"U3M needs the physical size of the texture and {maps_dir / 'material.json'} has no texel "
+               "size (import photographs with --texel-mm)")
+        if not skip_unsized:
+            raise UnitsError(why)
+        formats.remove("u3m")
+        skipped["u3m"] = why
     source_sha = _digest(maps_dir / "material.json")
     options = {"tile": bool(tile), "swatch_mm": list(swatch_mm) if swatch_mm else None,
                "tile_options": tile_options or {}}
-    previous = _previous(out, source_sha, options)
-    out.mkdir(parents=True, exist_ok=True)
-    tile_info = None
+    previous, stale = _previous(out, source_sha, options)
+    tile_info, repeat = None, None
     if tile:
         from dualscale.tile import make_tile
 
         t = make_tile(maps, texel, **(tile_options or {}))
         maps, texel, tile_info = t.maps, t.texel_mm, t.meta()
+        repeat = tuple(float(v) for v in t.size_mm) if t.size_mm is not None else None
     ex = exchange(maps, texel)
-    repeat = ex.size_mm
+    if not tile:
+        repeat = ex.size_mm
     ctx = ExportContext(name=name, repeat_mm=repeat, tiled=bool(tile), swatch_mm=swatch_mm,
                         meta={"generator": _generator(), "source": str(maps_dir), **(meta or {})})
+    out.mkdir(parents=True, exist_ok=True)
     done: dict[str, list[str]] = {}
+    reused: list[str] = []
     if "maps" in previous and (out / "maps").is_dir():
         done["maps"] = previous["maps"]
     else:
@@ -115,28 +141,44 @@ def export_material(maps_dir: str | Path, out: str | Path, formats: Sequence[str
     for fmt in formats:
         if fmt in previous and (out / fmt).is_dir():
             done[fmt] = previous[fmt]
+            reused.append(fmt)
             continue
         with atomic_dir(out / fmt) as tmp:
             files = reg[fmt](ex, ctx, tmp)
             done[fmt] = sorted(f"{fmt}/{Path(f).relative_to(tmp).as_posix()}" for f in files)
+    for fmt, files in previous.items():  # complete formats of the same export not asked for this time
+        if fmt not in done:
+            done[fmt] = files
+    for fmt in stale:
+        if fmt not in done and fmt in reg and (out / fmt).is_dir():
+            shutil.rmtree(out / fmt)
     doc = {"format": FORMAT, "version": VERSION, "name": name, "source": str(maps_dir),
            "source_sha256": source_sha, "formats": done, "repeat_mm": list(repeat) if repeat else None,
            "texel_mm": texel, "tiled": bool(tile), "tile": tile_info, "options": options,
-           "generator": ctx.meta["generator"]}
+           "skipped": skipped, "generator": ctx.meta["generator"]}
     write_json(out / "export.json", doc)
-    return doc
+    return {**doc, "reused": reused}
 
 
-def _previous(out: Path, source_sha: str, options: dict) -> dict[str, list[str]]:
-    """Formats of a complete earlier export of the same source with the same options."""
+def check_name(name: str) -> str:
+    """Refuse (``InputError``) a material name that is not a safe file stem."""
+    if not _NAME.match(name or ""):
+        raise InputError(f"material name {name!r}: use letters, digits, '_', '.', '-' (at most 64, not "
+                         "starting with '.' or '-')")
+    return name
+
+
+def _previous(out: Path, source_sha: str, options: dict) -> tuple[dict[str, list[str]], list[str]]:
+    """``(formats, stale)``: the complete formats of an earlier export of the same source with the
+    same options, or, when the earlier export was of something else, its format folders."""
     try:
         doc = read_export(out)
     except (FileNotFoundError, FormatError):
-        return {}
+        return {}, []
     if doc.get("source_sha256") != source_sha or doc.get("options") != options:
-        return {}
+        return {}, list(doc["formats"])
     done = dict(doc["formats"])
-    return {f: files for f, files in done.items() if all((out / p).is_file() for p in files)}
+    return {f: files for f, files in done.items() if all((out / p).is_file() for p in files)}, []
 
 
 def _generator() -> str:

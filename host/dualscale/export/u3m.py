@@ -233,7 +233,7 @@ def write(ex: Exchange, ctx, out: Path) -> list[Path]:
             f"U3M export of {ctx.name!r}: U3M requires the physical size of the texture "
             "(u3m_schema.json image.width/height in mm, required), but the texel size of these maps "
             "is unknown. Re-import the photographs with `dualscale import ... --texel-mm MM` (the "
-            "pixel pitch on the sample), or export another format (exr, mtlx, gltf).")
+            "pixel pitch on the sample), or export another format (exr, mtlx, gltf, glb).")
     size = (float(ctx.repeat_mm[0]), float(ctx.repeat_mm[1]))
     if not all(math.isfinite(s) and s > 0 for s in size):
         raise UnitsError(f"U3M export of {ctx.name!r}: repeat_mm {ctx.repeat_mm} must be positive (mm)")

@@ -167,9 +167,7 @@ class CaptureSet:
         except KeyError as e:
             raise CalibrationError(f"camera {name!r} is not described in the capture manifest") from e
         c.pop("sensitivities", None)
-        return Camera(name=name, kind=c["kind"], width=int(c["width"]), height=int(c["height"]),
-                      field_mm=tuple(c["field_mm"]), position_mm=tuple(c["position_mm"]),
-                      has_analyzer=bool(c["has_analyzer"]))
+        return Camera.from_json(name, c, f"{self.root / 'captures.json'}")
 
     def select(self, **criteria: Any) -> list[Group]:
         return [g for g in self.groups if all(getattr(g, k) == v for k, v in criteria.items())]

@@ -8,6 +8,8 @@ angle is measured counter-clockwise from the camera's image ``+x`` axis, in degr
 
 from __future__ import annotations
 
+from typing import Any
+
 import math
 from dataclasses import dataclass
 
@@ -47,6 +49,27 @@ class Camera:
             raise ValueError("camera size and field must be positive")
         if self.kind == "perspective" and self.position_mm[2] <= 0:
             raise ValueError("a perspective camera must sit above the sample (z > 0)")
+
+    @classmethod
+    def from_json(cls, name: str, d: Any, where: str = "camera") -> "Camera":
+        """The one reader of a camera record ``{kind, width, height, field_mm, position_mm,
+        has_analyzer}`` (datasets, captures, calibrations).  ``ValueError`` naming ``where`` and
+        the field for a missing or malformed value (e.g. ``field_mm: null``)."""
+        try:
+            if not isinstance(d, dict):
+                raise TypeError("not an object")
+            field = tuple(float(v) for v in d["field_mm"])
+            pos = tuple(float(v) for v in d.get("position_mm", (0.0, 0.0, 400.0)))
+            if len(field) != 2 or len(pos) != 3:
+                raise ValueError("field_mm needs 2 lengths and position_mm 3")
+            return cls(name=name, kind=str(d["kind"]), width=int(d["width"]), height=int(d["height"]),
+                       field_mm=field, position_mm=pos,  # type: ignore[arg-type]
+                       has_analyzer=bool(d.get("has_analyzer", False)))
+        except KeyError as e:
+            raise ValueError(f"{where}: camera {name!r} has no {e.args[0]!r}") from e
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"{where}: camera {name!r} is malformed ({e}); it needs kind, width, height, "
+                             "field_mm [w, h] in mm and position_mm [x, y, z] in mm") from e
 
     @property
     def pixel_mm(self) -> tuple[float, float]:

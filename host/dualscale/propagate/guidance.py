@@ -77,10 +77,7 @@ def _dataset_image(folder: Path) -> tuple[Path, Camera | None, str]:
     doc = (ds.manifest.get("cameras") or {}).get(rec.camera)
     if doc:
         try:
-            cam = Camera(name=rec.camera, kind=doc["kind"], width=int(doc["width"]), height=int(doc["height"]),
-                         field_mm=tuple(float(v) for v in doc["field_mm"]),  # type: ignore[arg-type]
-                         position_mm=tuple(float(v) for v in doc.get("position_mm", (0, 0, 400))),  # type: ignore[arg-type]
-                         has_analyzer=bool(doc.get("has_analyzer", False)))
+            cam = Camera.from_json(rec.camera, doc, "guidance dataset")
         except (KeyError, TypeError, ValueError) as e:
             raise FormatError(f"{folder / 'manifest.json'}: camera {rec.camera!r} is malformed ({e})") from e
     return folder / rec.file, cam, rec.colour_space

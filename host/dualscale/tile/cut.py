@@ -218,12 +218,21 @@ def make_tile(maps: MaterialMaps, texel_mm: float | None, lattice: Lattice | Non
         raise InputError(f"--blend must be between 0 and half the tile's shorter side ({min(n1, n2) // 2} texels), "
                          f"got {blend_px}")
     A = np.stack([u / n1, wv / n2], 1)  # columns: input texels per output texel step
-    # the padded parallelogram's corners relative to the origin; origins keeping it inside
-    corners = np.array([[i, j] for i in (-b, n1 + b) for j in (-b, n2 + b)], float) @ A.T
-    lo, hi = -corners.min(0) + 1, np.array([w, h]) - corners.max(0) - 1
+
+    def room(band: int):
+        # the padded parallelogram's corners relative to the origin; origins keeping it inside
+        c = np.array([[i, j] for i in (-band, n1 + band) for j in (-band, n2 + band)], float) @ A.T
+        return c, -c.min(0) + 1, np.array([w, h]) - c.max(0) - 1
+
+    corners, lo, hi = room(b)
+    while blend_px is None and (hi < lo).any() and b > 1:  # the default band shrinks to what the field holds
+        b -= 1
+        corners, lo, hi = room(b)
     if (hi < lo).any():
-        raise InputError(f"the tile ({n1} x {n2} texels, {nx} x {ny} repeats, with a {b}-texel blend band) does not "
-                         f"fit in the {w} x {h} field; use fewer --repeats or a smaller --blend")
+        need = np.ceil(corners.max(0) - corners.min(0) + 2).astype(int)
+        raise InputError(f"the tile ({n1} x {n2} texels, {nx} x {ny} repeats) with a {b}-texel blend band on each side "
+                         f"needs {need[0]} x {need[1]} texels of the field, which is {w} x {h}: give a larger field, or "
+                         f"cut it with `dualscale tile` and fewer --repeats or a smaller --blend")
     stack, layout = _stack(maps)
     sig = np.mean([s / (s.std() + 1e-12) for s in signals_from_maps(maps, "albedo")], 0)
     # candidate origins: a grid over one primitive cell, kept inside the allowed box
@@ -250,6 +259,11 @@ def make_tile(maps: MaterialMaps, texel_mm: float | None, lattice: Lattice | Non
     seam = {"tile": round(seam_score(lum), 4), "untreated": round(seam_score(_luma(untreated)), 4),
             "signal": "albedo luminance", "goal": GOAL, "maps": maps_seam_scores(tmaps),
             "untreated_maps": maps_seam_scores(untreated), "origin_search": round(float(best[0]), 4)}
+    if seam["tile"] > GOAL:
+        import warnings
+
+        warnings.warn(f"the tile's seam score {seam['tile']:.3g} is above the goal {GOAL} (blend band {b} texels): "
+                      "its border will show when it repeats", RuntimeWarning, stacklevel=2)
     tmm = None if texel_mm is None else float(texel_mm)
     size_mm = None if tmm is None else (size_px[0] * tmm, size_px[1] * tmm)
     tile_texel = None if tmm is None else 0.5 * (size_mm[0] / n1 + size_mm[1] / n2)

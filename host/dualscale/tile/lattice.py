@@ -23,7 +23,7 @@ Issue 12 Sec. 2 ("find the repeat").  The method:
    their ``rho``; then reduced again.
 6. **Strength.**  ``strength`` = mean ``rho`` at the lattice points minus mean ``rho`` half way
    between them (``B (n + 1/2)``): about 1 for a clean periodic map, about 0 for a random
-   texture.  Below ``min_strength`` (0.15) :class:`NoRepeatError` is raised, as it is when no
+   texture.  Below ``min_strength`` (0.3) :class:`NoRepeatError` is raised, as it is when no
    candidate pair exists (no repeat, or fewer than two repeats in the field), and when a
    basis vector ``v`` is not a repeat of its own (``rho`` at ``v`` and ``2 v`` exceeds ``rho`` at
    ``1.5 v`` by less than ``min_step``, 0.05):
@@ -204,7 +204,7 @@ def _canonical(v: np.ndarray) -> np.ndarray:
 
 
 def find_lattice(image_or_maps, texel_mm: float | None = None, source: str = "all", strong: float = 0.5,
-                 min_strength: float = 0.15, min_period_px: float = 2.0, max_index: int = 12,
+                 min_strength: float = 0.3, min_period_px: float = 2.0, max_index: int = 12,
                  min_contrast: float = 0.03, min_step: float = 0.05) -> Lattice:
     """The primitive lattice of a periodic map (see the module docstring for the method).
 
