@@ -60,6 +60,8 @@ def constants(regs: dict, rig: dict) -> dict[str, int]:
         "MAGIC": regs["protocol"]["magic"],
         "DEFAULT_ADDRESS": rig["serial"]["address"],
         "DEFAULT_BAUD": rig["serial"]["baud"],
+        "DEFAULT_PARITY": regs["enums"]["parity"].get(rig["serial"]["parity"], -1),  # validate() refuses -1
+        "DEFAULT_STOP_BITS": rig["serial"]["stop_bits"],
     }
     for k, v in rig["limits"].items():
         if k != "max_steps":
@@ -123,6 +125,12 @@ def validate(regs: dict, rig: dict) -> None:
                     lo, hi = (resolve(x, regs, rig, c) for x in r["range"])
                     if not lo <= v <= hi:
                         errors.append(f"default {v} of {r['name']} outside its range {lo}..{hi}")
+    ser = rig["serial"]
+    if ser["parity"] not in regs["enums"]["parity"] or ser["parity"] == "doc":
+        errors.append(f"rig.toml [serial] parity {ser['parity']!r} is not one of enums.parity")
+    elif ser["stop_bits"] not in (1, 2) or (ser["parity"] == "NONE" and ser["stop_bits"] != 2):
+        errors.append(f"rig.toml [serial] stop_bits {ser['stop_bits']!r}: 1 or 2, and 2 without parity "
+                      "(Modbus over Serial Line v1.02 section 2.5.1)")
     st = regs["step_table"]
     if direct_count(regs, "holding") > st["addr"]:
         errors.append("the holding registers run into the step table")
@@ -163,7 +171,8 @@ def gen_c(regs: dict, rig: dict, vecs: dict) -> str:
     L.append("")
     for ename, e in regs["enums"].items():
         prefix = {"error": "ERR", "event": "EVT", "source": "SRC", "command": "CMD",
-                  "trigger_mode": "MODE", "state": "STATE", "abort": "ABORT"}[ename]
+                  "trigger_mode": "MODE", "state": "STATE", "abort": "ABORT",
+                  "parity": "PARITY"}[ename]
         L.append(f"/* enums.{ename}: {e['doc']} */")
         for k, v in e.items():
             if k != "doc":

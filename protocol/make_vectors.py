@@ -106,13 +106,18 @@ IR_STATE, IR_POL_NOW, IR_EVT_COUNT, IR_FRAMES_OK, IR_SEQ_DUR = 8, 16, 17, 20, 24
 STEPS = 0x1000
 TARGET = "posix"
 FW, PROTO = "0.1.0", "1.0"
+PARITY_NONE, PARITY_ODD, PARITY_EVEN = 0, 1, 2
+HR_FRAME_TO, HR_PARITY, HR_STOP = 15, 16, 17
+IR_COUNT, HR_COUNT = 31, 18
 
 
 def build() -> None:
     # ---- identification -----------------------------------------------------------------
     rd_ir("fc04_identity", 0, [0x4453, 0x0100, 0x0001, 0, 127, 4, 2048, 512])
     rd_ir("fc04_state_after_boot", 8, [IDLE, 0, NONE16, 0, 0xFFFF])  # SEQ_CRC of 0 steps = init
-    rd_hr("fc03_defaults", 0, [0, 0, 0, 0, 0, 0, 32768, 10000, 500, 0, 18000, 2000, 0, 0, 0])
+    rd_hr("fc03_defaults", 0, [0, 0, 0, 0, 0, 0, 32768, 10000, 500, 0, 18000, 2000, 0, 0, 0, 0,
+                               PARITY_EVEN, 1])  # 8E1: Modbus over Serial Line v1.02 section 2.5.1
+    rd_ir("uart_error_counters_zero", 27, [0, 0, 0, 0])
     text = f"dualscale fw={FW} proto={PROTO} target={TARGET}".encode()
     ok("fc11_report_server_id", b"\x11", bytes([0x11, 2 + len(text), 0x01, 0xFF]) + text)
     objs = [b"dualscale", b"DS-RIG", FW.encode(), b"https://github.com/dualscale/dualscale",
@@ -131,15 +136,33 @@ def build() -> None:
     exc("fc2b_unknown_mei_type", bytes([0x2B, 0x0D, 0x01, 0x00]), 0x01)
     exc("fc2b_bad_read_code", bytes([0x2B, 0x0E, 0x05, 0x00]), 0x03)
     exc("fc2b_unknown_object", bytes([0x2B, 0x0E, 0x04, 0x07]), 0x02)
+    # stream access (read codes 01..03): an id that is not an object of the category restarts at
+    # 0x00 (MB application protocol v1.1b3 section 6.21); only individual access (04) answers 02
+    ok("fc2b_basic_stream_from_1", bytes([0x2B, 0x0E, 0x01, 0x01]), devid(1, [1, 2]))
+    ok("fc2b_basic_stream_regular_id_restarts", bytes([0x2B, 0x0E, 0x01, 0x03]), devid(1, [0, 1, 2]))
+    ok("fc2b_basic_stream_missing_id_restarts", bytes([0x2B, 0x0E, 0x01, 0x99]), devid(1, [0, 1, 2]))
+    ok("fc2b_regular_stream_from_5", bytes([0x2B, 0x0E, 0x02, 0x05]), devid(2, [5, 6]))
+    ok("fc2b_regular_stream_missing_id_restarts", bytes([0x2B, 0x0E, 0x02, 0x07]),
+       devid(2, list(range(7))))
+    ok("fc2b_extended_stream", bytes([0x2B, 0x0E, 0x03, 0x00]), devid(3, list(range(7))))
+    ok("fc2b_extended_stream_missing_private_id_restarts", bytes([0x2B, 0x0E, 0x03, 0x80]),
+       devid(3, list(range(7))))
+    exc("fc2b_individual_missing_private_id", bytes([0x2B, 0x0E, 0x04, 0x80]), 0x02)
+    # order: the read code (03) is checked before the object (02)
+    exc("fc2b_order_read_code_before_object", bytes([0x2B, 0x0E, 0x05, 0x99]), 0x03)
+    exc("fc2b_order_mei_type_before_read_code", bytes([0x2B, 0x0D, 0x05, 0x99]), 0x01)
     exc("unknown_function_07", bytes([0x07]), 0x01)
     exc("unknown_function_41", bytes([0x41, 0x00, 0x00]), 0x01)
+    exc("fc11_order_length", b"\x11\x00", 0x03)  # FC 11 has no address: 01 then 03
 
     # ---- manual coils -------------------------------------------------------------------
     ok("fc05_led5_on", bytes([0x05]) + words(5, 0xFF00), bytes([0x05]) + words(5, 0xFF00))
     rd_coils("fc01_led5_is_on", 0, [1 if i == 5 else 0 for i in range(16)])
     exc("fc05_bad_value", bytes([0x05]) + words(6, 0x1234), 0x03)
     exc("fc05_unmapped_coil_127", bytes([0x05]) + words(127, 0xFF00), 0x02)
-    exc("fc05_unmapped_before_value_check", bytes([0x05]) + words(200, 0x1234), 0x02)
+    # order (MB application protocol v1.1b3 state diagrams): 01 -> 03 -> 02 -> 04; the output
+    # value is a field of the request and is checked before the address
+    exc("fc05_order_value_before_address", bytes([0x05]) + words(200, 0x1234), 0x03)
     ok("fc0f_backlights_0_and_2", bytes([0x0F]) + words(128, 4) + b"\x01\x05",
        bytes([0x0F]) + words(128, 4))
     rd_coils("fc01_backlights", 128, [1, 0, 1, 0])
@@ -147,9 +170,10 @@ def build() -> None:
     exc("fc01_quantity_zero", bytes([0x01]) + words(0, 0), 0x03)
     exc("fc01_quantity_2001", bytes([0x01]) + words(0, 2001), 0x03)
     exc("fc01_range_crosses_unmapped_127", bytes([0x01]) + words(120, 16), 0x02)
-    exc("fc01_quantity_before_address", bytes([0x01]) + words(5000, 2001), 0x03)
+    exc("fc01_order_quantity_before_address", bytes([0x01]) + words(5000, 2001), 0x03)
     exc("fc0f_byte_count_mismatch", bytes([0x0F]) + words(128, 4) + b"\x02\x05\x00", 0x03)
     exc("fc0f_unmapped_132", bytes([0x0F]) + words(130, 3) + b"\x01\x00", 0x02)
+    exc("fc0f_order_byte_count_before_address", bytes([0x0F]) + words(5000, 9) + b"\x01\x00", 0x03)
     wr1("all_off_command", HR_COMMAND, ALL_OFF)
     rd_coils("fc01_all_leds_off", 0, [0] * 127)
     rd_coils("fc01_backlights_off", 128, [0, 0, 0, 0])
@@ -166,13 +190,18 @@ def build() -> None:
     wr1_exc("fc06_duty_1001", HR_DUTY, 1001, 0x03)
     wr1_exc("fc06_camera_timeout_zero", HR_CAM_TO, 0, 0x03)
     wr1_exc("fc06_master_camera_4", HR_CAM, 4, 0x03)
-    wr1_exc("fc06_unmapped_16", 16, 0, 0x02)
+    wr1_exc("fc06_unmapped_18", HR_COUNT, 0, 0x02)
+    # FC06's only request-field check is the value 0..0xFFFF (always true); a register's own
+    # range belongs to the execution: the address answers first
+    wr1_exc("fc06_order_address_before_register_range", HR_COUNT, 0xFFFF, 0x02)
     wr1_exc("fc06_unmapped_past_step_table", STEPS + 10 * 2048, 0, 0x02)
     exc("fc03_quantity_126", bytes([0x03]) + words(0, 126), 0x03)
     exc("fc03_quantity_zero", bytes([0x03]) + words(0, 0), 0x03)
-    exc("fc03_range_15_16", bytes([0x03]) + words(15, 2), 0x02)
+    exc("fc03_range_17_18", bytes([0x03]) + words(HR_COUNT - 1, 2), 0x02)
+    exc("fc03_order_quantity_before_address", bytes([0x03]) + words(0x0FFF, 126), 0x03)
     exc("fc03_gap_between_regions", bytes([0x03]) + words(0x0FFF, 2), 0x02)
-    exc("fc04_unmapped_27", bytes([0x04]) + words(27, 1), 0x02)
+    exc("fc04_unmapped_31", bytes([0x04]) + words(IR_COUNT, 1), 0x02)
+    exc("fc04_order_quantity_before_address", bytes([0x04]) + words(IR_COUNT, 0), 0x03)
     exc("fc04_window_past_end", bytes([0x04]) + words(256 + 119, 2), 0x02)
     exc("fc04_quantity_126", bytes([0x04]) + words(256, 126), 0x03)
     exc("fc03_short_pdu", bytes([0x03]) + words(0), 0x03)
@@ -189,6 +218,9 @@ def build() -> None:
     # atomic multi-register write: one bad value, nothing changes
     exc("fc10_atomic_one_bad_value", wrn_pdu(HR_MANUAL, [100, 0, 500]), 0x03)
     rd_hr("fc10_atomic_nothing_written", HR_MANUAL, [32768, 10000, 500])
+    exc("fc10_order_byte_count_before_address",
+        bytes([0x10]) + words(HR_COUNT, 2) + b"\x03" + words(1, 2), 0x03)
+    exc("fc10_order_address_before_register_range", wrn_pdu(HR_COUNT - 1, [9, 0]), 0x02)
     exc("fc10_byte_count_mismatch", bytes([0x10]) + words(HR_MANUAL, 2) + b"\x03" + words(1, 2), 0x03)
     # (a full 124-register write would not fit in a 256-byte ADU: the quantity check answers first)
     exc("fc10_quantity_124", bytes([0x10]) + words(STEPS, 124) + bytes([248]) + words(0, 0), 0x03)
@@ -200,12 +232,26 @@ def build() -> None:
     rd_ir("polarizer_now_9000", IR_POL_NOW, [9000])
     exc("servo_window_inverted_pair", wrn_pdu(HR_SMIN, [12000, 11000]), 0x03)
     wrn("servo_window_reset", HR_SMIN, [0, 18000])
+    # serial line format (PROTOCOL.md section 1): parity NONE needs 2 stop bits, 1 stop bit needs
+    # parity; the pair is checked as one value, like the servo window; applied after the response
+    wr1_exc("parity_none_needs_two_stop_bits", HR_PARITY, PARITY_NONE, 0x03)
+    wr1_exc("parity_3_out_of_range", HR_PARITY, 3, 0x03)
+    wr1_exc("stop_bits_0_out_of_range", HR_STOP, 0, 0x03)
+    wrn("serial_8n2", HR_PARITY, [PARITY_NONE, 2])
+    wr1_exc("one_stop_bit_needs_parity", HR_STOP, 1, 0x03)
+    rd_hr("serial_reads_8n2", HR_PARITY, [PARITY_NONE, 2])
+    wr1("serial_8o2", HR_PARITY, PARITY_ODD)
+    wrn("serial_back_to_8e1", HR_PARITY, [PARITY_EVEN, 1])
     # FC 17: the write is done first
     ok("fc17_write_then_read", bytes([0x17]) + words(HR_POL, 3, HR_MANUAL, 1) + b"\x02" + words(1000),
        bytes([0x17, 6]) + words(9000, 1000, 10000))
     exc("fc17_write_quantity_122",
         bytes([0x17]) + words(0, 1, STEPS, 122) + bytes([244]) + words(0, 0), 0x03)
-    exc("fc17_read_unmapped", bytes([0x17]) + words(16, 1, HR_MANUAL, 1) + b"\x02" + words(7), 0x02)
+    exc("fc17_read_unmapped", bytes([0x17]) + words(HR_COUNT, 1, HR_MANUAL, 1) + b"\x02" + words(7), 0x02)
+    exc("fc17_order_quantity_before_address",
+        bytes([0x17]) + words(HR_COUNT, 0, HR_COUNT, 1) + b"\x02" + words(7), 0x03)
+    exc("fc17_order_address_before_register_range",
+        bytes([0x17]) + words(HR_COUNT, 1, HR_DUTY, 1) + b"\x02" + words(0), 0x02)
     rd_hr("fc17_failed_writes_nothing", HR_MANUAL, [1000])
 
     # ---- framing and silence ------------------------------------------------------------

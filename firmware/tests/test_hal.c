@@ -32,6 +32,15 @@ static void h_uart(void *ctx, const uint8_t *buf, uint16_t len)
     log_call(th, TH_UART, 0, 0, len);
 }
 
+static void h_format(void *ctx, uint8_t parity, uint8_t stop_bits)
+{
+    test_hal_t *th = ctx;
+    th->parity = parity;
+    th->stop_bits = stop_bits;
+    th->formats++;
+    log_call(th, TH_FORMAT, parity, stop_bits, 0);
+}
+
 static void h_light(void *ctx, uint8_t kind, uint8_t index, uint16_t intensity)
 {
     test_hal_t *th = ctx;
@@ -91,6 +100,7 @@ void th_init(test_hal_t *th, int with_preload)
     th->hal.polarizer_set = h_polarizer;
     th->hal.triggers_write = h_triggers;
     th->hal.on_event = h_event;
+    th->hal.uart_format = h_format;
 }
 
 void th_clear_log(test_hal_t *th)
@@ -218,4 +228,24 @@ void th_boot(ds_core_t *c, test_hal_t *th, int preload, uint64_t now)
     th_init(th, preload);
     th->now = now;
     ds_core_init(c, &th->hal, 1, th->now);
+}
+
+unsigned th_feed_with_error(ds_core_t *c, test_hal_t *th, const uint8_t *pdu, size_t pdu_len,
+                            size_t bad_at, uint8_t errors)
+{
+    uint8_t req[300];
+    size_t n = th_adu(req, 1, pdu, pdu_len);
+    unsigned before = th->uart_frames;
+    for (size_t i = 0; i < n; i++) {
+        if (i == bad_at) {
+            ds_core_rx_error(c, errors, th->now);
+        } else {
+            ds_core_rx(c, &req[i], 1, th->now);
+        }
+        th->now += 87u;
+        ds_core_poll(c, th->now);
+    }
+    th->now += 1750u;
+    ds_core_poll(c, th->now);
+    return th->uart_frames - before;
 }

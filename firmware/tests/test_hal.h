@@ -8,13 +8,14 @@
 
 #include "ds_core.h"
 
-enum th_call { TH_LIGHT, TH_PRELOAD, TH_LATCH, TH_POLARIZER, TH_TRIGGERS, TH_UART, TH_EVENT };
+enum th_call { TH_LIGHT, TH_PRELOAD, TH_LATCH, TH_POLARIZER, TH_TRIGGERS, TH_UART, TH_EVENT,
+               TH_FORMAT };
 
 typedef struct {
     enum th_call type;
     uint64_t t;
     uint8_t kind, index;
-    uint16_t value; /* intensity, cdeg or trigger mask */
+    uint16_t value; /* intensity, cdeg or trigger mask; TH_FORMAT: kind = parity, index = stop bits */
 } th_call_t;
 
 typedef struct {
@@ -38,11 +39,19 @@ typedef struct {
     uint8_t uart[512];
     size_t uart_len;                  /* last frame written */
     unsigned uart_frames;
+    uint8_t parity, stop_bits;        /* serial-line format last set through uart_format */
+    unsigned formats;                 /* uart_format calls */
     ds_hal_t hal;
 } test_hal_t;
 
 /* with_preload: provide light_preload/light_latch (a shift-register chain) or leave them NULL */
 void th_init(test_hal_t *th, int with_preload);
+
+/* Feed one request PDU (CRC appended) byte by byte through ds_core_rx, 87 us apart (115200
+ * baud), replacing character `bad_at` (or none if >= the ADU length) by ds_core_rx_error with
+ * `errors`; then let t3.5 pass. Returns the number of frames the core wrote meanwhile. */
+unsigned th_feed_with_error(ds_core_t *c, test_hal_t *th, const uint8_t *pdu, size_t pdu_len,
+                            size_t bad_at, uint8_t errors);
 
 /* th_init, then a fresh core at address 1 booted at `now` (µs). */
 void th_boot(ds_core_t *c, test_hal_t *th, int preload, uint64_t now);

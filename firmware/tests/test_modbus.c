@@ -4,6 +4,7 @@
 #include <stdarg.h>
 #include <stddef.h>
 #include <stdint.h>
+#include <stdio.h>
 #include <string.h>
 
 #include <cmocka.h>
@@ -212,7 +213,10 @@ static void test_server_id_run_indicator_follows_fault(void **state)
     uint8_t pdu[1] = {0x11}, resp[256];
     ds_core_set_target(&core, "stm32f405");
     size_t n = th_request(&core, &th, pdu, 1, resp);
-    const char *text = "dualscale fw=0.1.0 proto=1.0 target=stm32f405";
+    char text[64];
+    snprintf(text, sizeof text, "dualscale fw=%u.%u.%u proto=%u.%u target=stm32f405",
+             DS_FW_VERSION_MAJOR, DS_FW_VERSION_MINOR, DS_FW_VERSION_PATCH,
+             DS_PROTO_VERSION_MAJOR, DS_PROTO_VERSION_MINOR);
     assert_int_equal(n, 3 + 2 + strlen(text) + 2);
     assert_int_equal(resp[3], 1);
     assert_int_equal(resp[4], 0xFF);
@@ -271,6 +275,170 @@ static void test_holding_registers_reset_to_the_generated_defaults(void **state)
     assert_int_equal(th_read(&core, &th, 0x04, 0, DS_IR_COUNT + 1u, ir), DS_EX_ILLEGAL_ADDRESS);
 }
 
+
+/* ---- UART receive errors (PROTOCOL.md §1): the frame is dropped, each kind is counted ---- */
+
+static const uint8_t read_magic[5] = {0x04, 0, 0, 0, 1};
+
+static uint16_t ir_now(uint16_t addr)
+{
+    th.now += 20000u;
+    ds_core_poll(&core, th.now);
+    return th_ir(&core, &th, addr);
+}
+
+static void test_uart_error_kinds_drop_the_frame_and_are_counted(void **state)
+{
+    (void)state;
+    const struct {
+        uint8_t err;
+        uint16_t reg;
+    } kinds[] = {
+        {DS_UART_ERR_PARITY, DS_IR_UART_PARITY_ERRORS},
+        {DS_UART_ERR_FRAMING, DS_IR_UART_FRAMING_ERRORS},
+        {DS_UART_ERR_NOISE, DS_IR_UART_NOISE_ERRORS},
+        {DS_UART_ERR_OVERRUN, DS_IR_UART_OVERRUNS},
+    };
+    assert_int_equal(th_feed_with_error(&core, &th, read_magic, 5, 99, 0), 1); /* clean: answered */
+    for (size_t k = 0; k < 4; k++) {
+        for (size_t at = 0; at < 8; at++) { /* the first character, the CRC, and between */
+            assert_int_equal(th_feed_with_error(&core, &th, read_magic, 5, at, kinds[k].err), 0);
+        }
+        assert_int_equal(ir_now(kinds[k].reg), 8);
+        /* the line recovers at once: the next clean frame is answered */
+        assert_int_equal(th_feed_with_error(&core, &th, read_magic, 5, 99, 0), 1);
+    }
+    assert_int_equal(ir_now(DS_IR_FRAMES_BAD), 32);
+    assert_int_equal(ir_now(DS_IR_FRAMES_BAD_CRC), 0);
+    /* one character with two errors counts in both registers, and drops one frame */
+    assert_int_equal(th_feed_with_error(&core, &th, read_magic, 5, 3,
+                                        DS_UART_ERR_PARITY | DS_UART_ERR_FRAMING), 0);
+    assert_int_equal(ir_now(DS_IR_UART_PARITY_ERRORS), 9);
+    assert_int_equal(ir_now(DS_IR_UART_FRAMING_ERRORS), 9);
+    assert_int_equal(ir_now(DS_IR_UART_NOISE_ERRORS), 8);
+    assert_int_equal(ir_now(DS_IR_FRAMES_BAD), 33);
+}
+
+static void test_uart_error_writes_nothing(void **state)
+{
+    (void)state;
+    /* a write whose last CRC byte had a parity error is not executed, even though all its
+     * bytes arrived (a UART that delivers the byte anyway must not make it count) */
+    uint8_t wr[5] = {0x06, 0, DS_HR_MANUAL_INTENSITY, 0x12, 0x34};
+    assert_int_equal(th_feed_with_error(&core, &th, wr, 5, 7, DS_UART_ERR_PARITY), 0);
+    uint16_t v;
+    assert_int_equal(th_read(&core, &th, 0x03, DS_HR_MANUAL_INTENSITY, 1, &v), 0);
+    assert_int_equal(v, DS_HR_MANUAL_INTENSITY_DEFAULT);
+}
+
+static void test_uart_error_after_t35_starts_a_new_bad_frame(void **state)
+{
+    (void)state;
+    /* a complete frame, then (after t3.5 of silence) a character with a framing error, e.g. a
+     * break: the first frame is answered, the error only spoils what follows it */
+    uint8_t req[16];
+    size_t n = th_adu(req, 1, read_magic, 5);
+    ds_core_rx(&core, req, n, th.now);
+    th.now += 1750u;
+    ds_core_rx_error(&core, DS_UART_ERR_FRAMING, th.now);
+    assert_int_equal(th.uart_frames, 1);
+    th.now += 87u;
+    ds_core_rx(&core, req, n, th.now); /* within t3.5 of the bad character: same frame */
+    th.now += 1750u;
+    ds_core_poll(&core, th.now);
+    assert_int_equal(th.uart_frames, 1);
+    assert_int_equal(ir_now(DS_IR_UART_FRAMING_ERRORS), 1);
+    assert_int_equal(ir_now(DS_IR_FRAMES_BAD), 1);
+}
+
+static void test_uart_error_counters_wrap(void **state)
+{
+    (void)state;
+    for (unsigned i = 0; i < 65536u; i++) {
+        ds_core_rx_error(&core, DS_UART_ERR_NOISE, th.now);
+    }
+    assert_int_equal(ir_now(DS_IR_UART_NOISE_ERRORS), 0);
+    assert_int_equal(ir_now(DS_IR_FRAMES_BAD), 1); /* all one over-long frame: dropped once */
+}
+
+/* ---- serial-line format (PROTOCOL.md §1) ---- */
+
+static void test_line_format_resets_to_8e1(void **state)
+{
+    (void)state;
+    assert_int_equal(DS_DEFAULT_PARITY, DS_PARITY_EVEN);
+    assert_int_equal(DS_DEFAULT_STOP_BITS, 1);
+    assert_int_equal(th.formats, 1); /* ds_core_init told the target */
+    assert_int_equal(th.parity, DS_PARITY_EVEN);
+    assert_int_equal(th.stop_bits, 1);
+    uint16_t v[2];
+    assert_int_equal(th_read(&core, &th, 0x03, DS_HR_SERIAL_PARITY, 2, v), 0);
+    assert_int_equal(v[0], DS_PARITY_EVEN);
+    assert_int_equal(v[1], 1);
+}
+
+static void test_line_format_changes_after_the_response(void **state)
+{
+    (void)state;
+    uint8_t wr[10] = {0x10, 0, DS_HR_SERIAL_PARITY, 0, 2, 4, 0, DS_PARITY_NONE, 0, 2};
+    th_clear_log(&th);
+    assert_int_equal(th_feed_with_error(&core, &th, wr, 10, 99, 0), 1);
+    assert_int_equal(th.n_calls, 2);
+    assert_int_equal(th.calls[0].type, TH_UART); /* the response leaves in the old format */
+    assert_int_equal(th.calls[1].type, TH_FORMAT);
+    assert_int_equal(th.parity, DS_PARITY_NONE);
+    assert_int_equal(th.stop_bits, 2);
+    /* refused writes change nothing and call nothing */
+    th_clear_log(&th);
+    assert_int_equal(th_write1(&core, &th, DS_HR_SERIAL_STOP_BITS, 1), 3); /* 8N1 */
+    assert_int_equal(th_write1(&core, &th, DS_HR_SERIAL_PARITY, 3), 3);
+    for (size_t i = 0; i < th.n_calls; i++) {
+        assert_int_not_equal(th.calls[i].type, TH_FORMAT);
+    }
+    assert_int_equal(th_write1(&core, &th, DS_HR_SERIAL_PARITY, DS_PARITY_ODD), 0);
+    assert_int_equal(th.parity, DS_PARITY_ODD);
+    assert_int_equal(th.stop_bits, 2);
+    /* a broadcast write changes the format as well */
+    uint8_t req[32], resp[256];
+    size_t n = th_adu(req, 0, wr, 10);
+    wr[7] = DS_PARITY_EVEN;
+    wr[9] = 1;
+    n = th_adu(req, 0, wr, 10);
+    assert_int_equal(ds_core_handle_frame(&core, req, n, resp, th.now), 0);
+    assert_int_equal(th.parity, DS_PARITY_EVEN);
+    assert_int_equal(th.stop_bits, 1);
+}
+
+/* ---- FC 2B stream access: read codes 01..03 restart at 0x00 on an unknown id ---- */
+
+static void test_device_id_stream_restarts_for_every_id(void **state)
+{
+    (void)state;
+    for (unsigned code = 1; code <= 4; code++) {
+        for (unsigned id = 0; id < 256; id++) {
+            uint8_t pdu[4] = {0x2B, 0x0E, (uint8_t)code, (uint8_t)id}, resp[256];
+            size_t n = th_request(&core, &th, pdu, 4, resp);
+            unsigned last = code == 1 ? 2u : 6u;
+            if (code == 4) {
+                if (id > 6) {
+                    assert_int_equal(n, 5);
+                    assert_int_equal(resp[2], 0x02);
+                } else {
+                    assert_int_equal(resp[7], 1);
+                    assert_int_equal(resp[8], id);
+                }
+                continue;
+            }
+            unsigned first = id <= last ? id : 0u;
+            assert_int_equal(resp[1], 0x2B);
+            assert_int_equal(resp[5], 0x00); /* more follows: no */
+            assert_int_equal(resp[6], 0x00); /* next object id */
+            assert_int_equal(resp[7], last - first + 1u);
+            assert_int_equal(resp[8], first);
+        }
+    }
+}
+
 int main(void)
 {
     const struct CMUnitTest tests[] = {
@@ -288,6 +456,13 @@ int main(void)
         cmocka_unit_test_setup(test_server_id_run_indicator_follows_fault, setup),
         cmocka_unit_test_setup(test_garbage_stream_never_lights_anything, setup),
         cmocka_unit_test_setup(test_holding_registers_reset_to_the_generated_defaults, setup),
+        cmocka_unit_test_setup(test_uart_error_kinds_drop_the_frame_and_are_counted, setup),
+        cmocka_unit_test_setup(test_uart_error_writes_nothing, setup),
+        cmocka_unit_test_setup(test_uart_error_after_t35_starts_a_new_bad_frame, setup),
+        cmocka_unit_test_setup(test_uart_error_counters_wrap, setup),
+        cmocka_unit_test_setup(test_line_format_resets_to_8e1, setup),
+        cmocka_unit_test_setup(test_line_format_changes_after_the_response, setup),
+        cmocka_unit_test_setup(test_device_id_stream_restarts_for_every_id, setup),
     };
     return cmocka_run_group_tests(tests, NULL, NULL);
 }

@@ -21,6 +21,12 @@
 #define DS_NO_SOURCE 0xFFFFu
 #define DS_TARGET_NAME_MAX 31u  /* longest target name kept by ds_core_set_target */
 
+/* UART receive errors of one character (ds_core_rx_error), as a mask. */
+#define DS_UART_ERR_PARITY 0x01u  /* parity bit wrong */
+#define DS_UART_ERR_FRAMING 0x02u /* no stop bit where one was due (or a break) */
+#define DS_UART_ERR_NOISE 0x04u   /* the oversampled bit values disagreed */
+#define DS_UART_ERR_OVERRUN 0x08u /* characters were lost before this one (receiver or ring) */
+
 typedef struct ds_event {
     uint16_t seq;      /* event sequence number, wraps */
     uint16_t kind_arg; /* kind | arg << 8 */
@@ -52,6 +58,7 @@ typedef struct ds_core {
     uint8_t rx[DS_RTU_MAX_ADU];
     uint16_t rx_len;
     uint8_t rx_overflow;
+    uint8_t rx_bad;                                  /* a character had a UART error */
     uint64_t rx_last_us;
     uint8_t tx[DS_RTU_MAX_ADU];
 
@@ -61,6 +68,8 @@ typedef struct ds_core {
     uint16_t state, error, error_step, cur_step;
     uint16_t polarizer_now;
     uint16_t frames_ok, frames_bad_crc, frames_bad, watchdog_trips;
+    uint16_t uart_parity_errors, uart_framing_errors, uart_noise_errors, uart_overruns;
+    uint8_t line_format_pending;                     /* SERIAL_* written: call uart_format */
     uint64_t seq_duration_us;
     uint64_t last_host_us;
 
@@ -95,6 +104,12 @@ void ds_core_init(ds_core_t *c, const ds_hal_t *hal, uint8_t address, uint64_t n
 
 /* Bytes received on the serial line at now_us. A gap of t3.5 (ds_rtu_t35_us) ends a frame. */
 void ds_core_rx(ds_core_t *c, const uint8_t *buf, size_t n, uint64_t now_us);
+
+/* One character received at now_us with UART errors (DS_UART_ERR_* mask; its value is not
+ * needed). It belongs to the frame being received (or starts one), which is then dropped in
+ * silence at its end (FRAMES_BAD), and each error kind is counted in its input register
+ * (UART_PARITY_ERRORS, UART_FRAMING_ERRORS, UART_NOISE_ERRORS, UART_OVERRUNS). */
+void ds_core_rx_error(ds_core_t *c, uint8_t errors, uint64_t now_us);
 
 /* Run everything due at now_us: frame end, sequencer phases, watchdog, light limits. */
 void ds_core_poll(ds_core_t *c, uint64_t now_us);

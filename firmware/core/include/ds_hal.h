@@ -32,6 +32,12 @@ typedef struct ds_hal {
     /* Set the trigger outputs: bit i of mask = trigger line i level. */
     void (*triggers_write)(void *ctx, uint8_t mask);
 
+    /* Serial-line format: 8 data bits, parity DS_PARITY_NONE/ODD/EVEN, 1 or 2 stop bits. Called by
+     * ds_core_init with the reset values (rig.toml [serial]) and after a write of SERIAL_PARITY /
+     * SERIAL_STOP_BITS, once the response to that write has been handed to uart_write: the target
+     * switches when that response has left the line. May be NULL (fixed format). */
+    void (*uart_format)(void *ctx, uint8_t parity, uint8_t stop_bits);
+
     /* Optional: an event was stored in the FIFO (the simulator mirrors it on its side channel). */
     void (*on_event)(void *ctx, const struct ds_event *e);
 } ds_hal_t;

@@ -22,6 +22,8 @@
 #define DS_MAGIC 17491u
 #define DS_DEFAULT_ADDRESS 1u
 #define DS_DEFAULT_BAUD 115200u
+#define DS_DEFAULT_PARITY 2u
+#define DS_DEFAULT_STOP_BITS 1u
 #define DS_MAX_BRACKETS 8u
 #define DS_MAX_EV_STEP 4u
 #define DS_FIFO_DEPTH 512u
@@ -92,6 +94,11 @@ static const unsigned char DS_DOME_ROW_COUNTS[DS_N_ROWS] = {1, 6, 12, 18, 24, 30
 #define DS_ABORT_WATCHDOG 0x0002u
 #define DS_ABORT_FAULT 0x0003u
 
+/* enums.parity: Serial-line parity (holding register SERIAL_PARITY; rig.toml [serial] parity is the reset value). */
+#define DS_PARITY_NONE 0x0000u
+#define DS_PARITY_ODD 0x0001u
+#define DS_PARITY_EVEN 0x0002u
+
 /* enums.error: Error register values. 0x1x: sequence validation (START refused, exception 03). 0x2x: runtime faults (state FAULT). */
 #define DS_ERR_NONE 0x0000u
 #define DS_ERR_SEQ_EMPTY 0x0010u
@@ -119,7 +126,7 @@ static const unsigned char DS_DOME_ROW_COUNTS[DS_N_ROWS] = {1, 6, 12, 18, 24, 30
 #define DS_COIL_DIFFUSE 136u
 
 /* Input registers */
-#define DS_IR_COUNT 27u /* directly mapped: input registers 0..26 */
+#define DS_IR_COUNT 31u /* directly mapped: input registers 0..30 */
 #define DS_IR_MAGIC 0u /* u16, 1 word(s) */
 #define DS_IR_PROTO_VERSION 1u /* u16, 1 word(s) */
 #define DS_IR_FW_VERSION 2u /* u16, 1 word(s) */
@@ -143,11 +150,15 @@ static const unsigned char DS_DOME_ROW_COUNTS[DS_N_ROWS] = {1, 6, 12, 18, 24, 30
 #define DS_IR_FRAMES_BAD 22u /* u16, 1 word(s) */
 #define DS_IR_WATCHDOG_TRIPS 23u /* u16, 1 word(s) */
 #define DS_IR_SEQ_DURATION_US 24u /* u48, 3 word(s) */
+#define DS_IR_UART_PARITY_ERRORS 27u /* u16, 1 word(s) */
+#define DS_IR_UART_FRAMING_ERRORS 28u /* u16, 1 word(s) */
+#define DS_IR_UART_NOISE_ERRORS 29u /* u16, 1 word(s) */
+#define DS_IR_UART_OVERRUNS 30u /* u16, 1 word(s) */
 #define DS_IR_EVT_WINDOW 256u /* event, 120 word(s) */
 #define DS_IR_EVT_WINDOW_COUNT 20u
 
 /* Holding registers */
-#define DS_HR_COUNT 16u /* directly mapped: holding registers 0..15 */
+#define DS_HR_COUNT 18u /* directly mapped: holding registers 0..17 */
 #define DS_HR_COMMAND 0u /* u16, 1 word(s) */
 #define DS_HR_COMMAND_MIN 0u
 #define DS_HR_COMMAND_MAX 5u
@@ -204,6 +215,14 @@ static const unsigned char DS_DOME_ROW_COUNTS[DS_N_ROWS] = {1, 6, 12, 18, 24, 30
 #define DS_HR_FRAME_TIMEOUT_US_MIN 0u
 #define DS_HR_FRAME_TIMEOUT_US_MAX 50000u
 #define DS_HR_FRAME_TIMEOUT_US_DEFAULT 0u
+#define DS_HR_SERIAL_PARITY 16u /* u16, 1 word(s) */
+#define DS_HR_SERIAL_PARITY_MIN 0u
+#define DS_HR_SERIAL_PARITY_MAX 2u
+#define DS_HR_SERIAL_PARITY_DEFAULT 2u
+#define DS_HR_SERIAL_STOP_BITS 17u /* u16, 1 word(s) */
+#define DS_HR_SERIAL_STOP_BITS_MIN 1u
+#define DS_HR_SERIAL_STOP_BITS_MAX 2u
+#define DS_HR_SERIAL_STOP_BITS_DEFAULT 1u
 
 /* Reset value of every holding-register word 0..DS_HR_COUNT-1 (registers.toml `default`;
  * none = 0; multi-word values big-endian by word). ds_core_init copies it into hr[]. */
@@ -224,6 +243,8 @@ static const uint16_t DS_HR_DEFAULTS[DS_HR_COUNT] = {
     0x0000u, /* 13 FRAME_GAP_US word 0 (= 0) */
     0x0000u, /* 14 FRAME_GAP_US word 1 (= 0) */
     0x0000u, /* 15 FRAME_TIMEOUT_US (= 0) */
+    0x0002u, /* 16 SERIAL_PARITY (= 2) */
+    0x0001u, /* 17 SERIAL_STOP_BITS (= 1) */
 };
 
 /* Step table: word offsets inside one step */

@@ -53,6 +53,8 @@ void ds_core_init(ds_core_t *c, const ds_hal_t *hal, uint8_t address, uint64_t n
     }
     ds_hal_triggers(c, 0u);
     ds_hal_polarizer(c, c->polarizer_now);
+    c->line_format_pending = 1u; /* the serial line starts in the reset format */
+    ds_line_format_apply(c);
 }
 
 void ds_run_timers(ds_core_t *c, uint64_t now)
@@ -92,5 +94,7 @@ void ds_core_camera_edge(ds_core_t *c, uint8_t camera, uint64_t now_us)
 size_t ds_core_handle_frame(ds_core_t *c, const uint8_t *req, size_t n, uint8_t *resp, uint64_t now_us)
 {
     ds_run_timers(c, now_us);
-    return ds_modbus_process(c, req, n, resp, now_us);
+    size_t r = ds_modbus_process(c, req, n, resp, now_us);
+    ds_line_format_apply(c); /* the caller sends resp before the line changes, as ds_core_rx does */
+    return r;
 }

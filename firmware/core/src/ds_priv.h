@@ -46,6 +46,7 @@ uint16_t ds_crc16_update(uint16_t crc, const uint8_t *buf, size_t n);
 /* rtu.c */
 uint64_t ds_rtu_deadline(const ds_core_t *c);
 void ds_rtu_check_end(ds_core_t *c, uint64_t now);
+void ds_line_format_apply(ds_core_t *c); /* hands a written SERIAL_* format to the HAL */
 
 /* modbus.c: one complete ADU, no timers run. */
 size_t ds_modbus_process(ds_core_t *c, const uint8_t *req, size_t n, uint8_t *resp, uint64_t now);

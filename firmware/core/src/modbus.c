@@ -1,5 +1,9 @@
-/* Modbus RTU server: ADU checks, silence rules, function-code dispatch, exceptions
- * (checked in the order of PROTOCOL.md §2: function, quantity/byte count, address, value, busy). */
+/* Modbus RTU server: ADU checks, silence rules, function-code dispatch, exceptions.
+ *
+ * Every function code checks in the order of the Modbus Application Protocol v1.1b3 state
+ * diagrams (§6), PROTOCOL.md §2: function (01), then the request's own fields - quantity, byte
+ * count, a coil's output value, a device-id read code (03) - then the address range (02), then
+ * the execution: a register's range (03), busy (06), failure (04). */
 #include "ds_priv.h"
 
 #define PDU_MAX 253u
@@ -56,22 +60,40 @@ static uint8_t put_proto(uint8_t *out) /* "proto=MAJ.MIN" */
     return (uint8_t)(n + put_uint(&out[n], DS_PROTO_VERSION_MINOR));
 }
 
+#define OBJ_VENDOR "dualscale"
+#define OBJ_PRODUCT_CODE "DS-RIG"
+#define OBJ_VENDOR_URL "https://github.com/dualscale/dualscale"
+#define OBJ_PRODUCT_NAME "dualscale rig controller"
+#define N_OBJECTS 7u    /* 0x00..0x06: basic 0x00..0x02 and regular 0x03..0x06; no extended */
+#define LAST_BASIC 2u
+#define VERSION_MAX 13u /* longest "255.255.65535" (MAJ.MIN.PATCH) and "proto=255.255" */
+
+/* Every object of the regular category fits one response, so "more follows" is always 00 and a
+ * client never needs a second transaction: header 7 bytes, then id + length + value each. */
+_Static_assert(7u + 2u * N_OBJECTS + sizeof OBJ_VENDOR - 1u + sizeof OBJ_PRODUCT_CODE - 1u +
+                   VERSION_MAX + sizeof OBJ_VENDOR_URL - 1u + sizeof OBJ_PRODUCT_NAME - 1u +
+                   DS_TARGET_NAME_MAX + VERSION_MAX <= PDU_MAX,
+               "device identification objects do not fit one response");
+
 static uint8_t device_object(const ds_core_t *c, uint8_t id, uint8_t *out)
 {
     switch (id) {
-    case 0x00: return put_str(out, "dualscale");
-    case 0x01: return put_str(out, "DS-RIG");
+    case 0x00: return put_str(out, OBJ_VENDOR);
+    case 0x01: return put_str(out, OBJ_PRODUCT_CODE);
     case 0x02: return put_fw_version(out);
-    case 0x03: return put_str(out, "https://github.com/dualscale/dualscale");
-    case 0x04: return put_str(out, "dualscale rig controller");
+    case 0x03: return put_str(out, OBJ_VENDOR_URL);
+    case 0x04: return put_str(out, OBJ_PRODUCT_NAME);
     case 0x05: return put_str(out, c->target);
     default: return put_proto(out);
     }
 }
 
-#define N_OBJECTS 7u
-
-/* FC 2B / MEI 0E. out starts with the function code. */
+/* FC 2B / MEI 0E, Read Device Identification (Modbus Application Protocol v1.1b3 §6.21).
+ * Checks: MEI type (01), read code (03), then, for individual access only, the object (02).
+ * Stream access - read codes 01 (basic: 0x00..0x02), 02 (regular: 0x00..0x06) and 03 (extended:
+ * the regular objects, as there are no private ones) - answers the category's objects from the
+ * requested id on; an id that is not an object of the category restarts at 0x00. Individual
+ * access (04) answers the one object, or 02 when it does not exist. out starts with the FC. */
 static uint8_t read_device_id(const ds_core_t *c, const uint8_t *pdu, size_t plen, uint8_t *out,
                               size_t *rlen)
 {
@@ -85,26 +107,24 @@ static uint8_t read_device_id(const ds_core_t *c, const uint8_t *pdu, size_t ple
         return DS_EX_ILLEGAL_VALUE;
     }
     uint8_t code = pdu[2], first = pdu[3], last;
-    if (first >= N_OBJECTS) {
-        return DS_EX_ILLEGAL_ADDRESS;
-    }
-    if (code == 1u) { /* basic: 0..2; an id outside the category restarts at 0 */
-        if (first > 2u) {
+    if (code == 4u) { /* individual access */
+        if (first >= N_OBJECTS) {
+            return DS_EX_ILLEGAL_ADDRESS;
+        }
+        last = first;
+    } else { /* stream access */
+        last = code == 1u ? LAST_BASIC : (uint8_t)(N_OBJECTS - 1u);
+        if (first > last) {
             first = 0u;
         }
-        last = 2u;
-    } else if (code == 4u) { /* individual access */
-        last = first;
-    } else { /* regular (and extended: there are no extended objects) */
-        last = N_OBJECTS - 1u;
     }
     size_t n = 0;
     out[n++] = 0x2Bu;
     out[n++] = 0x0Eu;
     out[n++] = code;
     out[n++] = 0x82u; /* conformity: regular identification, stream and individual access */
-    out[n++] = 0x00u; /* more follows: no */
-    out[n++] = 0x00u; /* next object id */
+    out[n++] = 0x00u; /* more follows: no (everything fits, see the assertion above) */
+    out[n++] = 0x00u; /* next object id: 0 when nothing follows */
     out[n++] = (uint8_t)(last - first + 1u);
     for (uint8_t id = first; id <= last; id++) {
         out[n] = id;
@@ -177,16 +197,16 @@ static uint8_t dispatch(ds_core_t *c, const uint8_t *pdu, size_t plen, uint8_t *
         *rlen = 2u + out[1];
         return DS_EX_NONE;
     }
-    case 0x05: { /* write single coil */
+    case 0x05: { /* write single coil: the value is a field of the request, checked first */
         if (plen != 5u) {
             return DS_EX_ILLEGAL_VALUE;
         }
         uint16_t addr = get16(&pdu[1]), v = get16(&pdu[3]);
-        if (!ds_coils_mapped(addr, 1u)) {
-            return DS_EX_ILLEGAL_ADDRESS;
-        }
         if (v != 0xFF00u && v != 0x0000u) {
             return DS_EX_ILLEGAL_VALUE;
+        }
+        if (!ds_coils_mapped(addr, 1u)) {
+            return DS_EX_ILLEGAL_ADDRESS;
         }
         uint8_t bit = v ? 1u : 0u;
         ex = ds_coils_write(c, addr, 1u, &bit, now);

@@ -115,6 +115,10 @@ static uint16_t input_value(ds_core_t *c, uint16_t a, uint64_t now)
     case DS_IR_FRAMES_BAD_CRC: return c->frames_bad_crc;
     case DS_IR_FRAMES_BAD: return c->frames_bad;
     case DS_IR_WATCHDOG_TRIPS: return c->watchdog_trips;
+    case DS_IR_UART_PARITY_ERRORS: return c->uart_parity_errors;
+    case DS_IR_UART_FRAMING_ERRORS: return c->uart_framing_errors;
+    case DS_IR_UART_NOISE_ERRORS: return c->uart_noise_errors;
+    case DS_IR_UART_OVERRUNS: return c->uart_overruns;
     case DS_IR_SEQ_DURATION_US: case DS_IR_SEQ_DURATION_US + 1u: case DS_IR_SEQ_DURATION_US + 2u:
         return u48_word(c->seq_duration_us, (uint16_t)(a - DS_IR_SEQ_DURATION_US));
     default: return 0u;
@@ -177,6 +181,12 @@ static int holding_value_ok(const uint16_t *cand, uint16_t a, uint16_t cmd)
         return v >= DS_HR_CAMERA_TIMEOUT_MS_MIN && v <= DS_HR_CAMERA_TIMEOUT_MS_MAX;
     case DS_HR_MASTER_CAMERA: return v <= DS_HR_MASTER_CAMERA_MAX;
     case DS_HR_FRAME_TIMEOUT_US: return v <= DS_HR_FRAME_TIMEOUT_US_MAX;
+    case DS_HR_SERIAL_PARITY:
+    case DS_HR_SERIAL_STOP_BITS: { /* one value: no parity needs 2 stop bits (serial line §2.5.1) */
+        uint16_t parity = cand[DS_HR_SERIAL_PARITY], stop = cand[DS_HR_SERIAL_STOP_BITS];
+        return parity <= DS_HR_SERIAL_PARITY_MAX && stop >= DS_HR_SERIAL_STOP_BITS_MIN &&
+               stop <= DS_HR_SERIAL_STOP_BITS_MAX && (parity != DS_PARITY_NONE || stop == 2u);
+    }
     case DS_HR_FRAME_GAP_US:
     case DS_HR_FRAME_GAP_US + 1u: {
         uint32_t gap = ((uint32_t)cand[DS_HR_FRAME_GAP_US] << 16) | cand[DS_HR_FRAME_GAP_US + 1u];
@@ -267,6 +277,9 @@ uint8_t ds_regs_write_holding(ds_core_t *c, uint16_t addr, uint16_t n, const uin
         if (a != DS_HR_COMMAND && (written & (1u << a))) { /* COMMAND is write-only: not stored */
             c->hr[a] = cand[a];
         }
+    }
+    if (written & ((1u << DS_HR_SERIAL_PARITY) | (1u << DS_HR_SERIAL_STOP_BITS))) {
+        c->line_format_pending = 1u; /* applied once the response is on its way */
     }
     if (written & (1u << DS_HR_EVT_ACK)) {
         ds_fifo_ack(c, c->hr[DS_HR_EVT_ACK]);

@@ -1,4 +1,5 @@
-/* Modbus RTU framing: bytes accumulate until t3.5 of silence ends the frame. */
+/* Modbus RTU framing: bytes accumulate until t3.5 of silence ends the frame. A character with
+ * a UART error (parity, framing, noise, overrun) marks the frame bad: it is dropped at its end. */
 #include "ds_priv.h"
 
 uint32_t ds_rtu_t35_us(uint32_t baud)
@@ -35,18 +36,60 @@ void ds_rtu_check_end(ds_core_t *c, uint64_t now)
     }
     uint64_t end = frame_end_us(c);
     uint16_t len = c->rx_len;
-    uint8_t overflow = c->rx_overflow;
+    uint8_t dropped = c->rx_overflow | c->rx_bad;
     c->rx_len = 0u;
     c->rx_overflow = 0u;
+    c->rx_bad = 0u;
     /* timers due before the frame ended act first, then the frame is handled now */
     ds_run_timers(c, end);
-    if (overflow) {
+    if (dropped) {
         c->frames_bad++;
         return;
     }
     size_t r = ds_modbus_process(c, c->rx, len, c->tx, now);
     if (r != 0u && c->hal && c->hal->uart_write) {
         c->hal->uart_write(c->hal->ctx, c->tx, (uint16_t)r);
+    }
+    ds_line_format_apply(c); /* a new line format takes effect after its response */
+}
+
+void ds_line_format_apply(ds_core_t *c)
+{
+    if (c->line_format_pending) {
+        c->line_format_pending = 0u;
+        if (c->hal && c->hal->uart_format) {
+            c->hal->uart_format(c->hal->ctx, (uint8_t)c->hr[DS_HR_SERIAL_PARITY],
+                                (uint8_t)c->hr[DS_HR_SERIAL_STOP_BITS]);
+        }
+    }
+}
+
+static void count_error(uint16_t *counter)
+{
+    *counter = (uint16_t)(*counter + 1u);
+}
+
+void ds_core_rx_error(ds_core_t *c, uint8_t errors, uint64_t now_us)
+{
+    ds_rtu_check_end(c, now_us); /* a gap >= t3.5 ended the previous frame */
+    if (c->rx_len < DS_RTU_MAX_ADU) {
+        c->rx[c->rx_len++] = 0u; /* a character all the same: it extends the frame's timing */
+    } else {
+        c->rx_overflow = 1u;
+    }
+    c->rx_bad = 1u;
+    c->rx_last_us = now_us;
+    if (errors & DS_UART_ERR_PARITY) {
+        count_error(&c->uart_parity_errors);
+    }
+    if (errors & DS_UART_ERR_FRAMING) {
+        count_error(&c->uart_framing_errors);
+    }
+    if (errors & DS_UART_ERR_NOISE) {
+        count_error(&c->uart_noise_errors);
+    }
+    if (errors & DS_UART_ERR_OVERRUN) {
+        count_error(&c->uart_overruns);
     }
 }
 

@@ -22,6 +22,8 @@ FW_VERSION_PATCH = 0
 MAGIC = 17491
 DEFAULT_ADDRESS = 1
 DEFAULT_BAUD = 115200
+DEFAULT_PARITY = 2
+DEFAULT_STOP_BITS = 1
 MAX_BRACKETS = 8
 MAX_EV_STEP = 4
 FIFO_DEPTH = 512
@@ -45,8 +47,8 @@ POL_SLEW_CDEG_PER_MS = 40
 STEP_NONE = 0xFFFF
 POL_KEEP = 0xFFFF
 EDGE_IGNORED = 0x0080
-IR_COUNT = 27  # input registers 0..IR_COUNT-1 are mapped
-HR_COUNT = 16  # holding registers 0..HR_COUNT-1 are mapped
+IR_COUNT = 31  # input registers 0..IR_COUNT-1 are mapped
+HR_COUNT = 18  # holding registers 0..HR_COUNT-1 are mapped
 PROTOCOL_VERSION = (1, 0)
 FIRMWARE_VERSION = (0, 1, 0)
 
@@ -116,6 +118,13 @@ class Abort(IntEnum):
     HOST = 0x0001
     WATCHDOG = 0x0002
     FAULT = 0x0003
+
+class Parity(IntEnum):
+    """Serial-line parity (holding register SERIAL_PARITY; rig.toml [serial] parity is the reset value)."""
+
+    NONE = 0x0000
+    ODD = 0x0001
+    EVEN = 0x0002
 
 class Error(IntEnum):
     """Error register values. 0x1x: sequence validation (START refused, exception 03). 0x2x: runtime faults (state FAULT)."""
@@ -200,11 +209,19 @@ REGISTERS: tuple[Register, ...] = (
     Register('input', 'FRAMES_BAD_CRC', 21, 'u16', 1, 'r', '', None, None, None,
              'Frames dropped for a bad CRC (wraps).'),
     Register('input', 'FRAMES_BAD', 22, 'u16', 1, 'r', '', None, None, None,
-             'Frames dropped as too short or too long (wraps).'),
+             'Frames dropped as too short or too long, or for a UART error in one of their characters (wraps).'),
     Register('input', 'WATCHDOG_TRIPS', 23, 'u16', 1, 'r', '', None, None, None,
              'How often the host watchdog switched the lights off.'),
     Register('input', 'SEQ_DURATION_US', 24, 'u48', 3, 'r', 'us', None, None, None,
              'Scheduled duration of the validated sequence (device-master), set by START.'),
+    Register('input', 'UART_PARITY_ERRORS', 27, 'u16', 1, 'r', '', None, None, None,
+             'Characters received with a parity error (wraps). The frame they belong to is dropped.'),
+    Register('input', 'UART_FRAMING_ERRORS', 28, 'u16', 1, 'r', '', None, None, None,
+             'Characters received with a framing error: no stop bit, or a break (wraps). The frame is dropped.'),
+    Register('input', 'UART_NOISE_ERRORS', 29, 'u16', 1, 'r', '', None, None, None,
+             "Characters received with noise detected by the UART's oversampling (wraps). The frame is dropped."),
+    Register('input', 'UART_OVERRUNS', 30, 'u16', 1, 'r', '', None, None, None,
+             'Receiver overruns: characters lost because the previous one was not read in time (wraps). The frame is dropped.'),
     Register('input', 'EVT_WINDOW', 256, 'event', 120, 'r', '', None, None, None,
              'The oldest pending events, 6 registers each: SEQ, KIND|ARG<<8, STEP, TS_US (u48). Reading does not consume; write EVT_ACK.'),
     Register('holding', 'COMMAND', 0, 'u16', 1, 'w', '', 0, 5, None,
@@ -237,6 +254,10 @@ REGISTERS: tuple[Register, ...] = (
              "Gap after every bracket's exposure (camera readout) before the next bracket or step."),
     Register('holding', 'FRAME_TIMEOUT_US', 15, 'u16', 1, 'rw', 'us', 0, 50000, 0,
              "End-of-frame silence. 0 = the standard t3.5; a larger value serves links that deliver a frame's bytes with gaps (radio modems, emulators). Values below t3.5 act as t3.5."),
+    Register('holding', 'SERIAL_PARITY', 16, 'u16', 1, 'rw', '', 0, 2, 2,
+             "Serial-line parity (enums.parity); 8 data bits always. Takes effect once the response to the write has been sent; reset restores rig.toml's default (EVEN). NONE needs SERIAL_STOP_BITS = 2 (exception 03 otherwise; write both with FC 10)."),
+    Register('holding', 'SERIAL_STOP_BITS', 17, 'u16', 1, 'rw', '', 1, 2, 1,
+             'Serial-line stop bits, 1 or 2; 1 only with parity (the Modbus serial-line rule). Takes effect with SERIAL_PARITY, after the response.'),
 )
 
 
@@ -266,6 +287,10 @@ class IR:
     FRAMES_BAD = 22
     WATCHDOG_TRIPS = 23
     SEQ_DURATION_US = 24
+    UART_PARITY_ERRORS = 27
+    UART_FRAMING_ERRORS = 28
+    UART_NOISE_ERRORS = 29
+    UART_OVERRUNS = 30
     EVT_WINDOW = 256
 
 
@@ -287,6 +312,8 @@ class HR:
     MASTER_CAMERA = 12
     FRAME_GAP_US = 13
     FRAME_TIMEOUT_US = 15
+    SERIAL_PARITY = 16
+    SERIAL_STOP_BITS = 17
 
 
 class Coil:
