@@ -1,16 +1,30 @@
-"""Typed Modbus RTU client for the rig (pymodbus, pinned minor version).
+"""Typed Modbus RTU client for the rig (pymodbus PDUs, pinned minor version; our own transaction).
 
 The client checks the device's identity and protocol version on `open()`, uploads sequences
 in chunks and verifies them by CRC, runs them, and follows the event FIFO with the idempotent
 ack of PROTOCOL.md §4. Every request goes through `_call`, which reopens the serial port after
 a drop and retries, so a run survives an unplugged cable without losing or repeating events.
+
+RTU has no transaction id, so the client never takes a frame for the answer unless it fits
+the request (PROTOCOL.md §10): the line is drained before every request, and a reply must
+come from the addressed server, carry the request's function code (or its exception), the byte
+count of the quantity asked for, and, for writes, echo the address and value/quantity. Any
+other frame (a late reply to an earlier request) is discarded and counted in `LinkStats`, and
+the client keeps listening until its timeout. Commands that change the state (START, ABORT,
+CLEAR_ERROR) are retried only after reading the status to learn whether the first attempt took
+effect. On a noisy line the request size shrinks on every failure and grows back on success,
+and the timeout follows the measured round trip (Jacobson/Karn) with exponential backoff.
 """
 from __future__ import annotations
 
 from dualscale.errors import InputError, RigError
 
 import logging
+import os
+import select
 import struct
+import termios
+import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -21,6 +35,7 @@ import serial
 from pymodbus import FramerType, ModbusException
 from pymodbus.client import ModbusSerialClient
 from pymodbus.exceptions import ConnectionException, ModbusIOException
+from pymodbus.framer.rtu import FramerRTU
 from pymodbus.pdu import ModbusPDU
 
 from ..protocol import regmap as rm
@@ -29,6 +44,31 @@ from .sequence import Step, encode, join_words, seq_crc
 
 log = logging.getLogger(__name__)
 
+PARITY_LETTERS = {rm.Parity.EVEN: "E", rm.Parity.ODD: "O", rm.Parity.NONE: "N"}
+PARITIES = tuple(PARITY_LETTERS.values())
+# the firmware's reset format (rig.toml [serial]; 8E1, the Modbus serial-line spec's default)
+DEFAULT_PARITY = PARITY_LETTERS[rm.Parity(rm.DEFAULT_PARITY)]
+
+
+def default_stopbits(parity: str) -> int:
+    """Stop bits the Modbus serial-line spec (§2.5.1) pairs with ``parity``: the firmware's
+    default (rig.toml, 1) with even or odd parity, 2 without, so a character is 11 bits."""
+    return 2 if parity == "N" else rm.DEFAULT_STOP_BITS
+
+
+def serial_settings(parity: str = DEFAULT_PARITY, stopbits: int | None = None) -> tuple[str, int]:
+    """Checked (parity letter, stop bits). InputError names the bad value; 8N1 is refused as
+    the firmware refuses it (PROTOCOL.md §1)."""
+    letter = str(parity).upper()
+    if letter not in PARITIES:
+        raise InputError(f"parity must be one of {'/'.join(PARITIES)}, not {parity!r}")
+    sb = default_stopbits(letter) if stopbits is None else int(stopbits)
+    if sb not in (1, 2):
+        raise InputError(f"stop bits must be 1 or 2, not {stopbits!r}")
+    if letter == "N" and sb == 1:
+        raise InputError("parity N needs 2 stop bits (Modbus serial line: 11 bits a character; "
+                         "the rig refuses 8N1)")
+    return letter, sb
 
 
 class ExceptionCode(IntEnum):
@@ -42,17 +82,127 @@ class ExceptionCode(IntEnum):
 
 
 EXCEPTION_NAMES = {int(c): c.name.replace("_", " ") for c in ExceptionCode}
-# Function code of each pymodbus call: RTU has no transaction id, so a reply that arrives after
-# its request timed out would otherwise be taken as the answer to the next request.
-FC_OF = {"read_coils": 0x01, "read_discrete_inputs": 0x02, "read_holding_registers": 0x03,
-         "read_input_registers": 0x04, "write_coil": 0x05, "write_register": 0x06, "write_coils": 0x0F,
-         "write_registers": 0x10, "report_device_id": 0x11, "readwrite_registers": 0x17,
-         "read_device_information": 0x2B}
 MAX_READ = 125
 MAX_WRITE = 123
 STEPS_PER_WRITE = MAX_WRITE // rm.STEP_WORDS  # 12 steps per FC 10
 WORD_MAX = 0xFFFF  # a Modbus register holds 16 bits
 _REGISTERS = {(r.space, r.name): r for r in rm.REGISTERS}
+
+
+MIN_CHUNK_WORDS = rm.STEP_WORDS  # the adaptive request size never goes below one step
+CHUNK_GROW_WORDS = rm.STEP_WORDS  # added back after every clean bulk request
+DEFAULT_WATCHDOG_MS = 1000  # host watchdog during a run (PROTOCOL.md §5)
+EXCEPTION_FRAME = 5  # address, FC | 0x80, exception code, CRC
+FC_EXCEPTION_BIT = 0x80
+
+
+class LinkError(RigError):
+    """No reply that fits the request arrived, after every retry (a dead, noisy or busy link)."""
+
+
+class _NoReply(ModbusIOException):
+    """One attempt got no fitting reply: a timeout, or a reply that failed its CRC."""
+
+    def __init__(self, message: str, corrupt: bool = False):
+        super().__init__(message)
+        self.corrupt = corrupt
+
+
+@dataclass
+class LinkStats:
+    """What the link did since the client was made (PROTOCOL.md §10). Counts, not rates."""
+
+    requests: int = 0  # frames sent (every attempt)
+    replies: int = 0  # replies that fitted their request
+    timeouts: int = 0  # attempts that got no fitting reply within the timeout
+    bad_frames: int = 0  # replies that arrived but failed their CRC or framing (then retried)
+    stale: int = 0  # CRC-valid frames that did not fit the request: discarded
+    drained_bytes: int = 0  # bytes found on the line before a request: discarded
+    retries: int = 0  # attempts after the first, over all requests
+    confirmed_by_status: int = 0  # retried START/ABORT/CLEAR_ERROR that the status showed done
+    chunk_shrinks: int = 0  # times the bulk request size was halved
+
+
+def _crc_ok(frame: bytes) -> bool:
+    return FramerRTU.compute_CRC(frame[:-2]) == int.from_bytes(frame[-2:], "big")
+
+
+def reply_mismatch(request: bytes, frame: bytes) -> str | None:
+    """Why the CRC-valid RTU ``frame`` is not the reply to the RTU ``request`` frame, or None.
+
+    Checks the server address, the function code (or its exception), the byte count against
+    the quantity requested (FC 01/02/03/04/17) and, for writes (FC 05/06/0F/10), the echoed
+    address and value or quantity; for FC 2B the MEI type and read code. Modbus Application
+    Protocol v1.1b3 §6 gives each reply's layout.
+    """
+    if frame[0] != request[0]:
+        return f"from server {frame[0]}, not {request[0]}"
+    fc = request[1]
+    if frame[1] == fc | FC_EXCEPTION_BIT:
+        return None if len(frame) == EXCEPTION_FRAME else f"exception frame of {len(frame)} bytes"
+    if frame[1] != fc:
+        return f"FC {frame[1]:02X}, not {fc:02X}"
+    qty = int.from_bytes(request[4:6], "big")
+    want = {0x01: (qty + 7) // 8, 0x02: (qty + 7) // 8, 0x03: 2 * qty, 0x04: 2 * qty,
+            0x17: 2 * qty}.get(fc)
+    if want is not None and frame[2] != want:
+        return f"{frame[2]} data bytes, not the {want} of the {qty} asked for"
+    if fc in (0x05, 0x06, 0x0F, 0x10) and frame[2:6] != request[2:6]:
+        return (f"echo of address {int.from_bytes(frame[2:4], 'big')} / {int.from_bytes(frame[4:6], 'big')}, "
+                f"not {int.from_bytes(request[2:4], 'big')} / {int.from_bytes(request[4:6], 'big')}")
+    if fc == 0x2B and frame[2:4] != request[2:4]:
+        return f"MEI {frame[2]:02X} read code {frame[3]:02X}, not {request[2]:02X} {request[3]:02X}"
+    return None
+
+
+class _RtuSerialClient(ModbusSerialClient):
+    """pymodbus's serial client (its PDUs, request builders and decoder) with our transaction:
+    every request goes through :meth:`RigClient._transact`."""
+
+    def __init__(self, owner: RigClient, *args, **kw):
+        super().__init__(*args, **kw)
+        self._owner = owner
+
+    def execute(self, no_response_expected: bool, request: ModbusPDU) -> ModbusPDU | None:  # noqa: D102
+        return self._owner._transact(request, no_response_expected)
+
+    def connect(self) -> bool:
+        """Open the port once with every setting (non-blocking reads: select() waits).
+
+        pymodbus's own connect() reconfigures the port after opening it, which a Linux pty
+        refuses (EINVAL) once parity is on."""
+        if self.socket:
+            return True
+        p = self.comm_params
+        settings = [(p.parity, p.stopbits)]
+        if is_pty(p.host) and p.parity != "N":
+            settings.append(("N", 1))
+        for parity, stopbits in settings:
+            try:
+                self.socket = serial.serial_for_url(p.host, baudrate=p.baudrate, bytesize=p.bytesize,
+                                                    parity=parity, stopbits=stopbits, timeout=0,
+                                                    write_timeout=p.timeout_connect, exclusive=True)
+                if parity != p.parity:
+                    log.info("%s is a pseudo-terminal that refuses parity %s; a pty carries bytes, "
+                             "not characters, so it is opened without", p.host, p.parity)
+                return True
+            except (OSError, ValueError, termios.error, serial.SerialException) as e:
+                log.debug("cannot open %s with parity %s: %s", p.host, parity, e)
+                self.socket = None
+        return False
+
+
+def is_pty(port: str) -> bool:
+    """Whether `port` is (a link to) a Unix pseudo-terminal: the simulators' serial lines.
+    Characters on a pty have no bits on a wire, so parity and stop bits mean nothing there (and
+    some kernels refuse PARENB on a pty with EINVAL)."""
+    if "://" in port:
+        return False
+    try:
+        real = os.path.realpath(port)
+    except OSError:
+        return False
+    return real.startswith("/dev/pts/") or real == "/dev/ptmx"
 
 
 def register(space: str, name: str) -> rm.Register:
@@ -174,19 +324,43 @@ class RunResult:
 class RigClient:
     """One Modbus RTU connection to a rig (real or simulated).
 
-    `port` is a device path or any pyserial URL (`socket://host:port` too).
+    `port` is a device path or any pyserial URL (`socket://host:port` too). `parity` is
+    "E", "O" or "N" and `stopbits` 1 or 2 (default: 1 with parity, 2 without; PROTOCOL.md §1).
+    `timeout` (s) is the longest wait for one reply; the wait actually used follows the
+    measured round trip, never below `min_timeout`, and doubles on every failed attempt
+    (up to `timeout`). `retries` bounds the attempts after the first of one request; the step
+    table and the event window, which may be written or read again at no cost, get
+    `bulk_retries` failures in a row (default 3 x `retries`), in requests that halve after a
+    failure and grow back after a success (`chunk_words`). `gap_s` is the silence after
+    which a partial or garbled reply counts as corrupt.
     """
 
     def __init__(self, port: str, address: int = rm.DEFAULT_ADDRESS, baudrate: int = rm.DEFAULT_BAUD,
-                 timeout: float = 0.5, retries: int = 3, reconnect_s: float = 5.0):
+                 timeout: float = 0.5, retries: int = 5, reconnect_s: float = 5.0,
+                 parity: str = DEFAULT_PARITY, stopbits: int | None = None,
+                 min_timeout: float = 0.1, gap_s: float = 0.02, bulk_retries: int | None = None):
         self.port, self.address = port, address
-        self.retries, self.reconnect_s = retries, reconnect_s
-        self._mb = ModbusSerialClient(port, framer=FramerType.RTU, baudrate=baudrate,
-                                      timeout=timeout, retries=0, reconnect_delay=0.05)
+        self.parity, self.stopbits = serial_settings(parity, stopbits)
+        self.timeout, self.min_timeout = float(timeout), min(float(min_timeout), float(timeout))
+        self.retries, self.reconnect_s, self.gap_s = retries, reconnect_s, gap_s
+        self.bulk_retries = 3 * retries if bulk_retries is None else bulk_retries
+        self._mb = _RtuSerialClient(self, port, framer=FramerType.RTU, baudrate=baudrate,
+                                    parity=self.parity, stopbits=self.stopbits,
+                                    timeout=timeout, retries=0, reconnect_delay=0.05)
         self._mb.register(ReportServerIdResponse)
+        self._decoder = self._mb.framer.decoder
+        self._lock = threading.RLock()
         self._last_seq: int | None = None  # SEQ of the last event handed to the caller
         self.reconnects = 0
         self.identity: Identity | None = None
+        self.stats = LinkStats()
+        self.last_reply = 0.0  # time.monotonic() of the last reply that fitted its request
+        self.chunk_words = STEPS_PER_WRITE * rm.STEP_WORDS  # adaptive bulk request size
+        self._srtt: float | None = None  # smoothed round trip (s), Jacobson/Karn
+        self._rttvar = 0.0
+        self._backoff = 0  # failed attempts in a row: the timeout doubles with each
+        self._first_attempt = True
+        self._listen_first = False  # the last attempt timed out: its reply may still come
 
     # ---------------------------------------------------------------- connection
     def open(self) -> Identity:
@@ -213,7 +387,8 @@ class RigClient:
         return self.identity
 
     def close(self) -> None:
-        self._mb.close()
+        with self._lock:
+            self._mb.close()
 
     def __enter__(self) -> RigClient:
         self.open()
@@ -234,53 +409,198 @@ class RigClient:
             except (OSError, serial.SerialException):
                 pass
             time.sleep(0.05)
-        raise RigError(f"lost the serial link to {self.port} and could not reopen it")
+        raise LinkError(f"lost the serial link to {self.port} and could not reopen it")
 
     def _flush(self) -> None:
         """Drop whatever late replies sit in the receive buffer."""
         time.sleep(0.01)
-        sock = getattr(self._mb, "socket", None)
-        if sock is not None and hasattr(sock, "reset_input_buffer"):
-            sock.reset_input_buffer()
+        self._drain(listen_s=0.0)
 
-    def _call(self, what: str, fn: Callable[..., ModbusPDU], *args, **kw) -> ModbusPDU:
-        """One request with retries; a dead port is reopened. Exceptions become DeviceException."""
-        last: Exception | None = None
-        for attempt in range(self.retries + 1):
+    # ---------------------------------------------------------------- the transaction
+    def _serial(self) -> serial.Serial:
+        ser = self._mb.socket
+        if ser is None:
+            raise ConnectionException(f"{self.port} is closed")
+        return ser
+
+    def _drain(self, listen_s: float) -> None:
+        """Discard every byte on the line; with `listen_s`, until the line has been quiet that
+        long (a reply to a timed-out request may still be on its way)."""
+        ser = self._serial()
+        quiet_since = time.monotonic()
+        while True:
+            n = ser.in_waiting
+            if n:
+                self.stats.drained_bytes += len(ser.read(n))
+                quiet_since = time.monotonic()
+                continue
+            left = listen_s - (time.monotonic() - quiet_since)
+            if left <= 0 or not select.select([ser.fileno()], [], [], left)[0]:
+                return
+
+    def rto(self) -> float:
+        """The reply timeout of the next attempt (s): smoothed round trip + 4 deviations, at
+        least `min_timeout`, doubled per failed attempt in a row, at most `timeout`."""
+        base = self.timeout if self._srtt is None else self._srtt + 4.0 * self._rttvar
+        return min(self.timeout, max(self.min_timeout, base) * (2 ** min(self._backoff, 16)))
+
+    def _frame_size(self, buf: bytes, i: int) -> int:
+        """The length of the RTU frame that would start at buf[i] (0 if unknown)."""
+        try:
+            cls = self._decoder.lookupPduClass(buf[i:])
+            return int(cls.calculateRtuFrameSize(buf[i:])) if cls else 0
+        except Exception:  # noqa: BLE001 - a garbled header: no frame starts here
+            return 0
+
+    def _transact(self, req: ModbusPDU, no_response_expected: bool = False) -> ModbusPDU | None:
+        """Send one request and return the reply that fits it (see `reply_mismatch`)."""
+        with self._lock:
+            ser = self._serial()
             try:
-                if not self._mb.connected:
-                    self._reconnect()
-                rr = fn(*args, device_id=self.address, **kw)
-            except (ModbusIOException, ConnectionException, OSError, serial.SerialException) as e:
-                last = e
-                log.debug("%s failed (attempt %d): %s", what, attempt + 1, e)
-                if isinstance(e, ModbusIOException):
-                    self._flush()
-                if isinstance(e, (ConnectionException, OSError, serial.SerialException)) or \
-                        "closed" in str(e).lower():
+                self._drain(self.gap_s * 2 if self._listen_first else 0.0)
+                frame = self._mb.framer.buildFrame(req)
+                self.stats.requests += 1
+                if not self._first_attempt:
+                    self.stats.retries += 1
+                t0 = time.monotonic()
+                ser.write(frame)
+                if no_response_expected or frame[0] == 0:  # broadcast: never answered
+                    return None
+                return self._receive(ser, frame, t0)
+            except (serial.SerialException, OSError) as e:
+                raise ConnectionException(f"{self.port}: {e}") from e
+
+    def _receive(self, ser: serial.Serial, request: bytes, t0: float) -> ModbusPDU:
+        rto = self.rto()
+        deadline, buf, last_rx = t0 + rto, b"", None
+        fd = ser.fileno()
+        while True:
+            i = 0
+            while i + 4 <= len(buf):
+                size = self._frame_size(buf, i)
+                if not size or i + size > len(buf) or not _crc_ok(buf[i:i + size]):
+                    i += 1
+                    continue
+                frame = buf[i:i + size]
+                why = reply_mismatch(request, frame)
+                if why is None:
+                    pdu = self._decoder.decode(frame[1:-2])
+                    if pdu is None:
+                        raise ModbusIOException(f"undecodable reply {frame.hex()}")
+                    pdu.dev_id = frame[0]
+                    self._on_reply(time.monotonic() - t0)
+                    return pdu
+                self.stats.stale += 1
+                log.info("discarded a frame that is not the reply (%s): %s", why, frame.hex())
+                buf, i = buf[i + size:], 0
+            now = time.monotonic()
+            if now >= deadline:
+                self._listen_first = True
+                self.stats.timeouts += 1
+                raise _NoReply(f"no reply within {rto * 1e3:.0f} ms"
+                               + (f" ({len(buf)} bytes that are no frame)" if buf else ""))
+            wait = deadline - now
+            if buf and last_rx is not None:
+                quiet = now - last_rx
+                if quiet >= self.gap_s:  # bytes, then silence, and no valid frame: corrupted
+                    self.stats.bad_frames += 1
+                    self._listen_first = True
+                    raise _NoReply(f"a corrupted reply ({len(buf)} bytes, bad CRC or framing)", corrupt=True)
+                wait = min(wait, self.gap_s - quiet)
+            if select.select([fd], [], [], max(wait, 0.0))[0]:
+                chunk = ser.read(max(1, ser.in_waiting))
+                if chunk:
+                    buf, last_rx = buf + chunk, time.monotonic()
+                elif not ser.in_waiting and "://" not in self.port:
+                    # readable with nothing to read: the other end is gone
+                    raise ConnectionException(f"{self.port}: the line hung up")
+
+    def _on_reply(self, rtt: float) -> None:
+        self.stats.replies += 1
+        self.last_reply = time.monotonic()
+        self._listen_first = False
+        if self._first_attempt:  # Karn: a retried request's round trip is ambiguous
+            if self._srtt is None:
+                self._srtt, self._rttvar = rtt, rtt / 2
+            else:
+                self._rttvar = 0.75 * self._rttvar + 0.25 * abs(self._srtt - rtt)
+                self._srtt = 0.875 * self._srtt + 0.125 * rtt
+
+    def _call(self, what: str, fn: Callable[..., ModbusPDU], *args, retries: int | None = None,
+              **kw) -> ModbusPDU:
+        """One request with at most `retries` (default `self.retries`) more attempts; a dead port
+        is reopened. A Modbus exception reply becomes DeviceException; no fitting reply after
+        every attempt, LinkError."""
+        n = self.retries if retries is None else retries
+        last: Exception | None = None
+        with self._lock:
+            for attempt in range(n + 1):
+                self._first_attempt = attempt == 0
+                try:
+                    if not self._mb.connected:
+                        self._reconnect()
+                    rr = fn(*args, device_id=self.address, **kw)
+                except _NoReply as e:
+                    last = e
+                    self._backoff += 1
+                    log.debug("%s failed (attempt %d): %s", what, attempt + 1, e)
+                    continue
+                except (ConnectionException, OSError, serial.SerialException) as e:
+                    last = e
+                    log.debug("%s failed (attempt %d): %s", what, attempt + 1, e)
                     try:
                         self._reconnect()
                     except RigError as e2:
                         last = e2
+                    continue
+                except ModbusException as e:
+                    raise RigError(f"{what}: {e}") from e
+                finally:
+                    self._first_attempt = True
+                self._backoff = 0
+                if rr is not None and rr.isError():
+                    raise DeviceException(rr.function_code & 0x7F, getattr(rr, "exception_code", 0), what)
+                return rr
+        raise LinkError(f"no answer from the rig at {self.port} while {what} "
+                        f"({n + 1} attempt{'s' if n else ''}): {last}")
+
+    def _shrink(self) -> None:
+        if self.chunk_words > MIN_CHUNK_WORDS:
+            self.chunk_words = max(MIN_CHUNK_WORDS, self.chunk_words // 2)
+            self.stats.chunk_shrinks += 1
+
+    def _grow(self) -> None:
+        self.chunk_words = min(STEPS_PER_WRITE * rm.STEP_WORDS, self.chunk_words + CHUNK_GROW_WORDS)
+
+    def _repeatable(self, what: str, attempt: Callable[[], object]) -> object:
+        """`attempt()` (one request, no retries of its own) repeated until it succeeds, at most
+        `bulk_retries` failures in a row; the bulk request size (`chunk_words`, which
+        `attempt` reads) is halved after each failure and grows by CHUNK_GROW_WORDS after
+        a success. Only for requests that may be repeated at no cost (step-table writes, event
+        window reads)."""
+        for fails in range(self.bulk_retries + 1):
+            try:
+                out = attempt()
+            except LinkError:
+                if fails == self.bulk_retries:
+                    raise
+                self._shrink()
+                log.debug("%s: attempt failed, bulk size now %d words", what, self.chunk_words)
                 continue
-            except ModbusException as e:
-                raise RigError(f"{what}: {e}") from e
-            if (rr.function_code & 0x7F) != FC_OF.get(fn.__name__, rr.function_code & 0x7F):
-                last = RigError(f"stale reply FC {rr.function_code:02X} while {what}")
-                self._flush()
-                continue
-            if rr.isError():
-                raise DeviceException(rr.function_code & 0x7F, getattr(rr, "exception_code", 0), what)
-            return rr
-        raise RigError(f"no answer from the rig at {self.port} while {what}: {last}")
+            self._grow()
+            return out
+        raise LinkError(f"{what}: no attempt left")  # pragma: no cover - the loop returns or raises
 
     # ---------------------------------------------------------------- raw access
     def _read_registers(self, space: str, fn: Callable[..., ModbusPDU], addr: int, count: int) -> list[int]:
-        """Read `count` registers, in requests of at most 125."""
+        """Read `count` registers, in requests of at most 125 (each one a consistent snapshot)."""
         out: list[int] = []
         for a in range(addr, addr + count, MAX_READ):
             n = min(MAX_READ, addr + count - a)
-            out += self._call(f"reading {space} registers {a}+{n}", fn, a, count=n).registers
+            regs = self._call(f"reading {space} registers {a}+{n}", fn, a, count=n).registers
+            if len(regs) != n:  # reply_mismatch checked the byte count: cannot happen
+                raise RigError(f"reading {space} registers {a}+{n}: got {len(regs)} registers")
+            out += regs
         return out
 
     def read_input(self, addr: int, count: int) -> list[int]:
@@ -295,14 +615,14 @@ class RigClient:
         if bad:
             raise InputError(f"register values must be 0..{WORD_MAX}, got {bad[0]}")
 
-    def write_register(self, addr: int, value: int) -> None:
+    def write_register(self, addr: int, value: int, retries: int | None = None) -> None:
         self._check_words([value])
-        self._call(f"writing holding register {addr}", self._mb.write_register, addr, value)
+        self._call(f"writing holding register {addr}", self._mb.write_register, addr, value, retries=retries)
 
-    def write_registers(self, addr: int, values: Sequence[int]) -> None:
+    def write_registers(self, addr: int, values: Sequence[int], retries: int | None = None) -> None:
         self._check_words(values)
         self._call(f"writing holding registers {addr}+{len(values)}", self._mb.write_registers,
-                   addr, list(values))
+                   addr, list(values), retries=retries)
 
     def read_coils(self, addr: int, count: int) -> list[bool]:
         return list(self._call(f"reading coils {addr}+{count}", self._mb.read_coils,
@@ -322,6 +642,10 @@ class RigClient:
                         read_code=read_code, object_id=0)
         return {k: (v.decode() if isinstance(v, bytes) else v) for k, v in rr.information.items()}
 
+    def keep_alive(self) -> None:
+        """One short request (STATE): any valid frame feeds the host watchdog (PROTOCOL.md §5)."""
+        self.read_input(rm.IR.STATE, 1)
+
     # ---------------------------------------------------------------- state
     def status(self) -> Status:
         w = InputBlock(self, "STATE", "SEQ_DURATION_US")
@@ -330,20 +654,65 @@ class RigClient:
                       w["FRAMES_OK"], w["FRAMES_BAD_CRC"], w["FRAMES_BAD"], w["WATCHDOG_TRIPS"],
                       w["SEQ_DURATION_US"])
 
+    def _change_state(self, cmd: rm.Command, took_effect: Callable[[Status], bool]) -> None:
+        """Write COMMAND = `cmd`; when an attempt's reply is lost, read the status before trying
+        again, and stop as soon as `took_effect(status)` says the earlier attempt worked. A
+        refusal (exception) after a lost reply is checked the same way (START answers BUSY
+        when the lost START is running)."""
+        what = f"writing COMMAND = {cmd.name}"
+        lost: Exception | None = None
+        for _attempt in range(self.retries + 1):
+            try:
+                self.write_register(rm.HR.COMMAND, int(cmd), retries=0)
+                return
+            except DeviceException:
+                if lost is None:
+                    raise
+                if took_effect(self.status()):
+                    self.stats.confirmed_by_status += 1
+                    log.info("%s: the reply was lost, but the status shows it took effect", what)
+                    return
+                raise
+            except LinkError as e:
+                lost = e
+                if took_effect(self.status()):
+                    self.stats.confirmed_by_status += 1
+                    log.info("%s: the reply was lost, but the status shows it took effect", what)
+                    return
+        raise LinkError(f"no answer from the rig at {self.port} while {what} "
+                        f"({self.retries + 1} attempts): {lost}")
+
     def command(self, cmd: rm.Command) -> None:
-        self.write_register(rm.HR.COMMAND, int(cmd))
+        """Write COMMAND; START, ABORT and CLEAR_ERROR are retried only after the status shows
+        that a lost attempt did not take effect (see `start`, `abort`, `clear_error`)."""
+        cmd = rm.Command(cmd)
+        if cmd == rm.Command.START:
+            self._start_command()
+        elif cmd == rm.Command.ABORT:
+            self.abort()
+        elif cmd == rm.Command.CLEAR_ERROR:
+            self.clear_error()
+        else:  # NONE, ALL_OFF, CLEAR_EVENTS: repeating them changes nothing more
+            self.write_register(rm.HR.COMMAND, int(cmd))
 
     def all_off(self) -> None:
         self.command(rm.Command.ALL_OFF)
 
     def abort(self) -> None:
-        self.command(rm.Command.ABORT)
+        """ABORT (always accepted). Done when the state is neither ARMED nor RUNNING."""
+        self._change_state(rm.Command.ABORT, lambda st: st.state not in ACTIVE)
 
     def clear_error(self) -> None:
-        self.command(rm.Command.CLEAR_ERROR)
+        """CLEAR_ERROR. Done when ERROR is NONE and the state is not FAULT."""
+        self._change_state(rm.Command.CLEAR_ERROR,
+                           lambda st: st.error == rm.Error.NONE and st.state != rm.State.FAULT)
 
     def set_watchdog(self, ms: int) -> None:
         self.write_register(rm.HR.WATCHDOG_MS, ms)
+
+    def watchdog_ms(self) -> int:
+        """The device's WATCHDOG_MS (0 = off)."""
+        return self.read_holding(rm.HR.WATCHDOG_MS, 1)[0]
 
     def set_polarizer(self, cdeg: int) -> None:
         self.write_register(rm.HR.POLARIZER_CDEG, cdeg)
@@ -374,14 +743,21 @@ class RigClient:
 
     # ---------------------------------------------------------------- sequences
     def upload(self, steps: Sequence[Step]) -> float:
-        """Write the step table in FC 10 chunks, set SEQ_LEN and verify SEQ_CRC. Returns seconds."""
+        """Write the step table in FC 10 chunks (adaptive: see `_repeatable`), set SEQ_LEN and verify
+        SEQ_CRC. Returns seconds."""
         if len(steps) > rm.MAX_STEPS:
             raise InputError(f"{len(steps)} steps; the device holds {rm.MAX_STEPS}")
         t0 = time.perf_counter()
         words = encode(steps)
-        per = STEPS_PER_WRITE * rm.STEP_WORDS
-        for off in range(0, len(words), per):
-            self.write_registers(rm.STEP_TABLE_ADDR + off, words[off:off + per])
+
+        off = 0
+        while off < len(words):
+            def write() -> int:
+                n = min(len(words) - off, max(1, self.chunk_words // rm.STEP_WORDS) * rm.STEP_WORDS)
+                self.write_registers(rm.STEP_TABLE_ADDR + off, words[off:off + n], retries=0)
+                return n
+
+            off += self._repeatable("uploading the step table", write)
         self.write_register(rm.HR.SEQ_LEN, len(steps))
         crc = self.read_input(rm.IR.SEQ_CRC, 1)[0]
         if crc != seq_crc(steps):
@@ -389,11 +765,36 @@ class RigClient:
                            f"expected 0x{seq_crc(steps):04X}")
         return time.perf_counter() - t0
 
+    def _next_seq(self, st: Status) -> int:
+        return (st.evt_first_seq + st.evt_count) & WORD_MAX
+
+    def _start_command(self) -> None:
+        """COMMAND = START, retried only when the status shows the lost attempt did not start
+        the sequence: the state is ARMED/RUNNING, or a SEQ_START event (or a dropped event)
+        came after the snapshot taken before the first attempt."""
+        before = self.status()
+        n0, d0 = self._next_seq(before), before.evt_dropped
+
+        def started(st: Status) -> bool:
+            if st.state in ACTIVE or st.evt_dropped != d0:
+                return True
+            new = (self._next_seq(st) - n0) & WORD_MAX
+            if not new:
+                return False
+            k = min(st.evt_count, rm.EVT_WINDOW_COUNT)
+            window = decode_window(self.read_input(rm.IR.EVT_WINDOW, k * rm.EVENT_WORDS), k) if k else []
+            return any(e.kind == rm.Event.SEQ_START and ((e.seq - n0) & WORD_MAX) < new for e in window)
+
+        self._change_state(rm.Command.START, started)
+
     def start(self, mode: rm.TriggerMode = rm.TriggerMode.DEVICE_MASTER) -> None:
-        """Select the trigger mode and START. Raises SequenceRejected with the firmware's reason."""
+        """Select the trigger mode and START. Raises SequenceRejected with the firmware's reason.
+
+        A START whose reply is lost is not simply repeated (a repeat would answer BUSY, or run a
+        short sequence twice): the status says whether it took effect (see `_start_command`)."""
         self.write_register(rm.HR.TRIGGER_MODE, int(mode))
         try:
-            self.command(rm.Command.START)
+            self._start_command()
         except DeviceException as e:
             if e.code != ExceptionCode.ILLEGAL_DATA_VALUE:  # the validation's refusal (PROTOCOL.md §3)
                 raise
@@ -408,14 +809,20 @@ class RigClient:
     def poll_events(self) -> list[Event]:
         """New events since the last call, oldest first; acks what was handed over.
 
-        Write EVT_ACK (the last SEQ we kept), then read the window. A lost response only means
-        the same events come back next time; they are dropped by SEQ.
+        Write EVT_ACK (the last SEQ we kept), then read the window (as many events as the
+        adaptive request size allows; the rest come next time). A lost response only means the
+        same events come back next time; they are dropped by SEQ.
         """
-        n = rm.EVT_WINDOW_COUNT * rm.EVENT_WORDS
         if self._last_seq is not None:
             self.write_register(rm.HR.EVT_ACK, self._last_seq)
-        words = self.read_input(rm.IR.EVT_WINDOW, n)
-        events = [e for e in decode_window(words, rm.EVT_WINDOW_COUNT) if e.kind != rm.Event.NONE]
+
+        def read() -> list[int]:
+            k = max(1, min(rm.EVT_WINDOW_COUNT, self.chunk_words // rm.EVENT_WORDS))
+            return self._call(f"reading the event window ({k} events)", self._mb.read_input_registers,
+                              rm.IR.EVT_WINDOW, count=k * rm.EVENT_WORDS, retries=0).registers
+
+        words = self._repeatable("reading the event window", read)
+        events = [e for e in decode_window(words, len(words) // rm.EVENT_WORDS) if e.kind != rm.Event.NONE]
         fresh = []
         for e in events:
             if self._last_seq is None or 0 < ((e.seq - self._last_seq) & WORD_MAX) <= WORD_MAX // 2:
@@ -423,48 +830,97 @@ class RigClient:
                 self._last_seq = e.seq
         return fresh
 
+    def _arm_watchdog(self, watchdog_ms: int | None) -> tuple[int, int]:
+        """Set WATCHDOG_MS for a run: `watchdog_ms`, or the device's own value when that is
+        shorter and on. Returns (previous, used)."""
+        prev = self.watchdog_ms()
+        if not watchdog_ms:
+            return prev, prev
+        use = prev if 0 < prev <= watchdog_ms else max(rm.WATCHDOG_MS_MIN, min(rm.WATCHDOG_MS_MAX, watchdog_ms))
+        if use != prev:
+            self.set_watchdog(use)
+        return prev, use
+
+    def _after_link_error(self, err: Exception, watchdog_ms: int) -> RigError:
+        """The link failed during a run: abort the sequence if the rig can be reached within
+        the watchdog period; otherwise the watchdog has stopped it. Returns the error to raise."""
+        deadline = time.monotonic() + max(watchdog_ms, 0) / 1e3
+        while True:
+            try:
+                self.abort()
+                st = self.status()
+                return LinkError(f"{err}; the sequence was aborted (state {st.state.name})")
+            except RigError as e2:
+                if time.monotonic() >= deadline:
+                    if watchdog_ms:
+                        return LinkError(f"{err}; the rig is unreachable, and its host watchdog "
+                                         f"({watchdog_ms} ms) has switched every light off and stopped "
+                                         f"the sequence (state FAULT, ERROR WATCHDOG): {e2}")
+                    return LinkError(f"{err}; the rig is unreachable and its watchdog is off: the "
+                                     f"sequence may still be running: {e2}")
+
     def run(self, steps: Sequence[Step] | None = None, mode: rm.TriggerMode = rm.TriggerMode.DEVICE_MASTER,
             on_event: Callable[[Event], None] | None = None, timeout_s: float = 600.0,
-            poll_s: float = 0.01, state_check_s: float = 0.25) -> RunResult:
+            poll_s: float = 0.01, state_check_s: float = 0.25,
+            watchdog_ms: int | None = DEFAULT_WATCHDOG_MS) -> RunResult:
         """Upload (if `steps`), START, and follow the FIFO until the sequence ends.
 
         The end is the terminal event (SEQ_DONE, SEQ_ABORT, FAULT), or, should that event have
         been dropped by a full FIFO, the device's STATE leaving ARMED/RUNNING with nothing
         pending; `RunResult.dropped` then says how many events were lost.
+
+        The host watchdog guards the run: WATCHDOG_MS is set to `watchdog_ms` (device ms; None
+        or 0 leaves the device's setting) unless the device's own is shorter, the polling feeds
+        it (`on_event` must return well within it), and it is left on afterwards (it only acts
+        while a light is on or a sequence runs). If this host dies, every light is off within
+        `watchdog_ms`. On a link error the sequence is aborted (or, the rig unreachable, left to
+        the watchdog) and LinkError says which; Ctrl-C aborts it too.
         """
         if steps is not None:
             self.upload(steps)
+        _, wd = self._arm_watchdog(watchdog_ms)
         self.sync_events()
         res = RunResult()
         r0, d0 = self.reconnects, self.status().evt_dropped
         t0 = last_check = time.monotonic()
         self.start(mode)
         ended = {rm.Event.SEQ_DONE, rm.Event.SEQ_ABORT, rm.Event.FAULT}
-        active = {rm.State.ARMED, rm.State.RUNNING}
-        while True:
-            batch = self.poll_events()
-            for e in batch:
-                res.events.append(e)
-                if on_event:
-                    on_event(e)
-            if any(e.kind in ended for e in batch):
-                res.events += self.poll_events()  # what follows the terminal event, then ack it
-                self.poll_events()
-                break
-            now = time.monotonic()
-            if not batch and now - last_check > state_check_s:
-                last_check = now
-                st = self.status()
-                if st.state not in active and st.evt_count == 0:
-                    log.warning("sequence ended without its terminal event (%d events dropped)", st.evt_dropped)
+        try:
+            while True:
+                batch = self.poll_events()
+                for e in batch:
+                    res.events.append(e)
+                    if on_event:
+                        on_event(e)
+                if any(e.kind in ended for e in batch):
+                    res.events += self.poll_events()  # what follows the terminal event, then ack it
+                    self.poll_events()
                     break
-            if now - t0 > timeout_s:
+                now = time.monotonic()
+                if not batch and now - last_check > state_check_s:
+                    last_check = now
+                    st = self.status()
+                    if st.state not in ACTIVE and st.evt_count == 0:
+                        log.warning("sequence ended without its terminal event (%d events dropped)", st.evt_dropped)
+                        break
+                if now - t0 > timeout_s:
+                    self.abort()
+                    raise RigError(f"sequence did not finish within {timeout_s} s (aborted)")
+                if not batch:
+                    time.sleep(poll_s)
+        except LinkError as e:
+            raise self._after_link_error(e, wd) from e
+        except KeyboardInterrupt:
+            try:
                 self.abort()
-                raise RigError(f"sequence did not finish within {timeout_s} s (aborted)")
-            if not batch:
-                time.sleep(poll_s)
+            except RigError:
+                pass
+            raise
         st = self.status()
         res.state, res.error, res.dropped = st.state, st.error, st.evt_dropped - d0
         res.wall_s = time.monotonic() - t0
         res.reconnects = self.reconnects - r0
         return res
+
+
+ACTIVE = frozenset({rm.State.ARMED, rm.State.RUNNING})
