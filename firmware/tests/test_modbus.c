@@ -409,6 +409,23 @@ static void test_line_format_changes_after_the_response(void **state)
     assert_int_equal(th.stop_bits, 1);
 }
 
+static void test_target_sets_the_line_format_at_boot(void **state)
+{
+    (void)state;
+    assert_int_equal(ds_core_set_line_format(&core, DS_PARITY_NONE, 1), -1); /* 8N1 */
+    assert_int_equal(ds_core_set_line_format(&core, 3, 1), -1);
+    assert_int_equal(ds_core_set_line_format(&core, DS_PARITY_ODD, 0), -1);
+    assert_int_equal(th.formats, 1);
+    assert_int_equal(ds_core_set_line_format(&core, DS_PARITY_NONE, 2), 0);
+    assert_int_equal(th.formats, 2);
+    assert_int_equal(th.parity, DS_PARITY_NONE);
+    assert_int_equal(th.stop_bits, 2);
+    uint16_t v[2];
+    assert_int_equal(th_read(&core, &th, 0x03, DS_HR_SERIAL_PARITY, 2, v), 0);
+    assert_int_equal(v[0], DS_PARITY_NONE);
+    assert_int_equal(v[1], 2);
+}
+
 /* ---- FC 2B stream access: read codes 01..03 restart at 0x00 on an unknown id ---- */
 
 static void test_device_id_stream_restarts_for_every_id(void **state)
@@ -463,6 +480,7 @@ int main(void)
         cmocka_unit_test_setup(test_line_format_resets_to_8e1, setup),
         cmocka_unit_test_setup(test_line_format_changes_after_the_response, setup),
         cmocka_unit_test_setup(test_device_id_stream_restarts_for_every_id, setup),
+        cmocka_unit_test_setup(test_target_sets_the_line_format_at_boot, setup),
     };
     return cmocka_run_group_tests(tests, NULL, NULL);
 }

@@ -11,12 +11,15 @@ TEST_DIR := $(TESTS_FW)/build/tests
 TEST_CFLAGS := $(filter-out -O2,$(CORE_CFLAGS)) -O1 -g -fno-omit-frame-pointer \
 	-fsanitize=address,undefined -fno-sanitize-recover=all
 TEST_INCS := $(addprefix -I$(TESTS_FW)/,$(CORE_INCS) core/src tests)
+# test_uart_cfg checks the STM32 target's USART register values (a header with no hardware access)
+TEST_INCS += -I$(TESTS_FW)/targets/stm32f405
 TEST_LIBS := -lcmocka
 
-TEST_NAMES := test_vectors test_modbus test_fifo test_seq test_safety
+TEST_NAMES := test_vectors test_modbus test_fifo test_seq test_safety test_uart_cfg
 TEST_BINS := $(addprefix $(TEST_DIR)/,$(TEST_NAMES))
 TEST_CORE_OBJS := $(patsubst core/src/%.c,$(TEST_DIR)/core/%.o,$(CORE_SRCS))
-TEST_HEADERS := $(wildcard $(TESTS_FW)/core/include/*.h $(TESTS_FW)/core/src/*.h $(TESTS_FW)/tests/*.h)
+TEST_HEADERS := $(wildcard $(TESTS_FW)/core/include/*.h $(TESTS_FW)/core/src/*.h $(TESTS_FW)/tests/*.h) \
+	$(TESTS_FW)/targets/stm32f405/uart_cfg.h $(TESTS_FW)/targets/stm32f405/stm32f405.h
 
 .PHONY: test test-build test-clean
 .SECONDARY: $(TEST_CORE_OBJS) $(TEST_DIR)/test_hal.o

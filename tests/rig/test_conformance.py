@@ -37,7 +37,7 @@ def test_input_block_describes_the_rig(rig):
 
 def test_holding_defaults_match_the_register_map(rig, sim):
     regs = {r.name: r for r in rm.REGISTERS if r.space == "holding"}
-    w = rig.read_holding(0, 16)
+    w = rig.read_holding(0, rm.HR_COUNT)
     for name, r in regs.items():
         if r.default is None:
             continue
@@ -69,14 +69,44 @@ def test_out_of_range_write_is_refused_atomically(rig):
     assert rig.read_holding(rm.HR.MANUAL_INTENSITY, 1) == [5]
 
 
-@pytest.mark.parametrize("addr,count", [(16, 1), (rm.IR.EVT_WINDOW + 120, 1)])
-def test_unmapped_addresses_answer_02(rig, addr, count):
+@pytest.mark.parametrize("space,addr", [("holding", rm.HR_COUNT), ("input", rm.IR_COUNT),
+                                        ("input", rm.IR.EVT_WINDOW + 120)])
+def test_unmapped_addresses_answer_02(rig, space, addr):
     with pytest.raises(DeviceException) as e:
-        if addr >= rm.IR.EVT_WINDOW:
-            rig.read_input(addr, count)
+        if space == "input":
+            rig.read_input(addr, 1)
         else:
-            rig.read_holding(addr, count)
+            rig.read_holding(addr, 1)
     assert e.value.code == 2
+
+
+def test_device_identification_stream_restarts_at_object_0(rig, sim):
+    """MB application protocol v1.1b3 section 6.21, through pymodbus: stream access (read codes
+    1..3) from an object id that does not exist answers from object 0; individual access (4) 02."""
+    for code, ids in ((1, [0, 1, 2]), (2, list(range(7))), (3, list(range(7)))):
+        rr = rig._mb.read_device_information(read_code=code, object_id=0x99)
+        assert not rr.isError() and sorted(rr.information) == ids, code
+        assert rr.information[0] == b"dualscale" and rr.more_follows == 0
+    rr = rig._mb.read_device_information(read_code=2, object_id=5)
+    assert sorted(rr.information) == [5, 6]
+    rr = rig._mb.read_device_information(read_code=4, object_id=0x99)
+    assert rr.isError() and rr.exception_code == 2
+
+
+def test_uart_error_counters_and_line_format_registers(rig):
+    assert rig.read_input(rm.IR.UART_PARITY_ERRORS, 4) == [0, 0, 0, 0]  # a pty has no line noise
+    assert rig.read_holding(rm.HR.SERIAL_PARITY, 2) == [rm.Parity.EVEN, 1]
+    with pytest.raises(DeviceException) as e:  # 8N1: not a Modbus serial-line format
+        rig.write_register(rm.HR.SERIAL_PARITY, rm.Parity.NONE)
+    assert e.value.code == 3
+
+
+def test_value_is_checked_before_the_address(raw):
+    """FC 05 with the output value 0x1234 to an unmapped coil: 03, not 02 (state diagram order
+    01 -> 03 -> 02 -> 04); the same with a quantity of 0 at an unmapped address for FC 01/03/04."""
+    assert raw.request(bytes([1, 0x05, 0x00, 200, 0x12, 0x34]))[1:3] == bytes([0x85, 0x03])
+    for fc in (0x01, 0x03, 0x04):
+        assert raw.request(bytes([1, fc, 0xFF, 0x00, 0x00, 0x00]))[1:3] == bytes([fc | 0x80, 0x03])
 
 
 def test_illegal_function(rig):

@@ -144,6 +144,12 @@ void ds_core_set_target(ds_core_t *c, const char *name);
 /* Serial baud rate: sets the t3.5 end-of-frame silence. Default DS_DEFAULT_BAUD. */
 void ds_core_set_baud(ds_core_t *c, uint32_t baud);
 
+/* Serial-line format set by the target at boot (a command-line option, a jumper), instead of the
+ * reset value from rig.toml: SERIAL_PARITY / SERIAL_STOP_BITS take it and hal.uart_format is
+ * called. Returns 0, or -1 (nothing changed) for a format the register map refuses: parity
+ * beyond DS_PARITY_EVEN, stop bits other than 1 or 2, or no parity with 1 stop bit. */
+int ds_core_set_line_format(ds_core_t *c, uint8_t parity, uint8_t stop_bits);
+
 /* Sequencer state (DS_STATE_*), as in input register STATE. */
 uint16_t ds_core_state(const ds_core_t *c);
 

@@ -62,6 +62,7 @@ uint8_t ds_regs_write_holding(ds_core_t *c, uint16_t addr, uint16_t n, const uin
 void ds_coils_read(const ds_core_t *c, uint16_t addr, uint16_t n, uint8_t *out);
 uint8_t ds_coils_write(ds_core_t *c, uint16_t addr, uint16_t n, const uint8_t *bits, uint64_t now);
 uint16_t ds_seq_crc(const ds_core_t *c);
+int ds_line_format_ok(uint16_t parity, uint16_t stop_bits); /* SERIAL_PARITY/STOP_BITS pair */
 
 /* fifo.c */
 void ds_fifo_reset(ds_core_t *c);

@@ -155,6 +155,13 @@ uint8_t ds_regs_read_holding(ds_core_t *c, uint16_t addr, uint16_t n, uint8_t *o
     return DS_EX_NONE;
 }
 
+int ds_line_format_ok(uint16_t parity, uint16_t stop_bits)
+{
+    /* Modbus over Serial Line v1.02 §2.5.1: no parity needs 2 stop bits */
+    return parity <= DS_HR_SERIAL_PARITY_MAX && stop_bits >= DS_HR_SERIAL_STOP_BITS_MIN &&
+           stop_bits <= DS_HR_SERIAL_STOP_BITS_MAX && (parity != DS_PARITY_NONE || stop_bits == 2u);
+}
+
 /* Range of one written holding register, checked against the candidate register file. */
 static int holding_value_ok(const uint16_t *cand, uint16_t a, uint16_t cmd)
 {
@@ -182,11 +189,8 @@ static int holding_value_ok(const uint16_t *cand, uint16_t a, uint16_t cmd)
     case DS_HR_MASTER_CAMERA: return v <= DS_HR_MASTER_CAMERA_MAX;
     case DS_HR_FRAME_TIMEOUT_US: return v <= DS_HR_FRAME_TIMEOUT_US_MAX;
     case DS_HR_SERIAL_PARITY:
-    case DS_HR_SERIAL_STOP_BITS: { /* one value: no parity needs 2 stop bits (serial line §2.5.1) */
-        uint16_t parity = cand[DS_HR_SERIAL_PARITY], stop = cand[DS_HR_SERIAL_STOP_BITS];
-        return parity <= DS_HR_SERIAL_PARITY_MAX && stop >= DS_HR_SERIAL_STOP_BITS_MIN &&
-               stop <= DS_HR_SERIAL_STOP_BITS_MAX && (parity != DS_PARITY_NONE || stop == 2u);
-    }
+    case DS_HR_SERIAL_STOP_BITS: /* one value, like the servo window */
+        return ds_line_format_ok(cand[DS_HR_SERIAL_PARITY], cand[DS_HR_SERIAL_STOP_BITS]);
     case DS_HR_FRAME_GAP_US:
     case DS_HR_FRAME_GAP_US + 1u: {
         uint32_t gap = ((uint32_t)cand[DS_HR_FRAME_GAP_US] << 16) | cand[DS_HR_FRAME_GAP_US + 1u];

@@ -64,6 +64,18 @@ void ds_line_format_apply(ds_core_t *c)
     }
 }
 
+int ds_core_set_line_format(ds_core_t *c, uint8_t parity, uint8_t stop_bits)
+{
+    if (!ds_line_format_ok(parity, stop_bits)) { /* the checks of a Modbus write of the pair */
+        return -1;
+    }
+    c->hr[DS_HR_SERIAL_PARITY] = parity;
+    c->hr[DS_HR_SERIAL_STOP_BITS] = stop_bits;
+    c->line_format_pending = 1u;
+    ds_line_format_apply(c);
+    return 0;
+}
+
 static void count_error(uint16_t *counter)
 {
     *counter = (uint16_t)(*counter + 1u);

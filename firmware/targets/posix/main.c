@@ -49,6 +49,7 @@ typedef struct {
 static ds_core_t core;
 static sim_hw_t hw;
 static int pty_master = -1;
+static int pty_slave = -1;          /* kept open for the whole run (see open_pty) */
 static volatile sig_atomic_t stop_signal;
 
 /* Flat index of a light source, same order as ds_core's lights[]: LEDs, back lights, diffuse. */
@@ -129,6 +130,35 @@ static void hal_uart_write(void *ctx, const uint8_t *buf, uint16_t len)
             return;
         }
     }
+}
+
+/* The serial-line format on the pty, as on a real port: CS8, PARENB (+ PARODD), CSTOPB. A pty
+ * moves bytes whatever these say, but they are visible to (and shared with) the host's
+ * tcgetattr() on the same terminal, so they follow SERIAL_PARITY / SERIAL_STOP_BITS. */
+static void set_line_format(int fd, uint8_t parity, uint8_t stop_bits)
+{
+    struct termios tio;
+    if (fd < 0 || tcgetattr(fd, &tio) != 0) {
+        return;
+    }
+    tio.c_cflag &= ~(tcflag_t)(CSIZE | PARENB | PARODD | CSTOPB);
+    tio.c_cflag |= CS8 | CREAD | CLOCAL;
+    if (parity != DS_PARITY_NONE) {
+        tio.c_cflag |= PARENB;
+        if (parity == DS_PARITY_ODD) {
+            tio.c_cflag |= PARODD;
+        }
+    }
+    if (stop_bits == 2u) {
+        tio.c_cflag |= CSTOPB;
+    }
+    (void)tcsetattr(fd, TCSANOW, &tio);
+}
+
+static void hal_uart_format(void *ctx, uint8_t parity, uint8_t stop_bits)
+{
+    (void)ctx;
+    set_line_format(pty_slave, parity, stop_bits);
 }
 
 static void hal_light_set(void *ctx, uint8_t kind, uint8_t index, uint16_t intensity)
@@ -228,6 +258,7 @@ static const ds_hal_t sim_hal = {
     .light_latch = hal_light_latch,
     .polarizer_set = hal_polarizer_set,
     .triggers_write = hal_triggers_write,
+    .uart_format = hal_uart_format,
     .on_event = hal_on_event,
 };
 
@@ -334,8 +365,11 @@ static void on_hello(void *ctx, int fd)
     uint64_t t = L.last;
     char line[160];
     int n = snprintf(line, sizeof line,
-                     "{\"t_us\":%llu,\"ev\":\"hello\",\"target\":\"%s\",\"address\":%u,\"speed\":%g}",
-                     (unsigned long long)t, SIM_TARGET_NAME, core.address, L.clk.speed);
+                     "{\"t_us\":%llu,\"ev\":\"hello\",\"target\":\"%s\",\"address\":%u,\"speed\":%g,"
+                     "\"parity\":\"%c\",\"stop_bits\":%u}",
+                     (unsigned long long)t, SIM_TARGET_NAME, core.address, L.clk.speed,
+                     "NOE"[core.hr[DS_HR_SERIAL_PARITY] <= 2u ? core.hr[DS_HR_SERIAL_PARITY] : 0u],
+                     core.hr[DS_HR_SERIAL_STOP_BITS]);
     publish(fd, line, n);
     n = snprintf(line, sizeof line, "{\"t_us\":%llu,\"ev\":\"polarizer\",\"cdeg\":%u}",
                  (unsigned long long)t, hw.polarizer_cdeg);
@@ -356,10 +390,15 @@ static void on_signal(int sig)
 static void usage(FILE *f)
 {
     fprintf(f,
-            "usage: dualscale-sim [--address N] [--speed S] [--link PATH] [--hw-socket PATH]\n"
+            "usage: dualscale-sim [--address N] [--parity E|O|N] [--stop-bits 1|2] [--speed S]\n"
+            "                     [--link PATH] [--hw-socket PATH]\n"
             "  Runs the dualscale firmware core behind a pseudo-terminal; prints the pty path\n"
             "  as the first line on stdout. Stops on SIGINT/SIGTERM (lights off, exit 0).\n"
             "  --address N     Modbus server address, 1..247 (default %u)\n"
+            "  --parity P      serial line parity at reset: E even (default), O odd, N none;\n"
+            "                  8 data bits. SERIAL_PARITY reads it; set on the pty's termios\n"
+            "  --stop-bits B   1 or 2 (default: 1 with parity, 2 without; none with 1 is refused,\n"
+            "                  as Modbus over Serial Line v1.02 requires)\n"
             "  --speed S       1 = real time (default); S > 1 = device time runs S times faster;\n"
             "                  0 = as fast as possible (jump to each deadline when idle)\n"
             "  --link PATH     also make PATH a symlink to the pty (removed on exit)\n"
@@ -388,8 +427,9 @@ static int open_pty(int *slave_keep, char *name, size_t name_len)
         perror("dualscale-sim: open pty slave");
         return -1;
     }
-    /* Raw 8N1 from the start: no echo back to the host, no CR/LF or XON/XOFF mangling of
-     * binary frames. The host's own tcsetattr() later changes only what it cares about. */
+    /* Raw from the start: no echo back to the host, no CR/LF or XON/XOFF mangling of binary
+     * frames; the line format (8E1 by default) is set by ds_core_init through hal.uart_format.
+     * The host's own tcsetattr() later changes only what it cares about. */
     struct termios tio;
     if (tcgetattr(s, &tio) == 0) {
         cfmakeraw(&tio);
@@ -416,6 +456,8 @@ static void all_off(void)
 int main(int argc, char **argv)
 {
     unsigned long address = DS_DEFAULT_ADDRESS;
+    int parity = DS_DEFAULT_PARITY;
+    int stop_bits = -1; /* default: 1 with parity, 2 without */
     double speed = 1.0;
     const char *link_path = NULL;
     const char *hw_socket = NULL;
@@ -431,6 +473,25 @@ int main(int argc, char **argv)
             address = strtoul(val, &end, 0);
             if (*end != '\0' || address < 1 || address > 247) {
                 fprintf(stderr, "dualscale-sim: --address must be 1..247\n");
+                return 2;
+            }
+            i++;
+        } else if (strcmp(a, "--parity") == 0 && val != NULL) {
+            if (strcmp(val, "E") == 0 || strcmp(val, "e") == 0) {
+                parity = DS_PARITY_EVEN;
+            } else if (strcmp(val, "O") == 0 || strcmp(val, "o") == 0) {
+                parity = DS_PARITY_ODD;
+            } else if (strcmp(val, "N") == 0 || strcmp(val, "n") == 0) {
+                parity = DS_PARITY_NONE;
+            } else {
+                fprintf(stderr, "dualscale-sim: --parity must be E, O or N\n");
+                return 2;
+            }
+            i++;
+        } else if (strcmp(a, "--stop-bits") == 0 && val != NULL) {
+            stop_bits = (int)strtol(val, &end, 10);
+            if (*end != '\0' || (stop_bits != 1 && stop_bits != 2)) {
+                fprintf(stderr, "dualscale-sim: --stop-bits must be 1 or 2\n");
                 return 2;
             }
             i++;
@@ -469,12 +530,22 @@ int main(int argc, char **argv)
     sigaction(SIGTERM, &sa, NULL);
     signal(SIGPIPE, SIG_IGN);
 
+    if (stop_bits < 0) {
+        stop_bits = parity == DS_PARITY_NONE ? 2 : 1;
+    }
+    if (parity == DS_PARITY_NONE && stop_bits != 2) {
+        fprintf(stderr, "dualscale-sim: no parity needs --stop-bits 2 (Modbus over Serial Line "
+                        "v1.02, 2.5.1); 8N1 is not a Modbus serial-line format\n");
+        return 2;
+    }
+
     char pty_name[128];
     int slave_keep = -1;
     pty_master = open_pty(&slave_keep, pty_name, sizeof pty_name);
     if (pty_master < 0) {
         return 1;
     }
+    pty_slave = slave_keep;
     if (link_path != NULL) {
         struct stat st;
         if (lstat(link_path, &st) == 0 && S_ISLNK(st.st_mode)) {
@@ -498,6 +569,7 @@ int main(int argc, char **argv)
     hw.now = 0;
     ds_core_init(&core, &sim_hal, (uint8_t)address, 0);
     ds_core_set_target(&core, SIM_TARGET_NAME);
+    (void)ds_core_set_line_format(&core, (uint8_t)parity, (uint8_t)stop_bits); /* checked above */
 
     printf("%s\n", pty_name);
     fflush(stdout);

@@ -1,6 +1,6 @@
 /* dualscale controller board: pin assignment and the interfaces between this target's drivers.
  *
- *   USART1 TX/RX       PA9 / PA10 (AF7)    Modbus RTU to the host (USB-serial bridge)
+ *   USART1 TX/RX       PA9 / PA10 (AF7)    Modbus RTU to the host (USB-serial bridge), 8E1 at reset
  *   SPI1 SCK/MOSI      PA5 / PA7 (AF5)     TLC5955 chain SCLK / SIN (3 drivers, 144 channels)
  *   SPI1 MISO          PA6 (AF5)           TLC5955 SOUT (reserved: LED-open read-back)
  *   LAT                PA4 (output)        TLC5955 LAT, rising edge latches the shift register
@@ -30,8 +30,12 @@ uint64_t clock_now_us(void);
 
 /* ---- uart.c ---- */
 void uart_init(uint32_t baud);
-size_t uart_read(uint8_t *buf, size_t max);   /* drains the RX ring, never blocks */
+/* Drains the RX ring, never blocks. Stops after a character received with errors: its
+ * DS_UART_ERR_* flags go to *errors (0 if none) and its value is not stored. */
+size_t uart_read(uint8_t *buf, size_t max, uint8_t *errors);
 int uart_rx_pending(void);
+/* 8 data bits, DS_PARITY_* parity, 1 or 2 stop bits: applied once the TX line is idle. */
+void uart_set_format(uint8_t parity, uint8_t stop_bits);
 void uart_write(const uint8_t *buf, size_t len);
 void uart_tx_pump(void);
 int uart_tx_pending(void);

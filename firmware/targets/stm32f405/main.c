@@ -21,6 +21,12 @@ static void hal_uart_write(void *ctx, const uint8_t *buf, uint16_t len)
     uart_write(buf, len);
 }
 
+static void hal_uart_format(void *ctx, uint8_t parity, uint8_t stop_bits)
+{
+    (void)ctx;
+    uart_set_format(parity, stop_bits);
+}
+
 static void hal_light_set(void *ctx, uint8_t kind, uint8_t index, uint16_t intensity)
 {
     (void)ctx;
@@ -59,6 +65,7 @@ static const ds_hal_t board_hal = {
     .light_latch = hal_light_latch,
     .polarizer_set = hal_polarizer_set,
     .triggers_write = hal_triggers_write,
+    .uart_format = hal_uart_format,
     .on_event = NULL,
 };
 
@@ -87,8 +94,12 @@ int main(void)
         }
         uint64_t now = clock_now_us();
         size_t n;
-        while ((n = uart_read(buf, sizeof buf)) > 0) {
+        uint8_t errors;
+        while ((n = uart_read(buf, sizeof buf, &errors)) > 0 || errors) {
             ds_core_rx(&core, buf, n, now);
+            if (errors) {
+                ds_core_rx_error(&core, errors, now); /* the frame is dropped and counted */
+            }
         }
         ds_core_poll(&core, now);
         leds_flush();

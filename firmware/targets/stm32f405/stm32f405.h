@@ -141,14 +141,23 @@ typedef struct {
     REG SR, DR, BRR, CR1, CR2, CR3, GTPR;
 } usart_t;
 #define USART1 ((usart_t *)0x40011000u)
-#define USART_SR_ORE (1u << 3)
+#define USART_SR_PE (1u << 0)   /* parity error */
+#define USART_SR_FE (1u << 1)   /* framing error */
+#define USART_SR_NF (1u << 2)   /* noise detected */
+#define USART_SR_ORE (1u << 3)  /* overrun */
 #define USART_SR_RXNE (1u << 5)
+#define USART_SR_TC (1u << 6)   /* transmission complete: the last stop bit has left */
 #define USART_SR_TXE (1u << 7)
 #define USART_CR1_RE (1u << 2)
 #define USART_CR1_TE (1u << 3)
 #define USART_CR1_RXNEIE (1u << 5)
 #define USART_CR1_TXEIE (1u << 7)
+#define USART_CR1_PS (1u << 9)   /* parity selection: 1 = odd */
+#define USART_CR1_PCE (1u << 10) /* parity control enable: the MSB of the word is the parity bit */
+#define USART_CR1_M (1u << 12)   /* word length: 1 = 9 bits (8 data + parity when PCE) */
 #define USART_CR1_UE (1u << 13)
+#define USART_CR2_STOP_1 (0u << 12)
+#define USART_CR2_STOP_2 (2u << 12)
 
 /* ---- SPI ---- */
 typedef struct {

@@ -28,6 +28,41 @@ TARGETS = ("posix", "qemu")
 QEMU_FRAME_TIMEOUT_US = 20000
 BROADCAST_ADDRESS = 0  # Modbus: every server acts on it and none answers
 FC_WRITE_REGISTER = 0x06  # Modbus function code "write single register"
+FC_WRITE_REGISTERS = 0x10  # Modbus function code "write multiple registers"
+PARITIES = {"E": "EVEN", "O": "ODD", "N": "NONE"}  # --parity letter -> regmap.Parity name
+
+
+def line_format(parity: str | None, stop_bits: int | None) -> tuple[str, int]:
+    """The serial-line format ``(parity letter, stop bits)`` a simulator is started with.
+
+    ``parity`` is "E" (even), "O" (odd) or "N" (none), default the register map's reset value
+    (rig.toml [serial], EVEN); ``stop_bits`` is 1 or 2, default 1 with parity and 2 without, as
+    Modbus over Serial Line v1.02 section 2.5.1 requires. Raises InputError for anything else,
+    8N1 included."""
+    from ..protocol import regmap as rm
+
+    if parity is None:
+        parity = next(k for k, v in PARITIES.items() if rm.Parity[v] == rm.DEFAULT_PARITY)
+    parity = str(parity).upper()
+    if parity not in PARITIES:
+        raise InputError(f"parity must be E, O or N, not {parity!r}")
+    if stop_bits is None:
+        stop_bits = 2 if parity == "N" else 1
+    if stop_bits not in (1, 2):
+        raise InputError(f"stop bits must be 1 or 2, not {stop_bits!r}")
+    if parity == "N" and stop_bits != 2:
+        raise InputError("no parity needs 2 stop bits (Modbus over Serial Line v1.02, 2.5.1)")
+    return parity, stop_bits
+
+
+def line_format_broadcast(parity: str, stop_bits: int) -> bytes:
+    """The RTU frame that sets every server's SERIAL_PARITY and SERIAL_STOP_BITS: FC 10 to the
+    broadcast address (executed, never answered), CRC appended."""
+    from ..protocol.crc import rtu_frame
+    from ..protocol.regmap import HR, Parity
+
+    return rtu_frame(struct.pack(">BBHHBHH", BROADCAST_ADDRESS, FC_WRITE_REGISTERS, HR.SERIAL_PARITY,
+                                 2, 4, Parity[PARITIES[parity]], stop_bits))
 
 
 def frame_timeout_broadcast(us: int) -> bytes:
@@ -83,9 +118,15 @@ class SimulatedRig:
     def __init__(self, target: str = "posix", link: str | os.PathLike | None = None,
                  speed: float = 1.0, hw_socket: str | os.PathLike | None = None,
                  icount: str | None = None, startup_s: float = 10.0,
-                 frame_timeout_us: int | None = None):
+                 frame_timeout_us: int | None = None, parity: str | None = None,
+                 stop_bits: int | None = None):
+        """``parity`` ("E", "O", "N") and ``stop_bits`` (1, 2): the serial-line format the rig
+        starts with (see `line_format`; default 8E1). The POSIX simulator takes them on its
+        command line; the QEMU image boots in its compiled-in 8E1 and is switched by a broadcast
+        write of SERIAL_PARITY/SERIAL_STOP_BITS when another format is asked for."""
         if target not in TARGETS:
             raise InputError(f"target must be one of {TARGETS}, not {target!r}")
+        self.parity, self.stop_bits = line_format(parity, stop_bits)
         self.target, self.speed = target, speed
         self.link = Path(link) if link else None
         self.hw_socket = Path(hw_socket) if hw_socket else None
@@ -104,7 +145,8 @@ class SimulatedRig:
             exe = sim_binary()
             if not exe.exists():
                 raise SimNotBuilt(f"{exe} is missing: build it with `make -C firmware posix`")
-            cmd = [str(exe), "--speed", repr(float(self.speed))]
+            cmd = [str(exe), "--speed", repr(float(self.speed)),
+                   "--parity", self.parity, "--stop-bits", str(self.stop_bits)]
             if self.hw_socket:
                 cmd += ["--hw-socket", str(self.hw_socket)]
             self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
@@ -138,8 +180,9 @@ class SimulatedRig:
 
         QEMU's pty backend polls for a connected peer on a 1 s timer and drops the guest's output
         while it thinks nobody is there, so a client that opened the port later would lose its
-        first reply. Holding one descriptor open (and never reading it) keeps it connected. The only
-        frame sent is the broadcast that sets FRAME_TIMEOUT_US (no answer, no counter).
+        first reply. Holding one descriptor open (and never reading it) keeps it connected. The
+        only frames sent are the broadcasts that set FRAME_TIMEOUT_US and, when another line format than
+        the default is asked for, SERIAL_PARITY/SERIAL_STOP_BITS (no answer, no counter).
         """
         self._hold = os.open(self.port, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
         tty.setraw(self._hold)
@@ -147,6 +190,9 @@ class SimulatedRig:
         termios.tcflush(self._hold, termios.TCIOFLUSH)
         if self.frame_timeout_us:
             os.write(self._hold, frame_timeout_broadcast(self.frame_timeout_us))
+            time.sleep(0.1)
+        if (self.parity, self.stop_bits) != line_format(None, None):
+            os.write(self._hold, line_format_broadcast(self.parity, self.stop_bits))
             time.sleep(0.1)
 
     def _read_line(self, stream, want) -> str:
