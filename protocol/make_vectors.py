@@ -115,8 +115,9 @@ def build() -> None:
     # ---- identification -----------------------------------------------------------------
     rd_ir("fc04_identity", 0, [0x4453, 0x0100, 0x0001, 0, 127, 4, 2048, 512])
     rd_ir("fc04_state_after_boot", 8, [IDLE, 0, NONE16, 0, 0xFFFF])  # SEQ_CRC of 0 steps = init
-    rd_hr("fc03_defaults", 0, [0, 0, 0, 0, 0, 0, 32768, 10000, 500, 0, 18000, 2000, 0, 0, 0, 0,
-                               PARITY_EVEN, 1])  # 8E1: Modbus over Serial Line v1.02 section 2.5.1
+    rd_hr("fc03_defaults", 0, [0, 0, 0, 0, 0, 0, 32768, 10000, 500, 0, 18000, 2000, 0, 0, 0])
+    # (FRAME_TIMEOUT_US, 15, is left out: the QEMU launcher raises it by broadcast)
+    rd_hr("fc03_serial_defaults_8e1", HR_PARITY, [PARITY_EVEN, 1])  # serial line v1.02 s. 2.5.1
     rd_ir("uart_error_counters_zero", 27, [0, 0, 0, 0])
     text = f"dualscale fw={FW} proto={PROTO} target={TARGET}".encode()
     ok("fc11_report_server_id", b"\x11", bytes([0x11, 2 + len(text), 0x01, 0xFF]) + text)

@@ -8,7 +8,8 @@ typedef struct { const char *name; const char *setup; const char *request; const
 static const ds_vector_t DS_VECTORS[] = {
     {"fc04_identity", "", "01 04 00 00 00 08 f1 cc", "01 04 10 44 53 01 00 00 01 00 00 00 7f 00 04 08 00 02 00 0d 18"},
     {"fc04_state_after_boot", "", "01 04 00 08 00 05 b1 cb", "01 04 0a 00 00 00 00 ff ff 00 00 ff ff d0 d6"},
-    {"fc03_defaults", "", "01 03 00 00 00 12 c5 c7", "01 03 24 00 00 00 00 00 00 00 00 00 00 00 00 80 00 27 10 01 f4 00 00 46 50 07 d0 00 00 00 00 00 00 00 00 00 02 00 01 1e ee"},
+    {"fc03_defaults", "", "01 03 00 00 00 0f 05 ce", "01 03 1e 00 00 00 00 00 00 00 00 00 00 00 00 80 00 27 10 01 f4 00 00 46 50 07 d0 00 00 00 00 00 00 7a e3"},
+    {"fc03_serial_defaults_8e1", "", "01 03 00 10 00 02 c5 ce", "01 03 04 00 02 00 01 9a 33"},
     {"uart_error_counters_zero", "", "01 04 00 1b 00 04 81 ce", "01 04 08 00 00 00 00 00 00 00 00 24 0d"},
     {"fc11_report_server_id", "", "01 11 c0 2c", "01 11 2b 01 ff 64 75 61 6c 73 63 61 6c 65 20 66 77 3d 30 2e 31 2e 30 20 70 72 6f 74 6f 3d 31 2e 30 20 74 61 72 67 65 74 3d 70 6f 73 69 78 a2 6d"},
     {"fc2b_basic_stream", "", "01 2b 0e 01 00 70 77", "01 2b 0e 01 82 00 00 03 00 09 64 75 61 6c 73 63 61 6c 65 01 06 44 53 2d 52 49 47 02 05 30 2e 31 2e 30 ed 0e"},
@@ -188,8 +189,8 @@ static const ds_vector_t DS_VECTORS[] = {
     {"abort_event1", "", "01 04 01 06 00 03 51 f6", "01 04 06 00 07 01 06 ff ff 35 1e"},
     {"coils_writable_after_abort", "", "01 05 00 88 00 00 4d e0", "01 05 00 88 00 00 4d e0"},
     {"back_to_device_master", "", "01 06 00 01 00 00 d8 0a", "01 06 00 01 00 00 d8 0a"},
-    {"frames_ok_counter", "", "01 04 00 14 00 01 71 ce", "01 04 02 00 b0 b8 84"},
+    {"frames_ok_counter", "", "01 04 00 14 00 01 71 ce", "01 04 02 00 b1 79 44"},
 };
-#define DS_N_VECTORS 183u
+#define DS_N_VECTORS 184u
 
 #endif

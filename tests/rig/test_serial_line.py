@@ -155,7 +155,6 @@ def test_8n1_is_refused_by_the_simulator_and_the_launcher():
 
 
 @pytest.mark.qemu
-@pytest.mark.slow
 def test_arm_image_boots_8e1_and_takes_the_launchers_format():
     with SimulatedRig("qemu") as sim:
         link = RawLink(sim.port)

@@ -29,12 +29,17 @@
  * cut by virtual time racing past t3.5: device time is held just short of a partial frame's
  * t3.5 until this much *real* silence has passed on the line. */
 #define SIM_HOLD_REAL_US 2000u
-/* In virtual-time modes the simulator must not outrun a host that follows the event FIFO
- * (a real rig at speed 1 never does: the host drains thousands of events per second). While the
- * FIFO is nearly full, device time flows at 1x real time (no jumps, no acceleration) until the
- * host's acks bring it back below the low mark. */
-#define SIM_FIFO_HIGH (DS_FIFO_DEPTH - 64u)
-#define SIM_FIFO_LOW (DS_FIFO_DEPTH / 2u)
+/* FIFO headroom in virtual-time modes. A real-time rig makes events at 1x: a host that leaves
+ * the oldest pending event unread for A seconds of real time finds at least the events of A
+ * device-seconds after it waiting. An accelerated simulator would find S x A seconds' worth, and
+ * lose events a real rig keeps. So, once SIM_FIFO_HIGH events are pending, device time may run
+ * no further past the oldest pending event than the real time that event has been waiting:
+ *     device now <= ts(oldest pending) + (real now - real time it was pushed).
+ * Below the mark the clock runs free (speed S, or jumps at speed 0): nothing can be lost there.
+ * The backlog then never exceeds max(SIM_FIFO_HIGH, what a real-time rig would hold for the same
+ * host), so the simulator loses no event a real-time rig keeps, and a host that stays away
+ * longer than the FIFO lasts at 1x still sees EVT_DROPPED count, as on the real rig. */
+#define SIM_FIFO_HIGH (DS_FIFO_DEPTH / 2u)
 
 /* ---- simulated hardware ------------------------------------------------------------------- */
 
@@ -134,7 +139,9 @@ static void hal_uart_write(void *ctx, const uint8_t *buf, uint16_t len)
 
 /* The serial-line format on the pty, as on a real port: CS8, PARENB (+ PARODD), CSTOPB. A pty
  * moves bytes whatever these say, but they are visible to (and shared with) the host's
- * tcgetattr() on the same terminal, so they follow SERIAL_PARITY / SERIAL_STOP_BITS. */
+ * tcgetattr() on the same terminal, so they follow SERIAL_PARITY / SERIAL_STOP_BITS. Linux ptys
+ * keep PARODD and CSTOPB but force CS8 and clear PARENB (drivers/tty/pty.c), so the side
+ * channel's hello line states the whole format. */
 static void set_line_format(int fd, uint8_t parity, uint8_t stop_bits)
 {
     struct termios tio;
@@ -237,9 +244,22 @@ static void hal_triggers_write(void *ctx, uint8_t mask)
     }
 }
 
+/* Device and real time of each stored event, by SEQ modulo the FIFO depth (which divides 2^16,
+ * so the slot of a SEQ is the same across its wrap): the congestion rule's "oldest pending". */
+typedef struct {
+    uint64_t ts[DS_FIFO_DEPTH];
+    uint64_t real[DS_FIFO_DEPTH];
+    uint16_t next_seq;      /* SEQ after the last stored event */
+} sim_events_t;
+
+static sim_events_t E;
+
 static void hal_on_event(void *ctx, const ds_event_t *e)
 {
     (void)ctx;
+    E.ts[e->seq % DS_FIFO_DEPTH] = e->ts_us;
+    E.real[e->seq % DS_FIFO_DEPTH] = sim_real_us();
+    E.next_seq = (uint16_t)(e->seq + 1u);
     if (!sidechan_enabled()) {
         return;
     }
@@ -271,7 +291,6 @@ typedef struct {
     int rx_pending;       /* bytes handed whose t3.5 has not yet passed */
     uint64_t rx_v;        /* device time of the last bytes */
     uint64_t rx_real;     /* real time of the last bytes */
-    int congested;        /* FIFO nearly full: virtual time throttled to 1x */
 } sim_loop_t;
 
 static sim_loop_t L;
@@ -281,9 +300,29 @@ static int hold_active(uint64_t real)
     return L.clk.speed != 1.0 && L.rx_pending && real - L.rx_real < SIM_HOLD_REAL_US;
 }
 
+/* The latest device time a real-time rig could have reached by real time `real`, by the rule at
+ * SIM_FIFO_HIGH; UINT64_MAX (no limit) at speed 1 or while fewer events are pending. */
+static uint64_t congestion_cap(uint64_t real)
+{
+    uint16_t pending = ds_core_events_pending(&core);
+    if (L.clk.speed == 1.0 || pending < SIM_FIFO_HIGH) {
+        return UINT64_MAX;
+    }
+    uint16_t slot = (uint16_t)(E.next_seq - pending) % DS_FIFO_DEPTH; /* the oldest pending */
+    uint64_t waited = real > E.real[slot] ? real - E.real[slot] : 0u;
+    return E.ts[slot] + waited;
+}
+
 static uint64_t device_now(uint64_t real)
 {
     uint64_t v = sim_clock_at(&L.clk, real);
+    uint64_t cap = congestion_cap(real);
+    if (v > cap) {
+        /* held back: rebase, so the clock goes on from here (at its own rate) once the host
+         * has caught up, instead of leaping over the time it was held */
+        v = cap < L.last ? L.last : cap;
+        sim_clock_jump(&L.clk, real, v);
+    }
     if (hold_active(real) && v > L.rx_v + L.t35 - 1u) {
         v = L.rx_v + L.t35 - 1u;
     }
@@ -300,49 +339,24 @@ static void note_time(uint64_t t)
     }
 }
 
-static double normal_rate(void)
-{
-    return L.clk.speed > 0.0 ? L.clk.speed : 1.0;
-}
-
-/* Enter or leave the throttled state; device time is continuous across the change. */
-static void set_congested(int on, uint64_t real, uint64_t v)
-{
-    if (on != L.congested) {
-        L.congested = on;
-        sim_clock_set_rate(&L.clk, real, v, on ? 1.0 : normal_rate());
-    }
-}
-
-static void update_congestion(uint64_t real)
-{
-    if (L.clk.speed == 1.0) {
-        return;
-    }
-    if (!L.congested && ds_core_events_pending(&core) >= SIM_FIFO_HIGH) {
-        set_congested(1, real, device_now(real));
-    } else if (L.congested && ds_core_events_pending(&core) <= SIM_FIFO_LOW) {
-        set_congested(0, real, device_now(real));
-    }
-}
-
-/* Hand every deadline up to v to the core, each at exactly its own time. If the FIFO fills up
- * meanwhile (virtual modes), stop there: device time resumes from the last deadline at 1x. */
+/* Hand every deadline up to v to the core, each at exactly its own time. If the FIFO passes
+ * its mark meanwhile (virtual modes), stop at the first deadline a real-time rig could not have
+ * reached yet; the caller's next device_now() holds the clock there. */
 static void run_due(uint64_t v)
 {
+    uint64_t real = sim_real_us();
     for (unsigned guard = 0; guard < 1000000u; guard++) {
         uint64_t d = ds_core_next_deadline(&core);
         if (d == DS_NO_DEADLINE || d > v) {
             break;
         }
+        if (d > congestion_cap(real)) {
+            return;
+        }
         uint64_t t = d < L.last ? L.last : d;
         hw.now = t;
         ds_core_poll(&core, t);
         note_time(t);
-        if (L.clk.speed != 1.0 && !L.congested && ds_core_events_pending(&core) >= SIM_FIFO_HIGH) {
-            set_congested(1, sim_real_us(), L.last);
-            return;
-        }
     }
     note_time(v);
 }
@@ -352,7 +366,7 @@ static void on_edge(void *ctx, uint8_t camera)
     (void)ctx;
     uint64_t real = sim_real_us();
     run_due(device_now(real));
-    uint64_t v = device_now(real); /* again: run_due may have throttled the clock */
+    uint64_t v = device_now(real); /* again: run_due may have stopped at the FIFO's limit */
     hw.now = v;
     ds_core_camera_edge(&core, camera, v);
     note_time(v);
@@ -576,14 +590,18 @@ int main(int argc, char **argv)
 
     while (!stop_signal) {
         uint64_t real = sim_real_us();
-        update_congestion(real);
         run_due(device_now(real));
 
         uint64_t d = ds_core_next_deadline(&core);
         uint64_t wait_us = 1000000u;   /* nothing due: wake up once a second anyway */
         int may_jump = 0;
+        uint64_t cap = congestion_cap(real);
         if (d != DS_NO_DEADLINE) {
-            if (L.clk.speed == 0.0 && !hold_active(real) && !L.congested) {
+            if (d > cap) {
+                /* held back by the FIFO: the limit moves at 1x real time, or sooner with an ack */
+                uint64_t w = d - cap;
+                wait_us = w < wait_us ? w : wait_us;
+            } else if (L.clk.speed == 0.0 && !hold_active(real)) {
                 wait_us = 0;   /* only check for input, then jump */
                 may_jump = 1;
             } else {
@@ -615,7 +633,7 @@ int main(int argc, char **argv)
             break;
         }
         if (n == 0) {
-            if (may_jump && !L.congested) {
+            if (may_jump) {
                 real = sim_real_us();
                 uint64_t v = device_now(real);
                 if (d > v) {
@@ -627,7 +645,7 @@ int main(int argc, char **argv)
 
         real = sim_real_us();
         run_due(device_now(real)); /* deadlines that precede the input come first */
-        uint64_t v = device_now(real); /* again: run_due may have throttled the clock */
+        uint64_t v = device_now(real); /* again: run_due may have stopped at the FIFO's limit */
         if (FD_ISSET(pty_master, &rfds)) {
             uint8_t buf[512];
             ssize_t r = read(pty_master, buf, sizeof buf);
