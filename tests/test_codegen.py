@@ -55,6 +55,8 @@ def _expected_from_toml(root: Path = REPO) -> tuple[int, int, list[int], dict[st
     rig = tomllib.loads((root / "protocol/rig.toml").read_text())
     width = {"u16": 1, "u32": 2, "u48": 3, "event": 6}
     named = dict(rig["limits"])
+    named["default_parity"] = regs["enums"]["parity"][rig["serial"]["parity"]]
+    named["default_stop_bits"] = rig["serial"]["stop_bits"]
 
     def value(v):
         return v if isinstance(v, int) else named[v]
@@ -76,7 +78,7 @@ def _expected_from_toml(root: Path = REPO) -> tuple[int, int, list[int], dict[st
 def test_c_counts_sizes_and_defaults_come_from_the_toml():
     defines, table = _c_header()
     n_ir, n_hr, hr, defaults = _expected_from_toml()
-    assert (defines["DS_IR_COUNT"], defines["DS_HR_COUNT"]) == (n_ir, n_hr) == (27, 16)
+    assert (defines["DS_IR_COUNT"], defines["DS_HR_COUNT"]) == (n_ir, n_hr) == (31, 18)
     assert table == hr and len(table) == n_hr
     for name, v in defaults.items():
         assert defines[f"DS_HR_{name}_DEFAULT"] == v, name
@@ -104,7 +106,7 @@ def test_check_fails_when_the_header_is_edited_by_hand(tmp_path):
     gen = root / "protocol/gen.py"
     header = root / "firmware/core/include/ds_regmap.h"
     original = header.read_text()
-    for old, new in (("#define DS_HR_COUNT 16u", "#define DS_HR_COUNT 32u"),
+    for old, new in (("#define DS_HR_COUNT 18u", "#define DS_HR_COUNT 32u"),
                      ("0x8000u, /* 6 MANUAL_INTENSITY", "0x1000u, /* 6 MANUAL_INTENSITY")):
         assert old in original
         header.write_text(original.replace(old, new))
@@ -131,7 +133,7 @@ def test_gen_refuses_a_map_the_firmware_cannot_implement(tmp_path, old, new, why
 NEW_REGISTER = """
 [[holding]]
 name = "TEST_EXTRA"
-addr = 16
+addr = 18
 type = "u16"
 access = "rw"
 range = [0, 65535]
@@ -172,7 +174,7 @@ def test_a_new_register_with_a_default_needs_no_c_edit(tmp_path):
     assert r.returncode == 0, r.stderr
     defines, table = _c_header(root)
     n_ir, n_hr, hr, _ = _expected_from_toml(root)
-    assert defines["DS_HR_COUNT"] == n_hr == 17 and table == hr and table[16] == 4321
+    assert defines["DS_HR_COUNT"] == n_hr == 19 and table == hr and table[18] == 4321
 
     inc = root / "firmware/core/include"  # ds_core.h includes "ds_regmap.h" from its own folder
     for h in ("ds_core.h", "ds_hal.h"):
@@ -185,7 +187,7 @@ def test_a_new_register_with_a_default_needs_no_c_edit(tmp_path):
                         *srcs, "-o", str(exe)], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     out = subprocess.run([str(exe)], capture_output=True, text=True, check=True).stdout.split()
-    assert out == ["17", "7", "4321"]  # hr[17]; a 7-byte FC 03 answer carrying the default
+    assert out == ["19", "7", "4321"]  # hr[19]; a 7-byte FC 03 answer carrying the default
 
 
 def test_python_and_c_agree_on_every_address():
