@@ -9,6 +9,7 @@ user: one line on stderr (``dualscale CMD: error: ...``) and the exit code of
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import signal
 import sys
@@ -47,7 +48,7 @@ def cmd_sim(a: argparse.Namespace) -> int:
 def cmd_console(a: argparse.Namespace) -> int:
     from dualscale.rig.console import Console, run_script
 
-    with RigClient(a.port, address=a.address) as rig:
+    with RigClient(a.port, address=a.address, parity=a.parity, stopbits=a.stopbits) as rig:
         con = Console(rig)
         if a.c is not None:
             return run_script(con, a.c)
@@ -64,7 +65,8 @@ def cmd_flash(a: argparse.Namespace) -> int:
 def cmd_demo(a: argparse.Namespace) -> int:
     from dualscale.rig.demo import run_demo
 
-    rep = run_demo(a.target, speed=a.speed, on_event=print if a.events else None)
+    rep = run_demo(a.target, speed=a.speed, on_event=print if a.events else None, parity=a.parity,
+                   stopbits=a.stopbits)
     return 0 if rep.state == "DONE" and rep.dropped == 0 else 1
 
 
@@ -74,6 +76,16 @@ class _Parser(argparse.ArgumentParser):
 
     def error(self, message: str):  # noqa: D102 - argparse's hook
         self.exit(EXIT_CODES["input"], f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def _serial_format_options(p: argparse.ArgumentParser) -> None:
+    """--parity/--stopbits of a command that opens the rig's serial port (PROTOCOL.md §1)."""
+    from dualscale.rig.client import DEFAULT_PARITY, PARITIES
+
+    p.add_argument("--parity", choices=PARITIES, default=DEFAULT_PARITY, type=str.upper,
+                   help=f"serial parity (default {DEFAULT_PARITY}: 8E1, the Modbus serial-line default)")
+    p.add_argument("--stopbits", type=int, choices=(1, 2), default=None,
+                   help="stop bits (default 1 with parity, 2 with --parity N; the rig refuses 8N1)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -97,6 +109,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--port", required=True, help="serial device or pyserial URL")
     c.add_argument("--address", type=int, default=1)
     c.add_argument("-c", metavar="CMDS", help='run ";"-separated commands and exit')
+    _serial_format_options(c)
     c.set_defaults(fn=cmd_console)
 
     f = sub.add_parser("flash", help="build and flash the STM32F405 firmware")
@@ -109,6 +122,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--target", choices=("posix", "qemu"), default="posix")
     d.add_argument("--speed", type=float, default=10.0, help="posix simulator speed (see sim)")
     d.add_argument("--events", action="store_true", help="print every event")
+    _serial_format_options(d)
     d.set_defaults(fn=cmd_demo)
 
     from .sim import register as register_appearance
@@ -176,6 +190,11 @@ def main(argv: list[str] | None = None) -> int:
         args = build_parser().parse_args(argv)
     except SystemExit as e:  # --help (0) or a usage error (2, already printed on one line)
         return e.code if isinstance(e.code, int) else EXIT_CODES["input"]
+    except KeyboardInterrupt:  # Ctrl-C while the subcommands' modules load: nothing started yet
+        if os.environ.get("DUALSCALE_DEBUG"):
+            raise
+        print("dualscale: interrupted before the command started; run the same command again", file=sys.stderr)
+        return EXIT_CODES["interrupted"]
     cmd = " ".join(x for x in (args.cmd, getattr(args, "propagate_cmd", None), getattr(args, "study", None)) if x)
     import warnings
 
@@ -184,11 +203,14 @@ def main(argv: list[str] | None = None) -> int:
               file=sys.stderr)
 
     shown, warnings.showwarning = warnings.showwarning, one_line_warning
+    restore = None
     try:
         return args.fn(args)
     except (Exception, KeyboardInterrupt) as e:  # noqa: BLE001 -- the one place errors meet the user
         if os.environ.get("DUALSCALE_DEBUG"):
             raise
+        with contextlib.suppress(ValueError):  # a second Ctrl-C must not cut the one line short
+            restore = signal.signal(signal.SIGINT, signal.SIG_IGN)  # (ValueError: not the main thread)
         code = exit_code(e)
         if code == EXIT_CODES["interrupted"]:
             msg = _one_line(e) if str(e) else "interrupted"
@@ -201,6 +223,8 @@ def main(argv: list[str] | None = None) -> int:
         return code
     finally:
         warnings.showwarning = shown
+        if restore is not None:
+            signal.signal(signal.SIGINT, restore)
 
 
 def run() -> None:

@@ -9,7 +9,7 @@ import numpy as np
 
 from dualscale.formats.atomic import write_json
 
-from .common import add_output, add_work_options, apply_threads, want_progress
+from .common import add_output, add_work_options, apply_threads, output_folder, want_progress
 
 
 def cmd_synth_targets(a: argparse.Namespace) -> int:
@@ -20,7 +20,8 @@ def cmd_synth_targets(a: argparse.Namespace) -> int:
     d = Defects(led_gain_sigma=a.led_gain_sigma, collimation_max=a.collimation, analyzer_offset_deg=a.analyzer_offset,
                 blur_sigma_um=(a.blur_um[0], a.blur_um[1]), vignetting=a.vignetting, seed=a.seed)
     parts = tuple(a.parts.split(","))
-    write_session(a.output, cfg, d, parts, progress=want_progress(a))
+    with output_folder(a, "synth-targets", [f"rig:{a.rig_id}", f"seed:{a.seed}"]):
+        write_session(a.output, cfg, d, parts, progress=want_progress(a))
     print(Path(a.output) / "captures.json")
     return 0
 
@@ -33,10 +34,11 @@ def cmd_calibrate(a: argparse.Namespace) -> int:
     apply_threads(a)
     cs = read_captures(a.captures)
     out = Path(a.output)
-    if out.exists() and not a.force:  # never silently replace another rig's calibration
+    if out.exists() and not (a.force or a.overwrite):  # never silently replace another rig's calibration
         read_calibration(out, rig_id=cs.rig["id"])
-    data = calibrate(cs, progress=want_progress(a))
-    write_calibration(out, data)
+    with output_folder(a, "calibrate", record=False, folder=out.absolute().parent):
+        data = calibrate(cs, progress=want_progress(a))
+        write_calibration(out, data)
     for cam, kinds in data["ccm"].items():
         for kind, f in kinds.items():
             d = f["mean_delta_e2000"]
@@ -87,13 +89,12 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
     apply_threads(a)
     cs = read_captures(a.captures)
     calib = read_calibration(a.calibration, rig_id=cs.rig["id"], layout=cs.rig.get("layout"))
-    with tracker(want_progress(a), ev.merges_needed(cs), "evaluate-device", "group") as bar:
-        res, summary = _evaluate(session_with(cs, calib, progress=bar))
-    res["summary"] = summary
-    out = Path(a.output)
-    out.mkdir(parents=True, exist_ok=True)
-    write_json(out / "results.json", res)
-    print(write_report(out, res, calib))
+    with output_folder(a, "evaluate-device", [a.captures, a.calibration]) as out:
+        with tracker(want_progress(a), ev.merges_needed(cs), "evaluate-device", "group") as bar:
+            res, summary = _evaluate(session_with(cs, calib, progress=bar))
+        res["summary"] = summary
+        write_json(out / "results.json", res)
+        print(write_report(out, res, calib))
     return 0
 
 

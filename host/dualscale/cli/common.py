@@ -1,5 +1,20 @@
-"""Options every long command shares: ``-o/--output``, ``--threads N`` and
-``--progress/--no-progress``.
+"""Options every long command shares: ``-o/--output`` (with ``--overwrite``), ``--threads N``
+and ``--progress/--no-progress``; and the one way a command takes its output folder
+(:func:`output_folder`).
+
+**Output folders.**  Before any work, :func:`output_folder` creates the folder and writes,
+renames and removes a probe file in it (:func:`dualscale.formats.atomic.probe_writable`): a
+folder that cannot be written fails at once, not after the work.  It then writes the folder's
+record, ``.dualscale-output.json`` (``{"format": "dualscale-output", "version": 1, "command":
+..., "inputs": [...]}``: the command and its resolved inputs, e.g. the dataset, or the material
+and seed of ``synth``).  A folder is **foreign** when it holds a record of another command or
+other inputs, or, without a record, the outputs of an earlier dualscale run (a
+``material.json``, ``manifest.json``, ``fit.json``, ... in it or one level down).  A foreign
+folder is refused (exit 2) unless ``--overwrite`` is given, which removes its contents first
+(never a folder that is, or holds, one of the command's inputs, the working folder or the home
+folder).  Rerunning the same command on the same inputs into its own folder is not foreign: it
+resumes or replaces its own outputs.  A command that fails on its input before writing anything
+leaves no folder behind.
 
 ``--threads N`` sets torch's intra-op threads and OpenCV's; onnxruntime takes it from the
 command (``propagate run``); numpy's BLAS follows ``OMP_NUM_THREADS`` set before the start.
@@ -11,14 +26,146 @@ terminal.  Library functions never print: they get the choice as their ``progres
 from __future__ import annotations
 
 import argparse
+import contextlib
+import errno
+import json
+import os
+import shutil
 import sys
+from pathlib import Path
+from typing import Iterator, Sequence
 
-from dualscale.errors import InputError
+from dualscale.errors import InputError, ToolError
+
+RECORD = ".dualscale-output.json"
+RECORD_FORMAT = "dualscale-output"
+#: files that mark a folder (or a subfolder one level down) as holding a dualscale run's outputs
+MARKERS = ("material.json", "manifest.json", "fit.json", "captures.json", "calibration.json", "flyouts.json",
+           "study.json", "propagate.json", "evaluation.json", "run.json", "tile.json", "geometry.exr", "lights.json")
 
 
 def add_output(parser: argparse.ArgumentParser, help: str, required: bool = True) -> None:
-    """The one output option: ``-o/--output`` (dest ``output``)."""
+    """The one output option: ``-o/--output`` (dest ``output``), with ``--overwrite``."""
     parser.add_argument("-o", "--output", required=required, help=help)
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace an output folder that holds another run's outputs (its contents are removed "
+                             "first); a rerun of the same command into its own folder needs none")
+
+
+def _identity(command: str, inputs: Sequence[object]) -> dict:
+    def norm(x: object) -> object:
+        if isinstance(x, Path) or (isinstance(x, str) and os.path.exists(x)):
+            return str(Path(x).resolve())
+        return x
+
+    return {"command": command, "inputs": [norm(x) for x in inputs if x is not None]}
+
+
+def _foreign(out: Path, ident: dict) -> str | None:
+    """Why ``out`` holds another run's outputs, or ``None``."""
+    rec = out / RECORD
+    if rec.is_file():
+        try:
+            doc = json.loads(rec.read_text())
+        except (OSError, ValueError):
+            return f"its record {rec.name} is unreadable"
+        if not isinstance(doc, dict):
+            return f"its record {rec.name} is unreadable"
+        if doc.get("command") != ident["command"]:
+            return f"it holds the outputs of 'dualscale {doc.get('command')}'"
+        if doc.get("inputs") != ident["inputs"]:
+            return f"it holds the outputs of another run of {ident['command']} (inputs {doc.get('inputs')})"
+        return None
+    for m in MARKERS:
+        for p in (out / m, *out.glob(f"*/{m}")):
+            if p.is_file():
+                return f"it holds the outputs of an earlier run ({p.relative_to(out)})"
+    return None
+
+
+def _is_within(a: Path, b: Path) -> bool:
+    """Whether ``a`` is ``b`` or inside it."""
+    try:
+        a.relative_to(b)
+        return True
+    except ValueError:
+        return False
+
+
+def _clear(out: Path, inputs: Sequence[object]) -> None:
+    """Remove the contents of ``out`` (``--overwrite``), refusing folders it must never empty."""
+    res = out.resolve()
+    guarded = [Path.home().resolve(), Path.cwd().resolve(), Path(res.anchor)]
+    for x in inputs:
+        if isinstance(x, (str, Path)) and os.path.exists(x):
+            p = Path(x).resolve()
+            if _is_within(p, res):
+                raise InputError(f"-o {out} holds the input {x}: --overwrite would delete it; choose another folder")
+    for g in guarded:
+        if _is_within(g, res):
+            raise InputError(f"-o {out} contains {g}: --overwrite empties only a folder of its own; "
+                             "choose another folder")
+    for p in res.iterdir():
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p)
+        else:
+            p.unlink()
+
+
+def _writable_error(out: Path, e: OSError) -> Exception:
+    what = e.strerror or str(e)
+    if e.errno in (errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOTDIR, errno.EEXIST, errno.EISDIR):
+        return InputError(f"cannot write the output folder {out}: {what}")
+    return ToolError(f"cannot write the output folder {out}: {what}")
+
+
+@contextlib.contextmanager
+def output_folder(args: argparse.Namespace, command: str, inputs: Sequence[object] = (), *,
+                  record: bool = True, folder: str | Path | None = None) -> Iterator[Path]:
+    """Take the command's output folder (``folder``, default ``args.output``) before any work:
+    refuse a foreign one unless ``args.overwrite`` (module docstring), check that it can be
+    written (a probe file through :mod:`dualscale.formats.atomic`; ``InputError`` for a folder
+    the user cannot write, ``ToolError`` for a full disk), and write its record (``record``).
+    Yields the folder.  When the body fails and the folder was created here and holds nothing
+    but its record, it is removed again.
+
+    ``inputs``: what identifies the run (paths are resolved; other values kept as they are)."""
+    from dualscale.formats.atomic import probe_writable, write_json
+
+    out = Path(folder if folder is not None else args.output)
+    ident = _identity(command, inputs)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"-o {out} is a file, not a folder")
+    created = []  # the folders made here, deepest last
+    p = out.absolute()
+    while not p.exists():
+        created.append(p)
+        p = p.parent
+    if out.is_dir() and record:
+        why = _foreign(out, ident)
+        if why is not None:
+            if not getattr(args, "overwrite", False):
+                raise InputError(f"-o {out}: {why}; pass --overwrite to replace them, or choose another folder")
+            _clear(out, inputs)
+    try:
+        probe_writable(out)
+        if record:
+            write_json(out / RECORD, {"format": RECORD_FORMAT, "version": 1, **ident})
+    except OSError as e:
+        raise _writable_error(out, e) from None
+    try:
+        yield out
+        if record and not (out / RECORD).is_file():  # a writer that replaced the whole folder (atomic_dir)
+            write_json(out / RECORD, {"format": RECORD_FORMAT, "version": 1, **ident})
+    except BaseException:
+        for d in created:
+            left = [x for x in d.iterdir()] if d.is_dir() else []
+            if d == out.absolute() and all(x.name == RECORD for x in left):
+                shutil.rmtree(d, ignore_errors=True)
+            elif d.is_dir() and not left:
+                with contextlib.suppress(OSError):
+                    d.rmdir()
+        raise
 
 
 def add_work_options(parser: argparse.ArgumentParser, threads_help: str | None = None) -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .common import add_output, add_work_options, apply_threads, want_progress
+from .common import add_output, add_work_options, apply_threads, output_folder, want_progress
 
 
 def _line(st) -> str:
@@ -30,8 +30,10 @@ def cmd_digitize(a: argparse.Namespace) -> int:
                            guidance_transfer=a.transfer, guidance_texel_mm=a.guidance_texel_mm, quality=a.quality,
                            until=a.until, threads=apply_threads(a), progress=want_progress(a), seed=a.seed,
                            export=tuple(parse_formats(a.export, '--export')), tile=a.tile, name=a.name)
-    res = digitize(opts, on_stage=lambda st: print(_line(st), flush=True),
-                   on_start=lambda: print(f"digitize {opts.input} -> {opts.run} (quality {opts.quality})", flush=True))
+    with output_folder(a, "digitize", record=False):  # the run folder's own records say whose it is
+        res = digitize(opts, on_stage=lambda st: print(_line(st), flush=True),
+                       on_start=lambda: print(f"digitize {opts.input} -> {opts.run} (quality {opts.quality})",
+                                              flush=True))
     run = Path(a.output)
     fit = res.record("fit")
     if fit is not None:

@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from .common import add_output, add_work_options, apply_threads, want_progress
+from .common import add_output, add_work_options, apply_threads, output_folder, want_progress
 
 _SWITCH = {"auto": None, "on": True, "off": False}
 
@@ -27,10 +27,11 @@ def cmd_fit(args: argparse.Namespace) -> int:
         preset = replace(preset, compiled=True)
     overrides = {"transmittance": _SWITCH[args.transmittance], "anisotropy": _SWITCH[args.anisotropy],
                  "tint": _SWITCH[args.tint]}
-    res, extra = fit_dataset(args.dataset, args.output, preset, overrides, holdout_every=args.holdout_every,
-                             progress=want_progress(args), checkpoint_every=args.checkpoint_every,
-                             restart=args.restart, stop_after=args.stop_after, seed=args.seed,
-                             previews=not args.no_previews, gt=args.gt)
+    with output_folder(args, "fit", [args.dataset]):
+        res, extra = fit_dataset(args.dataset, args.output, preset, overrides, holdout_every=args.holdout_every,
+                                 progress=want_progress(args), checkpoint_every=args.checkpoint_every,
+                                 restart=args.restart, stop_after=args.stop_after, seed=args.seed,
+                                 previews=not args.no_previews, gt=args.gt)
     c = res.comps
     print(f"preset {res.preset.name}: {res.iterations} iterations in {res.seconds:.1f} s; components: "
           f"{'translucent' if not c.opaque else 'opaque'}, {'isotropic' if c.isotropic else 'anisotropic'}, "
@@ -47,8 +48,9 @@ def cmd_study_lights(args: argparse.Namespace) -> int:
 
     apply_threads(args)
     custom = dict(parse_subset(s) for s in args.subset or [])
-    rep = run_study(args.dataset, args.output, preset=args.preset, custom=custom, names=args.only,
-                    gt_dir=args.gt, progress=want_progress(args))
+    with output_folder(args, "study lights", [args.dataset]):
+        rep = run_study(args.dataset, args.output, preset=args.preset, custom=custom, names=args.only,
+                        gt_dir=args.gt, progress=want_progress(args))
     print(rep["table_markdown"])
     print(f"recommendation ({rep['material_class']}): {rep['recommendation']['subset']} -- "
           f"{rep['recommendation']['reason']}")
@@ -60,9 +62,10 @@ def cmd_flyouts(args: argparse.Namespace) -> int:
     from dualscale.fit.flyouts import detect_dataset
 
     apply_threads(args)
-    rep = detect_dataset(args.dataset, args.output, tangent_maps=args.tangent, seeds=args.seeds,
-                         min_length_mm=args.min_length_mm, gt_dir=args.gt, seed=args.seed,
-                         progress=want_progress(args))
+    with output_folder(args, "flyouts", [args.dataset]):
+        rep = detect_dataset(args.dataset, args.output, tangent_maps=args.tangent, seeds=args.seeds,
+                             min_length_mm=args.min_length_mm, gt_dir=args.gt, seed=args.seed,
+                             progress=want_progress(args))
     print(f"{rep['count']} fly-outs (from {rep['seeds']} seeds, min length {rep['min_length_px']:.1f} px)")
     if "score" in rep:
         print("vs ground truth: " + json.dumps(rep["score"]))

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import argparse
 
-from .common import add_output, add_work_options, apply_threads, want_progress
+from .common import add_output, add_work_options, apply_threads, output_folder, want_progress
 
 
 def _scale(text: str) -> float | str:
@@ -22,8 +22,9 @@ def cmd_import(a: argparse.Namespace) -> int:
     from dualscale.calib.photo_import import import_photos
 
     apply_threads(a)
-    rep = import_photos(a.images, a.lights, a.output, a.transfer, mask=a.mask, texel_mm=a.texel_mm, scale=a.scale,
-                        match=a.match, progress=want_progress(a))
+    with output_folder(a, "import", [a.images, a.lights]):
+        rep = import_photos(a.images, a.lights, a.output, a.transfer, mask=a.mask, texel_mm=a.texel_mm,
+                            scale=a.scale, match=a.match, progress=want_progress(a))
     h, w = rep.size
     print(f"imported {len(rep.files)} images of {w}x{h} px ({rep.bits}-bit, transfer {rep.transfer or 'linear EXR'}) "
           f"into {rep.dataset}")

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from dualscale.errors import InputError
 
-from .common import add_output, add_work_options, apply_threads, want_progress
+from .common import add_output, add_work_options, apply_threads, output_folder, want_progress
 
 
 def cmd_train(args: argparse.Namespace) -> int:
@@ -26,10 +26,37 @@ def cmd_train(args: argparse.Namespace) -> int:
     opts = TrainOptions(width=args.width, perceptual=args.perceptual, amp=not args.no_amp, blur_sigma=sigma,
                         seed=args.seed, checkpoint_every=args.checkpoint_every, resume=args.resume, init=args.init,
                         progress=want_progress(args), device=args.device)
-    res = train(sources, preset, args.output, opts)
+    _refuse_foreign_model(Path(args.output), [s.name for s in sources], args.overwrite)
+    with output_folder(args, "propagate train", record=False, folder=Path(args.output).absolute().parent):
+        res = train(sources, preset, args.output, opts)
     print(f"wrote {args.output} ({res.iterations} iterations, {res.seconds:.1f} s this run, "
           f"final loss {res.history[-1]['loss']:.4f})")
     return 0
+
+
+def _refuse_foreign_model(model: Path, names: list[str], overwrite: bool) -> None:
+    """Refuse to replace a model file (or its checkpoint) trained on other datasets, unless
+    ``--overwrite``; a damaged file is taken as this run's own (its rerun repairs it)."""
+    from dualscale.formats.model import read_model_file
+    from dualscale.formats.torchfile import load_torch
+    from dualscale.propagate.train import checkpoint_path
+
+    if overwrite:
+        return
+    ckpt = checkpoint_path(model)
+    for path in (model, ckpt):
+        if not path.is_file():
+            continue
+        try:
+            if path == model:
+                theirs = (read_model_file(path).get("train") or {}).get("datasets")
+            else:
+                theirs = ((load_torch(path, "training checkpoint").get("run") or {}).get("sources"))
+        except (InputError, OSError, AttributeError):
+            continue
+        if theirs is not None and list(theirs) != names:
+            raise InputError(f"-o {model}: {path.name} was trained on {theirs}, not {names}; pass --overwrite to "
+                             "replace it, or choose another file")
 
 
 def cmd_export(args: argparse.Namespace) -> int:
@@ -80,8 +107,9 @@ def cmd_run(args: argparse.Namespace) -> int:
         exposure = args.exposure if args.exposure == "auto" else float(args.exposure)
     except ValueError:
         raise InputError(f"--exposure {args.exposure!r}: use 'auto' or a positive gain") from None
-    summary = run_tiled(OnnxModel.open(onnx, threads), guidance, args.output,
-                        args.tile, args.overlap, exposure, args.batch, want_progress(args))
+    with output_folder(args, "propagate run", [args.model, args.guidance]):
+        summary = run_tiled(OnnxModel.open(onnx, threads), guidance, args.output,
+                            args.tile, args.overlap, exposure, args.batch, want_progress(args))
     for w in summary["warnings"]:
         print(f"dualscale propagate run: warning: {w}", file=sys.stderr)
     print(f"wrote {', '.join(summary['maps'])} ({summary['width']}x{summary['height']}, {summary['tiles']} tiles, "

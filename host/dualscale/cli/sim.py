@@ -16,7 +16,7 @@ from dualscale.errors import FormatError, InputError
 from dualscale.progress import tracker
 from dualscale.protocol import regmap
 
-from .common import add_output, add_work_options, apply_threads, want_progress
+from .common import add_output, add_work_options, apply_threads, output_folder, want_progress
 
 
 def _analyzers(text: str | None) -> list[float | None]:
@@ -81,15 +81,20 @@ def _capture_set(maps, cam, out: Path, lights: list[tuple[str, int | None]], ana
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
-    from dualscale.geometry.cameras import micro_camera, mid_camera
-    from dualscale.sim.materials import generate
-    from dualscale.sim.materials.io import save_material
-
     apply_threads(args)
     progress = want_progress(args)
     out = Path(args.output)
     texel = args.texel_um / 1000.0
     leds = _leds(args.lights)
+    with output_folder(args, "synth", [f"material:{args.material}", f"seed:{args.seed}"]):
+        return _synth(args, out, texel, leds, progress)
+
+
+def _synth(args: argparse.Namespace, out: Path, texel: float, leds, progress: bool) -> int:
+    from dualscale.geometry.cameras import micro_camera, mid_camera
+    from dualscale.sim.materials import generate
+    from dualscale.sim.materials.io import save_material
+
     mat = generate(args.material, args.size, texel, args.seed)
     save_material(out / "maps", mat, previews=not args.no_previews)
     print(f"wrote ground-truth maps to {out / 'maps'}")
@@ -174,9 +179,10 @@ def cmd_render(args: argparse.Namespace) -> int:
         cam = mid_camera(size) if args.camera == "mid" else polar_camera(int(args.camera[-1]), size)
         texel = args.texel_um / 1000.0
     geometry = _shadow_geometry(args, maps.shape) if args.shadows else None
-    path = _capture_set(maps, cam, Path(args.output), lights, _analyzers(args.analyzer), args.relative, texel,
-                        args.realistic, True, {"maps": str(args.maps), "material": meta, "shadows": bool(args.shadows)},
-                        geometry, want_progress(args))
+    with output_folder(args, "render", [args.maps]):
+        path = _capture_set(maps, cam, Path(args.output), lights, _analyzers(args.analyzer), args.relative, texel,
+                            args.realistic, True, {"maps": str(args.maps), "material": meta,
+                                                   "shadows": bool(args.shadows)}, geometry, want_progress(args))
     print(f"wrote {path}")
     return 0
 

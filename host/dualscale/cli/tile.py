@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .common import add_output, add_work_options, apply_threads
+from .common import add_output, add_work_options, apply_threads, output_folder
 
 SOURCES = ("all", "albedo", "normal_x", "normal_y")
 
@@ -41,8 +41,9 @@ def cmd_tile(args: argparse.Namespace) -> int:
             raise InputError(f"--source {path}: the image is {img.shape[1]} x {img.shape[0]}, the maps are "
                              f"{maps.shape[1]} x {maps.shape[0]}")
         lattice = find_lattice(img, texel)
-    tile = make_tile(maps, texel, lattice, repeats=args.repeats, blend_px=args.blend)
-    save_tile(tile, args.output, meta={"source": str(args.maps)})
+    with output_folder(args, "tile", [args.maps]):
+        tile = make_tile(maps, texel, lattice, repeats=args.repeats, blend_px=args.blend)
+        save_tile(tile, args.output, meta={"source": str(args.maps)})
     v = lattice.vectors_px
     print(f"repeat: ({v[0, 0]:.2f}, {v[0, 1]:.2f}), ({v[1, 0]:.2f}, {v[1, 1]:.2f}) texels (col, row), "
           f"strength {lattice.strength:.2f}")

@@ -7,6 +7,9 @@ from typing import Any
 
 
 from dualscale.bsdf import Components
+from dualscale.errors import FormatError
+from dualscale.formats.atomic import remove_file, write_json
+from dualscale.formats.versioned import read_json
 
 from .core import FitResult, fit_observations, split_holdout
 from .io import save_fit
@@ -36,19 +39,20 @@ def fit_dataset(dataset: str | Path, out: str | Path, preset: str | Preset = "st
     train, held = split_holdout(obs, holdout_every)
     out = Path(out)
     ck = out / "checkpoint.pt"
-    if restart and ck.is_file():
-        ck.unlink()
+    if restart:
+        remove_file(ck)
     sel_path = out / "selection.json"
     if comps is None:
-        import json
-
         if ck.is_file() and sel_path.is_file():  # resuming: keep the decision already made
-            sel = json.loads(sel_path.read_text())
-            comps = Components(**sel["components"])
+            sel = read_json(sel_path)
+            try:
+                comps = Components(**sel["components"])
+            except (KeyError, TypeError) as e:
+                raise FormatError(f"{sel_path}: malformed component decision ({e}); delete it or pass "
+                                  "--restart") from None
         else:
             comps, sel = select_components(train, overrides, seed=seed)
-            out.mkdir(parents=True, exist_ok=True)
-            sel_path.write_text(json.dumps(sel, indent=1))
+            write_json(sel_path, sel)
     else:
         sel = {"method": "given by caller", "components": comps.__dict__}
     res = fit_observations(train, p, comps, held_out=held, checkpoint=ck, checkpoint_every=checkpoint_every,
@@ -63,8 +67,6 @@ def fit_dataset(dataset: str | Path, out: str | Path, preset: str | Preset = "st
             raise ValueError(f"--gt {gt}: maps are {gt_maps.shape}, the fit is {res.maps.shape}")
         extra["ground_truth"] = {"dir": str(gt), "errors": map_errors(res.maps, gt_maps, comps.ior)}
     save_fit(out, res, sel, extra, previews, texel_mm=obs.pixel_mm)
-    if ck.is_file():
-        ck.unlink()
-    if sel_path.is_file():
-        sel_path.unlink()
+    remove_file(ck)
+    remove_file(sel_path)
     return res, extra

@@ -7,11 +7,11 @@ own state.  Resuming with a different fingerprint is refused.
 
 from __future__ import annotations
 
-from dualscale.errors import Interrupted
+from dualscale.errors import FormatError, Interrupted
+from dualscale.formats.torchfile import load_torch, save_torch
 
 import hashlib
 import json
-import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -46,12 +46,14 @@ class Checkpointer:
     every: int = 50
 
     def load(self) -> dict[str, Any] | None:
+        """The saved state, ``None`` when there is no checkpoint; one-line
+        :class:`~dualscale.errors.FormatError` naming the file for a damaged one, ``ValueError``
+        for one of another fit."""
         if self.path is None or not Path(self.path).is_file():
             return None
-        try:
-            state = torch.load(self.path, map_location="cpu", weights_only=False)
-        except Exception as e:  # torch raises several types for a damaged file
-            raise ValueError(f"checkpoint {self.path} is unreadable ({e}); delete it or pass --restart") from e
+        state = load_torch(self.path, "fit checkpoint", "delete it or pass --restart", weights_only=False)
+        if not isinstance(state, dict):
+            raise FormatError(f"{self.path}: not a fit checkpoint; delete it or pass --restart")
         if state.get("fingerprint") != self.fingerprint:
             raise ValueError(f"checkpoint {self.path} belongs to a different fit (data, preset or components "
                              "changed); delete it or pass --restart")
@@ -60,11 +62,7 @@ class Checkpointer:
     def save(self, state: dict[str, Any]) -> None:
         if self.path is None:
             return
-        path = Path(self.path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(path.suffix + ".tmp")
-        torch.save({**state, "fingerprint": self.fingerprint}, tmp)
-        os.replace(tmp, path)
+        save_torch(self.path, {**state, "fingerprint": self.fingerprint})
 
     def due(self, done: int) -> bool:
         return self.path is not None and self.every > 0 and done % self.every == 0

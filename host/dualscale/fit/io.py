@@ -13,7 +13,7 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
-from dualscale.formats.atomic import write_json
+from dualscale.formats.atomic import remove_file, write_json
 from dualscale.formats.exr import read_exr_attributes
 from dualscale.formats.maps import save_maps
 
@@ -30,17 +30,21 @@ def fit_attributes(res: FitResult, selection: dict | None) -> dict[str, str]:
 def save_fit(root: str | Path, res: FitResult, selection: dict | None = None, extra: dict | None = None,
              previews: bool = True, texel_mm: float | None = None) -> Path:
     """Write the maps of ``res`` under ``root`` (``texel_mm``: the dataset's pixel pitch);
-    returns the path of ``fit.json``."""
+    returns the path of ``fit.json``.
+
+    ``fit.json`` is the fit's completion record: an earlier one is removed first and the new one
+    is written last, after every map and ``material.json``, each atomically; a write that fails
+    (a full disk) leaves no ``fit.json``, and no map file is ever short or empty."""
     root = Path(root)
     report: dict[str, Any] = {
         "preset": asdict(res.preset), "components": asdict(res.comps), "iterations": res.iterations,
         "seconds": res.seconds, "final_losses": res.losses, "selection": selection or {},
         "resumed_from_iteration": res.resumed_from, "loss_history": res.history[-200:], **(extra or {})}
-    path = write_json(root / "fit.json", report)
+    remove_file(root / "fit.json")
     meta = {"fit": {k: report[k] for k in ("preset", "components", "iterations", "final_losses")},
             "ior": res.comps.ior}
     save_maps(root, res.maps, meta, previews, texel_mm=texel_mm, attributes=fit_attributes(res, selection))
-    return path
+    return write_json(root / "fit.json", report)
 
 
 def read_fit_attributes(path: str | Path) -> dict[str, Any]:

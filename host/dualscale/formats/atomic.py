@@ -2,6 +2,12 @@
 into place (``os.replace``, atomic on POSIX), so an interrupted run (Ctrl-C, ``kill -9``) never
 leaves a half-written file under a final name.  Temporary names start with ``.tmp-``; a rerun
 removes stale ones with :func:`clean_stale`.
+
+Every file is flushed to disk (``fsync``) before the rename, and the folder after it, so a power
+loss or a full disk leaves the previous file or the complete new one, never an empty or
+truncated file under the final name.  Files get ``0666 & ~umask`` (folders ``0777 & ~umask``),
+as ``open()`` would give them: other accounts of the lab read them when the umask allows it.
+:func:`probe_writable` checks a folder before a long command starts.
 """
 
 from __future__ import annotations
@@ -23,6 +29,29 @@ def _umask() -> int:
     return mask
 
 
+def _fsync_file(path: Path) -> None:
+    """Flush a file that a foreign writer (OpenImageIO, torch, onnx) closed to disk."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _fsync_dir(folder: Path) -> None:
+    """Make a rename in ``folder`` durable (best effort: some filesystems refuse a folder fsync)."""
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
     """Yield a temporary path next to ``path`` (same suffix, so writers that choose a format by
@@ -34,11 +63,17 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     tmp_path = Path(tmp)
     try:
         yield tmp_path
+        if tmp_path.is_file():
+            _fsync_file(tmp_path)  # a full disk or lost power shows here, not as a short final file
         os.chmod(tmp_path, 0o666 & ~_umask())  # mkstemp makes 0600: give the file the usual mode
         os.replace(tmp_path, path)
-    except BaseException:
+        _fsync_dir(path.parent)
+    except BaseException as e:
         with contextlib.suppress(FileNotFoundError):
             tmp_path.unlink()
+        if isinstance(e, OSError) and e.errno is not None and e.filename in (None, str(tmp_path)):
+            # name the file the user knows (a full disk: 'No space left on device: OUT/normal.exr')
+            raise type(e)(e.errno, e.strerror or str(e), str(path)) from e
         raise
 
 
@@ -72,7 +107,6 @@ def write_bytes(path: str | Path, data: bytes) -> Path:
         with open(tmp, "wb") as f:
             f.write(data)
             f.flush()
-            os.fsync(f.fileno())
     return path
 
 
@@ -98,3 +132,31 @@ def clean_stale(folder: str | Path) -> int:
             p.unlink()
             n += 1
     return n
+
+
+PROBE = ".tmp-probe"
+
+
+def probe_writable(folder: str | Path) -> Path:
+    """Create ``folder`` (and its parents) and write, rename and remove a probe file in it through
+    :func:`atomic_path`, so that a folder a long command could not write is found before any
+    work.  Returns the folder; raises ``OSError`` (``PermissionError``, read-only filesystem,
+    no space left, a file in the way) naming it."""
+    folder = Path(folder)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        probe = folder / PROBE
+        write_bytes(probe, b"dualscale write probe\n")
+        probe.unlink()
+    except OSError as e:
+        raise type(e)(e.errno, e.strerror or str(e), str(folder)) from e
+    return folder
+
+
+def remove_file(path: str | Path) -> bool:
+    """Remove ``path`` if it is a file (a stale artefact of an earlier run); returns whether it was."""
+    try:
+        Path(path).unlink()
+        return True
+    except FileNotFoundError:
+        return False

@@ -54,7 +54,9 @@ def write_pixels(path: str | Path, pixels: np.ndarray, spec) -> Path:
             if not out.write_image(np.ascontiguousarray(pixels)):
                 raise OSError(f"cannot write {path}: {out.geterror()}")
         finally:
-            out.close()
+            closed = out.close()  # the last buffered bytes go out here: a full disk can show only now
+        if not closed:
+            raise OSError(f"cannot write {path}: {out.geterror() or 'closing the file failed'}")
     return Path(path)
 
 

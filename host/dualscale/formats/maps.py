@@ -29,7 +29,7 @@ import torch
 from dualscale.bsdf import MAP_CHANNELS, MaterialMaps, validate_maps
 from dualscale.errors import FormatError, GeometryError
 
-from .atomic import write_json
+from .atomic import remove_file, write_json
 from .exr import read_exr, write_exr, write_png_preview
 from .versioned import read_versioned_json
 
@@ -57,7 +57,11 @@ def channel_names(name: str) -> tuple[str, ...]:
 def save_maps(root: str | Path, maps: MaterialMaps, meta: dict | None = None, previews: bool = True,
               texel_mm: float | None = None, attributes: dict[str, str] | None = None) -> Path:
     """Write every active map as ``<name>.exr`` (+ ``.png`` previews) and ``material.json``
-    (written last, atomically: a folder with ``material.json`` is complete).
+    (written last, atomically: a folder with ``material.json`` is complete).  An earlier
+    ``material.json`` is removed before the first map is written, so a write that fails half-way
+    (a full disk) never leaves new maps under an old, complete-looking record; maps and previews
+    of an earlier set that this one lacks (e.g. ``transmittance`` of another material) are
+    removed, so no reader picks up a stale map.
 
     ``texel_mm``: texel size in mm (``None``: taken from ``meta["texel_mm"]`` when present);
     ``attributes``: extra EXR header attributes (``dualscale:*`` strings) for every map, plus
@@ -69,6 +73,7 @@ def save_maps(root: str | Path, maps: MaterialMaps, meta: dict | None = None, pr
         texel_mm = float(meta["texel_mm"])
     if texel_mm is not None and not (np.isfinite(texel_mm) and texel_mm > 0):
         raise ValueError(f"texel_mm must be a positive number of mm, got {texel_mm!r}")
+    remove_file(root / "material.json")
     for name, t in maps.items():
         arr = t.detach().cpu().numpy()
         write_exr(root / f"{name}.exr", arr, channel_names(name), {**(attributes or {}), "dualscale:map": name}
@@ -78,6 +83,11 @@ def save_maps(root: str | Path, maps: MaterialMaps, meta: dict | None = None, pr
                 write_png_preview(root / f"{name}.png", 0.5 * arr + 0.5, srgb=False)
             else:
                 write_png_preview(root / f"{name}.png", arr, srgb=name in ("albedo", "transmittance"))
+    written = {n for n, _ in maps.items()}
+    for name in MAP_CHANNELS:
+        for suffix in (".exr", ".png"):
+            if name not in written or (suffix == ".png" and not previews):
+                remove_file(root / f"{name}{suffix}")
     h, w = maps.shape
     doc = {"format": FORMAT, "version": VERSION, "maps": [n for n, _ in maps.items()], "height": h, "width": w,
            "texel_mm": texel_mm, "field_mm": None if texel_mm is None else [w * texel_mm, h * texel_mm],

@@ -12,7 +12,6 @@ shipped models small; they are restored to float32 on load.
 
 from __future__ import annotations
 
-import pickle
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +19,7 @@ import torch
 
 from dualscale.errors import FormatError
 
-from .atomic import atomic_path
+from .torchfile import load_torch, save_torch
 
 FORMAT = "dualscale-propagate"
 VERSION = 2
@@ -33,21 +32,19 @@ def write_model_file(path: str | Path, config: dict[str, Any], state_dict: dict[
     path = Path(path)
     sd = {k: (v.detach().half() if half and v.is_floating_point() else v.detach()).cpu().clone()
           for k, v in state_dict.items()}
-    with atomic_path(path) as tmp:
-        torch.save({"format": FORMAT, "version": VERSION, "config": config, "state_dict": sd,
-                    "input_reference": [float(x) for x in input_reference], "train": train}, tmp)
-    return path
+    return save_torch(path, {"format": FORMAT, "version": VERSION, "config": config, "state_dict": sd,
+                             "input_reference": [float(x) for x in input_reference], "train": train})
 
 
 def read_model_file(path: str | Path) -> dict[str, Any]:
-    """Load and validate the dict; clear ``ValueError`` for foreign or incompatible files."""
+    """Load and validate the dict; ``FileNotFoundError`` when missing, one-line
+    :class:`FormatError` naming the file for a damaged (empty, truncated, checksum), foreign or
+    incompatible file."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"model file not found: {path}")
-    try:
-        doc = torch.load(path, map_location="cpu", weights_only=True)
-    except (pickle.UnpicklingError, RuntimeError, EOFError, ValueError) as e:
-        raise FormatError(f"{path}: not a dualscale propagation model ({e.__class__.__name__})") from e
+    doc = load_torch(path, "propagation model", "train it again (propagate train --resume finishes it from its "
+                     "checkpoint)")
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         fmt = doc.get("format") if isinstance(doc, dict) else None
         raise FormatError(f"{path}: not a dualscale propagation model (format {fmt!r})")

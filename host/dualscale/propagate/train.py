@@ -6,8 +6,13 @@ no weight decay; ~15 min on a 1080Ti, ~8 h on one busy CPU core).  ``balanced``,
 
 Mixed precision: bfloat16 autocast on the CPU, float16 autocast with gradient scaling on CUDA.
 
-Checkpoints: ``<model>.ckpt`` every ``checkpoint_every`` iterations (model, optimiser, scaler,
-sampler RNG, iteration); ``resume=True`` continues from it when it matches the run.
+Checkpoints: ``<model>.ckpt`` every ``checkpoint_every`` iterations and at the last one (model,
+optimiser, scaler, sampler RNG, iteration, the run's target iteration count); ``resume=True``
+continues from it when it matches the run.  Checkpoints and the model file are written
+atomically (:mod:`dualscale.formats.torchfile`), and the last checkpoint is written before the
+model: a run killed while saving the model resumes by writing the model from it (no training),
+also when the rerun's iteration count is lower than that finished run's.  A damaged checkpoint
+or model file is a one-line :class:`~dualscale.errors.FormatError` naming it.
 """
 
 from __future__ import annotations
@@ -18,6 +23,9 @@ from pathlib import Path
 from typing import Any
 
 import torch
+
+from dualscale.errors import FormatError
+from dualscale.formats.torchfile import load_torch, save_torch
 
 from .augment import BLUR_SIGMA, augment
 from .data import Source, check_sources, sample_batch
@@ -125,17 +133,28 @@ def train(sources: list[Source], preset: Preset, out: str | Path, opts: TrainOpt
     run_id = {"preset": {k: v for k, v in asdict(preset).items() if k != "iterations"},
               "config": config.to_json(), "sources": [s.name for s in sources]}
     if opts.resume and ckpt.is_file():
-        st = torch.load(ckpt, map_location=opts.device, weights_only=True)
-        if st.get("run") != run_id:
+        st = load_torch(ckpt, "training checkpoint", "delete it (training restarts) or drop --resume",
+                        map_location=opts.device)
+        if not isinstance(st, dict) or st.get("run") != run_id:
             raise ValueError(f"checkpoint {ckpt} belongs to a different run (preset, maps or datasets differ); "
                              "delete it or drop --resume")
-        model.load_state_dict(st["model"])
-        optim.load_state_dict(st["optim"])
-        scaler.load_state_dict(st["scaler"])
-        gen.set_state(st["gen"])
-        start, history = int(st["iteration"]), list(st["history"])
-        if start > preset.iterations:  # equal: a run stopped after its last checkpoint; just write the model
-            raise ValueError(f"checkpoint {ckpt} is already at iteration {start} > {preset.iterations}")
+        try:
+            model.load_state_dict(st["model"])
+            optim.load_state_dict(st["optim"])
+            scaler.load_state_dict(st["scaler"])
+            gen.set_state(st["gen"])
+            start, history = int(st["iteration"]), list(st["history"])
+        except (KeyError, TypeError, ValueError, RuntimeError) as e:
+            raise FormatError(f"{ckpt}: damaged training checkpoint ({type(e).__name__}: "
+                              f"{(str(e).splitlines() or [''])[0][:160]}); delete it (training restarts) or drop "
+                              "--resume") from None
+        if start > preset.iterations:
+            if st.get("target") != start:
+                raise ValueError(f"checkpoint {ckpt} is at iteration {start}, beyond this run's {preset.iterations}; "
+                                 f"pass --iterations {start} or more to continue it, or delete it")
+            # a finished run whose model was not written (killed while saving it): write it now
+            preset = replace(preset, iterations=start)
+        # start == iterations: a run stopped after its last checkpoint; the loop is empty, the model is written
     t0 = time.perf_counter()
     model.train()
     bar = tqdm(range(start, preset.iterations), initial=start, total=preset.iterations, disable=not opts.progress,
@@ -157,7 +176,7 @@ def train(sources: list[Source], preset: Preset, out: str | Path, opts: TrainOpt
         bar.set_postfix(loss=f"{history[-1]['loss']:.4f}")
         done = it + 1
         if done % opts.checkpoint_every == 0 or done == preset.iterations:
-            _save_checkpoint(ckpt, model, optim, scaler, gen, done, history, run_id)
+            _save_checkpoint(ckpt, model, optim, scaler, gen, done, history, run_id, preset.iterations)
     seconds = time.perf_counter() - t0
     model.eval().cpu()
     info: dict[str, Any] = {"preset": asdict(preset), "iterations": preset.iterations, "seconds_this_run": seconds,
@@ -168,11 +187,12 @@ def train(sources: list[Source], preset: Preset, out: str | Path, opts: TrainOpt
     return TrainResult(model, preset.iterations, seconds, start, history)
 
 
-def _save_checkpoint(path: Path, model, optim, scaler, gen, iteration: int, history, run_id) -> None:
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    torch.save({"model": model.state_dict(), "optim": optim.state_dict(), "scaler": scaler.state_dict(),
-                "gen": gen.get_state(), "iteration": iteration, "history": history, "run": run_id}, tmp)
-    tmp.replace(path)
+def _save_checkpoint(path: Path, model, optim, scaler, gen, iteration: int, history, run_id, target: int) -> None:
+    """Write the checkpoint atomically; ``target``: the iteration count of this run (a checkpoint
+    with ``iteration == target`` is a finished run)."""
+    save_torch(path, {"model": model.state_dict(), "optim": optim.state_dict(), "scaler": scaler.state_dict(),
+                      "gen": gen.get_state(), "iteration": iteration, "history": history, "run": run_id,
+                      "target": target})
 
 
 def preset_with(name: str, **overrides: Any) -> Preset:
