@@ -871,14 +871,21 @@ class RigClient:
 
         The host watchdog guards the run: WATCHDOG_MS is set to `watchdog_ms` (device ms; None
         or 0 leaves the device's setting) unless the device's own is shorter, the polling feeds
-        it (`on_event` must return well within it), and it is left on afterwards (it only acts
-        while a light is on or a sequence runs). If this host dies, every light is off within
-        `watchdog_ms`. On a link error the sequence is aborted (or, the rig unreachable, left to
-        the watchdog) and LinkError says which; Ctrl-C aborts it too.
+        it (`on_event` must return well within it), and the earlier value is restored when the
+        run ends. If this host dies, every light is off within `watchdog_ms`. On a link error
+        the sequence is aborted (or, the rig unreachable, left to the watchdog) and LinkError
+        says which; Ctrl-C aborts it too.
         """
         if steps is not None:
             self.upload(steps)
-        _, wd = self._arm_watchdog(watchdog_ms)
+        prev, wd = self._arm_watchdog(watchdog_ms)
+        res = self._follow(mode, on_event, timeout_s, poll_s, state_check_s, wd)
+        if wd != prev:
+            self.set_watchdog(prev)
+        return res
+
+    def _follow(self, mode: rm.TriggerMode, on_event: Callable[[Event], None] | None, timeout_s: float,
+                poll_s: float, state_check_s: float, wd: int) -> RunResult:
         self.sync_events()
         res = RunResult()
         r0, d0 = self.reconnects, self.status().evt_dropped

@@ -1,14 +1,21 @@
-"""`dualscale console`: an interactive (or scripted, `-c "a; b"`) serial console for the rig."""
+"""`dualscale console`: an interactive (or scripted, `-c "a; b"`) serial console for the rig.
+
+The console turns the host watchdog on (PROTOCOL.md §5) and keeps it fed from a background
+thread while the user is idle at the prompt, and says so: if the console dies (killed, cable
+pulled), every light goes off within the watchdog period. `watchdog 0` turns it off.
+"""
 from __future__ import annotations
 
 import cmd
 import json
+import threading
+import time
 from pathlib import Path
 
 from dualscale.errors import FormatError, InputError
 
 from ..protocol import regmap as rm
-from .client import RigClient, RigError
+from .client import DEFAULT_WATCHDOG_MS, RigClient, RigError
 from .sequence import CapturePlan, Step, schedule
 
 SOURCES = {"led": rm.Source.LED, "back": rm.Source.BACKLIGHT, "diffuse": rm.Source.DIFFUSE}
@@ -42,13 +49,75 @@ class Console(cmd.Cmd):
     intro = "dualscale console. Type help or ? to list commands."
     prompt = "rig> "
 
-    def __init__(self, client: RigClient, out=None):
+    def __init__(self, client: RigClient, out=None, watchdog_ms: int = DEFAULT_WATCHDOG_MS):
         super().__init__(stdout=out)
         self.rig = client
         self.failed = False
+        self.watchdog_ms = watchdog_ms  # what `begin` sets; 0 leaves the watchdog off
+        self._feeder: threading.Thread | None = None
+        self._stop = threading.Event()
+        self._say_lock = threading.Lock()
 
     def say(self, text: str) -> None:
-        self.stdout.write(text + "\n")
+        with self._say_lock:
+            self.stdout.write(text + "\n")
+            self.stdout.flush()
+
+    # -- the host watchdog
+    def begin(self) -> None:
+        """Turn the host watchdog on (unless the device's own is on and shorter) and start
+        feeding it while the user is idle. Idempotent."""
+        if self._feeder is not None:
+            return
+        dev = self.rig.watchdog_ms()
+        if self.watchdog_ms and not 0 < dev <= self.watchdog_ms:
+            self.rig.set_watchdog(self.watchdog_ms)
+            dev = self.watchdog_ms
+        self.watchdog_ms = dev
+        self._announce()
+        self._stop.clear()
+        self._feeder = threading.Thread(target=self._feed, name="watchdog-feeder", daemon=True)
+        self._feeder.start()
+
+    def _announce(self) -> None:
+        if self.watchdog_ms:
+            self.say(f"host watchdog: {self.watchdog_ms} ms. This console keeps it fed while you are idle; "
+                     f"if the console stops, every light goes off {self.watchdog_ms} ms later "
+                     f"('watchdog 0' turns it off).")
+        else:
+            self.say("host watchdog: off. Lights stay as they are if this console stops "
+                     "('watchdog MS' turns it on).")
+
+    def _feed(self) -> None:
+        """Keep-alives: a one-register read whenever the line has been quiet for a quarter of
+        the period (any valid frame feeds the watchdog)."""
+        failing = False
+        while not self._stop.is_set():
+            period = self.watchdog_ms / 4e3 if self.watchdog_ms else 0.5
+            if self.watchdog_ms and time.monotonic() - self.rig.last_reply >= period:
+                try:
+                    self.rig.keep_alive()
+                    if failing:
+                        self.say("watchdog keep-alive: the rig answers again")
+                    failing = False
+                except RigError as e:
+                    if not failing:
+                        self.say(f"watchdog keep-alive failed ({e}); the rig will switch its lights off")
+                    failing = True
+            self._stop.wait(max(0.01, period / 2))
+
+    def end(self) -> None:
+        """Stop feeding the watchdog (the lights go off one period later, if any is on)."""
+        self._stop.set()
+        if self._feeder is not None:
+            self._feeder.join(2)
+            self._feeder = None
+
+    def preloop(self) -> None:
+        self.begin()
+
+    def postloop(self) -> None:
+        self.end()
 
     def onecmd(self, line: str) -> bool:
         try:
@@ -118,8 +187,14 @@ class Console(cmd.Cmd):
         self.rig.all_off()
 
     def do_watchdog(self, arg: str) -> None:
-        """watchdog MS: host watchdog timeout (0 disables)."""
-        self.rig.set_watchdog(int(arg))
+        """watchdog [MS]: show, or set, the host watchdog timeout (0 disables); the console
+        feeds it while you are idle."""
+        if arg.strip():
+            self.rig.set_watchdog(int(arg))
+            self.watchdog_ms = int(arg)
+        else:
+            self.watchdog_ms = self.rig.watchdog_ms()
+        self._announce()
 
     # -- sequences
     def do_upload(self, arg: str) -> None:
@@ -137,8 +212,8 @@ class Console(cmd.Cmd):
         self.rig.start(mode)
 
     def do_run(self, arg: str) -> None:
-        """run: start the uploaded sequence and follow it to the end."""
-        res = self.rig.run(on_event=lambda e: None)
+        """run: start the uploaded sequence and follow it to the end (under the host watchdog)."""
+        res = self.rig.run(on_event=lambda e: None, watchdog_ms=self.watchdog_ms or DEFAULT_WATCHDOG_MS)
         self.say(f"{res.state.name}: {len(res.events)} events in {res.wall_s:.2f} s"
                  + (f", error {res.error.name}" if res.error else ""))
 
@@ -167,12 +242,17 @@ class Console(cmd.Cmd):
 
 
 def run_script(console: Console, script: str) -> int:
-    """Run `;`-separated commands; exit status 1 if any failed."""
-    for line in script.split(";"):
-        line = line.strip()
-        if line:
-            console.say(f"rig> {line}")
-            if console.onecmd(line):
-                break
+    """Run `;`-separated commands (with the watchdog fed, see `Console.begin`); exit status 1
+    if any failed."""
+    console.begin()
+    try:
+        for line in script.split(";"):
+            line = line.strip()
+            if line:
+                console.say(f"rig> {line}")
+                if console.onecmd(line):
+                    break
+    finally:
+        console.end()
     return 1 if console.failed else 0
 

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from dualscale.errors import RigError
 
 from ..protocol import regmap as rm
-from .client import RigClient, RunResult
+from .client import DEFAULT_PARITY, DEFAULT_WATCHDOG_MS, RigClient, RunResult
 from .sequence import CapturePlan, Step, schedule
 from .launcher import SimulatedRig
 
@@ -79,12 +79,23 @@ def timing_report(steps: list[Step], res: RunResult, upload_s: float, rtt: list[
                         upload_s, statistics.median(rtt), q[18], res.wall_s, dropped, res.state.name)
 
 
+def demo_watchdog_ms(speed: float) -> int:
+    """The host watchdog for a demo run, in device milliseconds: DEFAULT_WATCHDOG_MS of real
+    time (the simulator's device clock runs `speed` times faster than real time; speed 0 jumps
+    from deadline to deadline, so it gets the longest period the register takes)."""
+    if speed <= 0:
+        return rm.WATCHDOG_MS_MAX
+    return int(min(rm.WATCHDOG_MS_MAX, max(rm.WATCHDOG_MS_MIN, DEFAULT_WATCHDOG_MS * max(1.0, speed))))
+
+
 def run_demo(target: str = "posix", speed: float = 10.0, out=print,
-             on_event=None) -> TimingReport:
-    """Start the simulated rig, upload the full micro-capture sequence, run it, report."""
+             on_event=None, parity: str = DEFAULT_PARITY, stopbits: int | None = None) -> TimingReport:
+    """Start the simulated rig, upload the full micro-capture sequence, run it under the host
+    watchdog (`demo_watchdog_ms`), report. `parity`/`stopbits`: the serial format the client
+    opens the port with (PROTOCOL.md §1)."""
     with SimulatedRig(target, speed=speed) as sim:
         out(f"simulated rig ({target}, speed {speed:g}x) on {sim.port}")
-        with RigClient(sim.port) as rig:
+        with RigClient(sim.port, parity=parity, stopbits=stopbits) as rig:
             ident = rig.identity
             out(f"connected: {ident.text}")
             rtt = measure_rtt(rig)
@@ -95,7 +106,9 @@ def run_demo(target: str = "posix", speed: float = 10.0, out=print,
                 f"+ diffuse and {len(plan.backlights)} back lights per mode = {len(steps)} steps, "
                 f"{plan.brackets} HDR brackets each")
             upload_s = rig.upload(steps)
-            res = rig.run(on_event=on_event)
+            wd = demo_watchdog_ms(speed)
+            out(f"host watchdog: {wd} ms of device time (every light off that long after this host stops)")
+            res = rig.run(on_event=on_event, watchdog_ms=wd)
             st = rig.status()
             rep = timing_report(steps, res, upload_s, rtt, dropped=st.evt_dropped)
     out("timing report")
