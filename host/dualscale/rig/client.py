@@ -353,6 +353,7 @@ class RigClient:
         self._last_seq: int | None = None  # SEQ of the last event handed to the caller
         self.reconnects = 0
         self.identity: Identity | None = None
+        self.format_mismatch: tuple[str, int] | None = None  # the device's format, when it differs
         self.stats = LinkStats()
         self.last_reply = 0.0  # time.monotonic() of the last reply that fitted its request
         self.chunk_words = STEPS_PER_WRITE * rm.STEP_WORDS  # adaptive bulk request size
@@ -380,11 +381,31 @@ class RigClient:
         if (w["N_LEDS"], w["N_BACKLIGHTS"]) != (rm.N_LEDS, rm.N_BACKLIGHTS):
             raise IncompatibleDevice(f"device has {w['N_LEDS']} LEDs/{w['N_BACKLIGHTS']} back lights; rig.toml "
                                      f"says {rm.N_LEDS}/{rm.N_BACKLIGHTS}")
+        self._check_serial_format()
         sid, running, text = self.report_server_id()
         fw = w["FW_VERSION"]
         self.identity = Identity(w["MAGIC"], (major, minor), (fw >> 8, fw & 0xFF, w["FW_PATCH"]), w["N_LEDS"],
                                  w["N_BACKLIGHTS"], w["MAX_STEPS"], w["FIFO_DEPTH"], sid, running, text)
         return self.identity
+
+    def device_serial_format(self) -> tuple[str, int] | None:
+        """The device's own (parity letter, stop bits) from SERIAL_PARITY/SERIAL_STOP_BITS, or
+        None for firmware without them (exception 02)."""
+        try:
+            par, sb = self.read_holding(rm.HR.SERIAL_PARITY, 2)
+        except DeviceException:
+            return None
+        return {int(k): v for k, v in PARITY_LETTERS.items()}.get(par, f"?{par}"), sb
+
+    def _check_serial_format(self) -> None:
+        """On a real line a format mismatch lets nothing through; on a pty (the simulators)
+        everything passes, so say it there: the same settings would fail on the board."""
+        dev = self.device_serial_format()
+        if dev is not None and dev != (self.parity, self.stopbits):
+            log.warning("%s: the rig is set to 8%s%d but this client opens 8%s%d; on a real serial line "
+                        "they would not understand each other", self.port, dev[0], dev[1], self.parity,
+                        self.stopbits)
+            self.format_mismatch = dev
 
     def close(self) -> None:
         with self._lock:
