@@ -29,17 +29,19 @@
  * cut by virtual time racing past t3.5: device time is held just short of a partial frame's
  * t3.5 until this much *real* silence has passed on the line. */
 #define SIM_HOLD_REAL_US 2000u
-/* FIFO headroom in virtual-time modes. A real-time rig makes events at 1x: a host that leaves
- * the oldest pending event unread for A seconds of real time finds at least the events of A
- * device-seconds after it waiting. An accelerated simulator would find S x A seconds' worth, and
- * lose events a real rig keeps. So, once SIM_FIFO_HIGH events are pending, device time may run
- * no further past the oldest pending event than the real time that event has been waiting:
- *     device now <= ts(oldest pending) + (real now - real time it was pushed).
- * Below the mark the clock runs free (speed S, or jumps at speed 0): nothing can be lost there.
- * The backlog then never exceeds max(SIM_FIFO_HIGH, what a real-time rig would hold for the same
- * host), so the simulator loses no event a real-time rig keeps, and a host that stays away
- * longer than the FIFO lasts at 1x still sees EVT_DROPPED count, as on the real rig. */
-#define SIM_FIFO_HIGH (DS_FIFO_DEPTH / 2u)
+/* FIFO headroom in virtual-time modes. A real-time rig makes events at 1x: a host that frees
+ * events (EVT_ACK, CLEAR_EVENTS) and then reads nothing for P seconds finds the events of P
+ * device-seconds added to what it left. An accelerated simulator would add S x P seconds' worth,
+ * and lose events a real rig keeps. So, while SIM_FIFO_HIGH or more events are pending, device
+ * time may run no further past the device time of the host's last ack than the real time since:
+ *     device now <= v(last ack) + (real now - real(last ack)).
+ * Below the mark the clock runs free (speed S, or jumps at speed 0); a host that keeps reading
+ * (EVT_WINDOW, 20 events, at a time) never notices. The backlog so exceeds a real-time rig's by
+ * at most SIM_FIFO_HIGH: a pause that a real-time rig survives with SIM_FIFO_HIGH events to spare
+ * loses nothing here, and a host that stays away longer than the FIFO lasts at 1x still sees
+ * EVT_DROPPED count what a real rig would lose. A host slower than the events throttles device
+ * time to 1x, where a real rig would be. */
+#define SIM_FIFO_HIGH (DS_FIFO_DEPTH / 8u)
 
 /* ---- simulated hardware ------------------------------------------------------------------- */
 
@@ -244,22 +246,12 @@ static void hal_triggers_write(void *ctx, uint8_t mask)
     }
 }
 
-/* Device and real time of each stored event, by SEQ modulo the FIFO depth (which divides 2^16,
- * so the slot of a SEQ is the same across its wrap): the congestion rule's "oldest pending". */
-typedef struct {
-    uint64_t ts[DS_FIFO_DEPTH];
-    uint64_t real[DS_FIFO_DEPTH];
-    uint16_t next_seq;      /* SEQ after the last stored event */
-} sim_events_t;
-
-static sim_events_t E;
+static uint16_t evt_next_seq; /* SEQ after the last stored event (see note_acks) */
 
 static void hal_on_event(void *ctx, const ds_event_t *e)
 {
     (void)ctx;
-    E.ts[e->seq % DS_FIFO_DEPTH] = e->ts_us;
-    E.real[e->seq % DS_FIFO_DEPTH] = sim_real_us();
-    E.next_seq = (uint16_t)(e->seq + 1u);
+    evt_next_seq = (uint16_t)(e->seq + 1u);
     if (!sidechan_enabled()) {
         return;
     }
@@ -291,6 +283,9 @@ typedef struct {
     int rx_pending;       /* bytes handed whose t3.5 has not yet passed */
     uint64_t rx_v;        /* device time of the last bytes */
     uint64_t rx_real;     /* real time of the last bytes */
+    uint16_t first_seq;   /* SEQ of the oldest pending event (or the next one) when last seen */
+    uint64_t ack_v;       /* device time of the host's last ack, see SIM_FIFO_HIGH */
+    uint64_t ack_real;    /* real time of the host's last ack */
 } sim_loop_t;
 
 static sim_loop_t L;
@@ -300,17 +295,26 @@ static int hold_active(uint64_t real)
     return L.clk.speed != 1.0 && L.rx_pending && real - L.rx_real < SIM_HOLD_REAL_US;
 }
 
+/* After every call into the core at device time v: did the host free events? Pushes leave the
+ * oldest pending SEQ (next SEQ - pending) as it was; only an ack or a clear moves it. */
+static void note_acks(uint64_t real, uint64_t v)
+{
+    uint16_t first = (uint16_t)(evt_next_seq - ds_core_events_pending(&core));
+    if (first != L.first_seq) {
+        L.first_seq = first;
+        L.ack_v = v;
+        L.ack_real = real;
+    }
+}
+
 /* The latest device time a real-time rig could have reached by real time `real`, by the rule at
  * SIM_FIFO_HIGH; UINT64_MAX (no limit) at speed 1 or while fewer events are pending. */
 static uint64_t congestion_cap(uint64_t real)
 {
-    uint16_t pending = ds_core_events_pending(&core);
-    if (L.clk.speed == 1.0 || pending < SIM_FIFO_HIGH) {
+    if (L.clk.speed == 1.0 || ds_core_events_pending(&core) < SIM_FIFO_HIGH) {
         return UINT64_MAX;
     }
-    uint16_t slot = (uint16_t)(E.next_seq - pending) % DS_FIFO_DEPTH; /* the oldest pending */
-    uint64_t waited = real > E.real[slot] ? real - E.real[slot] : 0u;
-    return E.ts[slot] + waited;
+    return L.ack_v + (real > L.ack_real ? real - L.ack_real : 0u);
 }
 
 static uint64_t device_now(uint64_t real)
@@ -357,6 +361,7 @@ static void run_due(uint64_t v)
         hw.now = t;
         ds_core_poll(&core, t);
         note_time(t);
+        note_acks(real, t);
     }
     note_time(v);
 }
@@ -580,6 +585,7 @@ int main(int argc, char **argv)
     sim_clock_init(&L.clk, speed);
     L.t35 = ds_rtu_t35_us(DS_DEFAULT_BAUD);
     L.last = 0;
+    L.ack_real = sim_real_us(); /* as if the host had just read: the FIFO is empty */
     hw.now = 0;
     ds_core_init(&core, &sim_hal, (uint8_t)address, 0);
     ds_core_set_target(&core, SIM_TARGET_NAME);
@@ -652,6 +658,7 @@ int main(int argc, char **argv)
             if (r > 0) {
                 hw.now = v;
                 ds_core_rx(&core, buf, (size_t)r, v);
+                note_acks(real, v);
                 note_time(v);
                 L.rx_pending = 1;
                 L.rx_v = v;

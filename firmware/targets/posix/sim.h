@@ -27,8 +27,6 @@ uint64_t sim_clock_at(const sim_clock_t *k, uint64_t real);
 uint64_t sim_clock_real_until(const sim_clock_t *k, uint64_t now_real, uint64_t v);
 /* Jump: make device time `v` correspond to real time `real` from now on. */
 void sim_clock_jump(sim_clock_t *k, uint64_t real, uint64_t v);
-/* Rebase at (real, v) and run at `rate` device µs per real µs from there on. */
-void sim_clock_set_rate(sim_clock_t *k, uint64_t real, uint64_t v, double rate);
 
 /* ---- hardware side channel -------------------------------------------------------------------
  * A Unix stream socket; every client receives one JSON object per line for each hardware

@@ -51,9 +51,3 @@ void sim_clock_jump(sim_clock_t *k, uint64_t real, uint64_t v)
     k->r_base = real;
 }
 
-void sim_clock_set_rate(sim_clock_t *k, uint64_t real, uint64_t v, double rate)
-{
-    k->v_base = v;
-    k->r_base = real;
-    k->rate = rate;
-}
