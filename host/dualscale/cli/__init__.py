@@ -29,7 +29,8 @@ def cmd_sim(a: argparse.Namespace) -> int:
     # before the device line goes out: a caller may signal as soon as it has read it
     signal.signal(signal.SIGINT, handler)
     signal.signal(signal.SIGTERM, handler)
-    rig = SimulatedRig(a.target, link=a.link, speed=a.speed, hw_socket=a.hw_socket, icount=a.icount)
+    rig = SimulatedRig(a.target, link=a.link, speed=a.speed, hw_socket=a.hw_socket, icount=a.icount,
+                       parity=a.parity, stop_bits=a.stopbits)
     rig.start()
     print(rig.port, flush=True)
     if a.link:
@@ -103,6 +104,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="posix: 1 = real time, >1 accelerated virtual time, 0 = as fast as possible")
     s.add_argument("--hw-socket", help="posix: Unix socket for the simulated hardware side channel")
     s.add_argument("--icount", help="qemu: -icount option, e.g. shift=4")
+    _serial_format_options(s)
     s.set_defaults(fn=cmd_sim)
 
     c = sub.add_parser("console", help="interactive serial console")

@@ -91,9 +91,9 @@ def demo_watchdog_ms(speed: float) -> int:
 def run_demo(target: str = "posix", speed: float = 10.0, out=print,
              on_event=None, parity: str = DEFAULT_PARITY, stopbits: int | None = None) -> TimingReport:
     """Start the simulated rig, upload the full micro-capture sequence, run it under the host
-    watchdog (`demo_watchdog_ms`), report. `parity`/`stopbits`: the serial format the client
-    opens the port with (PROTOCOL.md §1)."""
-    with SimulatedRig(target, speed=speed) as sim:
+    watchdog (`demo_watchdog_ms`), report. `parity`/`stopbits`: the serial format of the
+    simulated rig and of the client (PROTOCOL.md §1)."""
+    with SimulatedRig(target, speed=speed, parity=parity, stop_bits=stopbits) as sim:
         out(f"simulated rig ({target}, speed {speed:g}x) on {sim.port}")
         with RigClient(sim.port, parity=parity, stopbits=stopbits) as rig:
             ident = rig.identity
