@@ -105,7 +105,7 @@ HR_ON_MS, HR_DUTY, HR_SMIN, HR_SMAX, HR_CAM_TO, HR_CAM, HR_GAP = 7, 8, 9, 10, 11
 IR_STATE, IR_POL_NOW, IR_EVT_COUNT, IR_FRAMES_OK, IR_SEQ_DUR = 8, 16, 17, 20, 24
 STEPS = 0x1000
 TARGET = "posix"
-FW, PROTO = "0.1.0", "1.0"
+FW, PROTO = "0.1.0", "1.1"
 PARITY_NONE, PARITY_ODD, PARITY_EVEN = 0, 1, 2
 HR_FRAME_TO, HR_PARITY, HR_STOP = 15, 16, 17
 IR_COUNT, HR_COUNT = 31, 18
@@ -113,7 +113,7 @@ IR_COUNT, HR_COUNT = 31, 18
 
 def build() -> None:
     # ---- identification -----------------------------------------------------------------
-    rd_ir("fc04_identity", 0, [0x4453, 0x0100, 0x0001, 0, 127, 4, 2048, 512])
+    rd_ir("fc04_identity", 0, [0x4453, 0x0101, 0x0001, 0, 127, 4, 2048, 512])
     rd_ir("fc04_state_after_boot", 8, [IDLE, 0, NONE16, 0, 0xFFFF])  # SEQ_CRC of 0 steps = init
     rd_hr("fc03_defaults", 0, [0, 0, 0, 0, 0, 0, 32768, 10000, 500, 0, 18000, 2000, 0, 0, 0])
     # (FRAME_TIMEOUT_US, 15, is left out: the QEMU launcher raises it by broadcast)

@@ -34,7 +34,7 @@ def test_check_fails_when_the_toml_changes(tmp_path):
     gen = root / "protocol/gen.py"
     assert subprocess.run([sys.executable, str(gen), "--check"]).returncode == 0
     toml = root / "protocol/registers.toml"
-    toml.write_text(toml.read_text().replace("version_minor = 0", "version_minor = 9", 1))
+    toml.write_text(toml.read_text().replace("version_minor = 1", "version_minor = 9", 1))
     r = subprocess.run([sys.executable, str(gen), "--check"], capture_output=True, text=True)
     assert r.returncode == 1 and "ds_regmap.h" in r.stderr and "regmap.py" in r.stderr
 

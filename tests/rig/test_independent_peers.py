@@ -23,13 +23,14 @@ def test_mbpoll_reads_report_server_id(sim):
     out = mbpoll("-u", sim.port)
     target = "stm32f405" if sim.target == "qemu" else "posix"
     assert "Id    : 0x01" in out and "Status: On" in out
-    assert f"Data  : dualscale fw=0.1.0 proto=1.0 target={target}" in out
+    major, minor = rm.PROTOCOL_VERSION
+    assert f"Data  : dualscale fw=0.1.0 proto={major}.{minor} target={target}" in out
 
 
 def test_mbpoll_reads_input_registers(sim):
     out = mbpoll("-t", "3", "-r", "1", "-c", "8", sim.port)  # mbpoll counts from 1
     values = [int(ln.split(":")[1]) for ln in out.splitlines() if ln.startswith("[")]
-    assert values == [rm.MAGIC, 0x0100, 0x0001, 0, rm.N_LEDS, rm.N_BACKLIGHTS, rm.MAX_STEPS, rm.FIFO_DEPTH]
+    assert values == [rm.MAGIC, (rm.PROTOCOL_VERSION[0] << 8) | rm.PROTOCOL_VERSION[1], 0x0001, 0, rm.N_LEDS, rm.N_BACKLIGHTS, rm.MAX_STEPS, rm.FIFO_DEPTH]
 
 
 def test_minimalmodbus_reads_and_writes(sim):

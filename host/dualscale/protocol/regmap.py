@@ -15,7 +15,7 @@ MAX_STEPS = 2048
 STEP_TABLE_ADDR = 4096
 STEP_WORDS = 10
 PROTO_VERSION_MAJOR = 1
-PROTO_VERSION_MINOR = 0
+PROTO_VERSION_MINOR = 1
 FW_VERSION_MAJOR = 0
 FW_VERSION_MINOR = 1
 FW_VERSION_PATCH = 0
@@ -49,7 +49,7 @@ POL_KEEP = 0xFFFF
 EDGE_IGNORED = 0x0080
 IR_COUNT = 31  # input registers 0..IR_COUNT-1 are mapped
 HR_COUNT = 18  # holding registers 0..HR_COUNT-1 are mapped
-PROTOCOL_VERSION = (1, 0)
+PROTOCOL_VERSION = (1, 1)
 FIRMWARE_VERSION = (0, 1, 0)
 
 # Dome geometry (protocol/rig.toml [dome]); angles in degrees.
