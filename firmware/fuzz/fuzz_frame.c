@@ -35,10 +35,12 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
         fz_advance(&fz, &core, fz.now + gap);
         if (flags & 8) {
             ds_core_camera_edge(&core, (uint8_t)(flags >> 4), fz.now);
+            fz_touched(&fz);
             fz_check_state(&fz);
         }
         memset(resp, 0xAA, sizeof resp);
         size_t rn = ds_core_handle_frame(&core, req, len, resp, fz.now);
+        fz_touched(&fz);
         FZ_CHECK(rn <= DS_RTU_MAX_ADU);
         FZ_CHECK(resp[DS_RTU_MAX_ADU] == 0xAA); /* nothing written past 256 bytes */
         fz_check_response(resp, rn);

@@ -1,7 +1,8 @@
 /* libFuzzer harness: the RTU byte stream through ds_core_rx / ds_core_poll with fuzzer-chosen
  * time gaps and camera edges. Input: ops of [op][arg] then op-specific bytes:
  *   op % 4 == 0: feed arg % 64 bytes that follow, all at `now`
- *   op % 4 == 1: time passes: arg * 16 us, or arg * 8 ms when op bit 2 is set
+ *   op % 4 == 1: time passes: arg * 16 us, or arg * 8 ms when op bit 2 is set; with op bit 3
+ *                set, a poll at the new time whether anything is due or not
  *   op % 4 == 2: camera edge on input arg % 5 (4 = no such camera)
  *   op % 4 == 3: feed the arg % 64 bytes that follow as one frame with a valid CRC appended,
  *                address 1 (so requests get past the CRC check), one byte every 87 us */
@@ -24,17 +25,21 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
                 n = size - i;
             }
             fz.uart_len = 0;
-            ds_core_rx(&core, &data[i], n, fz.now);
+            fz_rx(&fz, &core, &data[i], n);
             fz_check_response(fz.uart, fz.uart_len);
             i += n;
             break;
         }
         case 1:
             fz_advance(&fz, &core, fz.now + ((op & 4) ? (uint64_t)arg * 8000u : (uint64_t)arg * 16u));
+            if (op & 8) {
+                fz_poll_now(&fz, &core); /* a target's idle poll, due or not */
+            }
             fz_check_response(fz.uart, fz.uart_len);
             break;
         case 2:
             ds_core_camera_edge(&core, (uint8_t)(arg % 5u), fz.now);
+            fz_touched(&fz);
             break;
         default: {
             size_t n = arg % 64u;
@@ -51,7 +56,7 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
             fz_advance(&fz, &core, fz.now + 2000u); /* t3.5 since anything before */
             for (size_t b = 0; b < n + 3; b++) {
                 fz.uart_len = 0;
-                ds_core_rx(&core, &frame[b], 1, fz.now);
+                fz_rx(&fz, &core, &frame[b], 1);
                 FZ_CHECK(fz.uart_len == 0); /* the frame is not over yet */
                 fz_advance(&fz, &core, fz.now + 87u);
             }

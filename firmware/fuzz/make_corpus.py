@@ -1,13 +1,16 @@
 #!/usr/bin/env python3
 """Seed corpora for the fuzzers from protocol/vectors.toml.
 
-    python3 fuzz/make_corpus.py OUT_DIR     (writes OUT_DIR/frame/* and OUT_DIR/rtu/*)
+    python3 fuzz/make_corpus.py [--max-len N] [--clean] OUT_DIR   (OUT_DIR/frame/*, OUT_DIR/rtu/*)
 
-frame: each vector's request as one fuzz_frame record, plus the whole vector file as one input
-(so the fuzzer starts from states that need earlier writes, e.g. an armed camera sequence).
-rtu: the same requests as fuzz_rtu "feed" ops separated by t3.5 gaps.
+frame: each vector's request as one fuzz_frame record (file vNNN), plus the vector file replayed
+in order in pieces of at most N bytes (files allNN), so the fuzzer starts from states that need
+earlier writes (e.g. an armed camera sequence) without inputs longer than its -max_len.
+rtu: the same requests as fuzz_rtu "feed" ops, each followed by a t3.5 gap.
+Deterministic: the same vectors give the same bytes. The committed set is fuzz/corpus/
+(`make -C firmware fuzz-corpus`); --clean first removes the files this script writes there.
 """
-import sys
+import argparse
 import tomllib
 from pathlib import Path
 
@@ -27,21 +30,38 @@ def rtu_ops(req: bytes) -> bytes:
     return out + bytes([0x01, 200])  # 3.2 ms of silence ends the frame
 
 
+def pieces(records: list[bytes], max_len: int) -> list[bytes]:
+    """Consecutive records joined into inputs of at most max_len bytes (a longer record alone)."""
+    out, cur = [], b""
+    for r in records:
+        if cur and len(cur) + len(r) > max_len:
+            out.append(cur)
+            cur = b""
+        cur += r
+    if cur:
+        out.append(cur)
+    return out
+
+
 def main() -> None:
-    out = Path(sys.argv[1])
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("out", type=Path)
+    ap.add_argument("--max-len", type=int, default=1024)
+    ap.add_argument("--clean", action="store_true")
+    a = ap.parse_args()
     vecs = tomllib.loads((ROOT / "protocol/vectors.toml").read_text())["vector"]
-    (out / "frame").mkdir(parents=True, exist_ok=True)
-    (out / "rtu").mkdir(parents=True, exist_ok=True)
-    all_frames, all_rtu = b"", b""
-    for i, v in enumerate(vecs):
-        req = bytes.fromhex(v["request"])
-        (out / "frame" / f"v{i:03d}").write_bytes(frame_record(req))
-        (out / "rtu" / f"v{i:03d}").write_bytes(rtu_ops(req))
-        all_frames += frame_record(req)
-        all_rtu += rtu_ops(req)
-    (out / "frame" / "all").write_bytes(all_frames)
-    (out / "rtu" / "all").write_bytes(all_rtu)
-    print(f"seed corpus: {len(vecs)} vectors -> {out}")
+    for kind, enc in (("frame", frame_record), ("rtu", rtu_ops)):
+        d = a.out / kind
+        d.mkdir(parents=True, exist_ok=True)
+        if a.clean:
+            for old in list(d.glob("v[0-9][0-9][0-9]")) + list(d.glob("all*")):
+                old.unlink()
+        recs = [enc(bytes.fromhex(v["request"])) for v in vecs]
+        for i, r in enumerate(recs):
+            (d / f"v{i:03d}").write_bytes(r)
+        for j, p in enumerate(pieces(recs, a.max_len)):
+            (d / f"all{j:02d}").write_bytes(p)
+    print(f"seed corpus: {len(vecs)} vectors -> {a.out}")
 
 
 if __name__ == "__main__":
