@@ -141,7 +141,7 @@ def test_damaged_models_and_checkpoints_are_one_line_errors_naming_the_file(twil
     capsys.readouterr()
     # a block of zeros inside the weights (lost sectors): torch would load it silently
     _zero_middle(model)
-    with pytest.raises(FormatError, match=r"m\.dsp: damaged propagation model: .*checksum"):
+    with pytest.raises(FormatError, match=r"m\.dsp: damaged dualscale propagation model: .*checksum"):
         read_model_file(model)
     assert main(["propagate", "export", str(model)]) == 2
     err = capsys.readouterr().err

@@ -43,7 +43,7 @@ def read_model_file(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"model file not found: {path}")
-    doc = load_torch(path, "propagation model", "train it again (propagate train --resume finishes it from its "
+    doc = load_torch(path, "dualscale propagation model", "train it again (propagate train --resume finishes it from its "
                      "checkpoint)")
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         fmt = doc.get("format") if isinstance(doc, dict) else None

@@ -45,8 +45,8 @@ def check_torch_file(path: str | Path, what: str, hint: str = "") -> None:
         with zipfile.ZipFile(path) as zf:
             bad = zf.testzip()
     except zipfile.BadZipFile:
-        raise FormatError(f"{path}: damaged {what}: not a complete PyTorch archive ({size} bytes; truncated or "
-                          f"overwritten){tail}") from None
+        raise FormatError(f"{path}: not a {what}, or a damaged one: not a complete PyTorch archive ({size} bytes; "
+                          f"truncated or overwritten){tail}") from None
     except (OSError, EOFError, ValueError) as e:
         raise FormatError(f"{path}: damaged {what}: cannot read the archive "
                           f"({type(e).__name__}: {e}){tail}") from None
