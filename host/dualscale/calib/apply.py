@@ -27,8 +27,10 @@ per image of camera ``c`` under light ``l`` taken with exposure ``t`` (the names
 The micro camera's ``r_c`` sums both analyser modes (P0 + P90), so a P0 or P90 image comes out
 with the half of the diffuse light its analyser passes, as the fit's observation model expects.
 
-Clipped pixels (any raw channel at or above the image's ``saturation``; full scale 1.0 when a
-``dn_normalized`` record gives none) are carried exactly: in the output each such image's
+Clipped pixels (any raw channel at or above its clip level: the image's ``saturation`` --
+full scale 1.0 when a ``dn_normalized`` record gives none -- or, when lower, the channel's
+white-level ``clip`` of the camera in the calibration, ``white_level[c]``, for a sensor that
+clips below full scale) are carried exactly: in the output each such image's
 ``saturation`` is the smallest float32 above every unclipped value, and its clipped pixels are
 written at or above it (at least their converted values, a lower bound of the true radiance).
 The dataset's mask, rig, transfer and cameras are carried; dark frames are consumed.
@@ -56,7 +58,7 @@ import numpy as np
 
 from dualscale.errors import CalibrationError, InputError, RigMismatchError, UnitsError
 from dualscale.formats.atomic import atomic_dir as _atomic_dir
-from dualscale.formats.calibration import read_calibration
+from dualscale.formats.calibration import read_calibration, white_level
 from dualscale.formats.captures import light_key
 from dualscale.formats.dataset import (CAMERA_RAW, CANONICAL_COLOUR_SPACE, CANONICAL_UNITS, Dataset, DatasetWriter,
                                        ImageRecord, read_dataset, resolve_root)
@@ -80,6 +82,7 @@ class _CameraCal:
     r_c: dict[str, list[float]]
     r_ws: np.ndarray
     ccm: dict[str, np.ndarray]
+    white_clip: np.ndarray | None = None
 
 
 @dataclass
@@ -166,8 +169,10 @@ def _plan(ds: Dataset, calibration: str | Path | None) -> _Plan:
             dark, source = _dark(ds, cam, calib, cal_path)
             ff = calib.get("flat_field", {}).get(cam)
             ccm = {k: np.asarray(v["matrix"], np.float64) for k, v in calib["ccm"][cam].items()}
+            wl = white_level(calib, cam, cal_path)
             plan.cameras[cam] = _CameraCal(cam, dark, source, None if not ff else np.asarray(ff["coef"]),
-                                           calib["r_c"][cam], r_ws, ccm)
+                                           calib["r_c"][cam], r_ws, ccm,
+                                           None if wl is None else np.asarray(wl["clip"], np.float64))
         cc = plan.cameras[cam]
         key = light_key(rec.light_kind, rec.light_id)
         if key not in cc.r_c:
@@ -202,7 +207,9 @@ def _irradiance(rec: ImageRecord, diffuse: float) -> float:
 
 def _convert_raw(raw: np.ndarray, rec: ImageRecord, cc: _CameraCal, diffuse: float) -> tuple[np.ndarray, np.ndarray]:
     """``(radiance (H, W, 3), clipped (H, W))`` of one raw image (module doc, steps 1-6)."""
-    sat = rec.saturation if rec.saturation is not None else DN_FULL_SCALE
+    sat = np.full(3, rec.saturation if rec.saturation is not None else DN_FULL_SCALE)
+    if cc.white_clip is not None:
+        sat = np.minimum(sat, cc.white_clip)
     clipped = (raw >= sat).any(-1)
     x = (np.asarray(raw, np.float64) - dark_at(*cc.dark, rec.exposure_s)) / rec.exposure_s
     if cc.flat is not None:

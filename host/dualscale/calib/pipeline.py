@@ -2,6 +2,9 @@
 
 Order per group: HDR merge of the brackets with the dark model subtracted (DN/s), flat field,
 then ``r_c`` / anchor / white balance (:mod:`.radiometric`) and the CCMs (:mod:`.ccm`).
+Each camera's merges exclude, per channel, the samples at or above its white level's threshold
+(:class:`~.hdr.WhiteLevel`): the level declared in the capture set, else the calibration's
+(when applying one), else measured from that camera's brackets; the calibration records it.
 The HDR merges are the long part: ``progress`` (:mod:`dualscale.progress`) counts them.
 """
 
@@ -19,13 +22,18 @@ from dualscale.formats.captures import CaptureSet, Group
 from .ccm import fit_and_validate, patch_mask
 from .chart import ChartLayout, detect_chart, orient_corners, sample_patches
 from dualscale.errors import CalibrationError, ImageSizeError
-from .hdr import HDRResult, merge_debevec
+from dualscale.formats.calibration import white_level as _white_level_record
+
+from .hdr import HDRResult, WhiteLevel, measure_white_level, merge_debevec
 from .radiometric import (apply_flat_field, apply_white_balance, dark_at, fit_dark, fit_flat_field,
                           irradiance_value, micro_footprint_mask, white_sheet_reflectance)
 from dualscale.progress import Progress, Tracker, tracker
 
 CALIBRATION_TARGETS = ("white_sheet", "patch", "chart")
 """Capture targets whose groups :func:`calibrate` merges (each one HDR merge)."""
+
+WHITE_SAMPLES = 20000
+"""Clipped samples per channel after which measuring a white level stops reading brackets."""
 
 
 @dataclass
@@ -38,6 +46,32 @@ class Session:
     progress: Tracker | None = None
     _dark: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     _merged: dict[str, HDRResult] = field(default_factory=dict)
+    _white: dict[str, WhiteLevel] = field(default_factory=dict)
+
+    def white_level(self, camera: str) -> WhiteLevel:
+        """Camera ``camera``'s white level: declared in the captures, else the one of the
+        calibration being applied (``calib["white_level"]``), else measured from the brackets of
+        its :data:`CALIBRATION_TARGETS` groups, white sheet first
+        (:func:`~.hdr.measure_white_level`, stopping at :data:`WHITE_SAMPLES` clipped samples
+        per channel); ``nominal`` when none of them clips."""
+        if camera not in self._white:
+            declared = self.cs.white_level(camera)
+            rec = _white_level_record(self.calib, camera, "calibration")
+            if declared is not None:
+                self._white[camera] = WhiteLevel(tuple(declared), "declared")
+            elif rec is not None:
+                self._white[camera] = WhiteLevel.from_record(rec)
+            else:
+                self._white[camera] = measure_white_level(self._bracket_stacks(camera), enough=WHITE_SAMPLES)
+        return self._white[camera]
+
+    def _bracket_stacks(self, camera: str):
+        groups = [g for t in CALIBRATION_TARGETS for g in self.cs.select(target=t, camera=camera)]
+        if not groups:
+            groups = [g for g in self.cs.select(camera=camera) if g.target != "dark"]
+        bias, rate = self.dark(camera)
+        for g in groups:
+            yield self.cs.load(g), g.exposures_s, [dark_at(bias, rate, t) for t in g.exposures_s]
 
     def dark(self, camera: str) -> tuple[np.ndarray, np.ndarray]:
         if camera not in self._dark:
@@ -58,7 +92,7 @@ class Session:
             if imgs[0].shape != bias.shape:
                 raise ImageSizeError(f"group {g.id}: images are {imgs[0].shape}, dark frames {bias.shape}")
             self._merged[g.id] = merge_debevec(imgs, g.exposures_s, dark=[dark_at(bias, rate, t) for t in g.exposures_s],
-                                               name=g.id)
+                                               name=g.id, white_level=self.white_level(g.camera))
             if self.progress is not None:
                 self.progress.update(what=g.id)
         return self._merged[g.id]
@@ -237,6 +271,8 @@ def calibrate(cs: CaptureSet, progress: Progress = None) -> dict[str, Any]:
     from dualscale import __version__ as ver
 
     s.calib["markers"] = cs.manifest.get("markers", {})
+    s.calib["white_level"] = {c: s.white_level(c).to_json() for c in cs.manifest["cameras"]
+                              if any(g.target != "dark" for g in cs.select(camera=c))}
     s.calib["dark"] = {c: {"bias": s.dark(c)[0].reshape(-1, 3).mean(0).tolist(),
                            "rate": s.dark(c)[1].reshape(-1, 3).mean(0).tolist()} for c in cs.manifest["cameras"]
                        if cs.select(target="dark", camera=c)}
@@ -249,7 +285,8 @@ def calibrate(cs: CaptureSet, progress: Progress = None) -> dict[str, Any]:
 
 
 def session_with(cs: CaptureSet, calib: dict[str, Any], progress: Tracker | None = None) -> Session:
-    """A session that applies an existing calibration (flat fields, r_c, r_ws, corners);
+    """A session that applies an existing calibration (flat fields, r_c, r_ws, corners, white
+    levels where the captures declare none);
     ``progress`` counts its HDR merges (the caller opens and closes it)."""
-    keep = {k: calib[k] for k in ("flat_field", "r_c", "r_ws", "r_wp", "ccm") if k in calib}
+    keep = {k: calib[k] for k in ("flat_field", "r_c", "r_ws", "r_wp", "ccm", "white_level") if k in calib}
     return Session(cs, keep, progress=progress)

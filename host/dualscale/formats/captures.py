@@ -2,11 +2,12 @@
 
 ``captures.json``::
 
-    {"format": "dualscale-calib-captures", "version": 1, "date": ISO-8601,
+    {"format": "dualscale-calib-captures", "version": 2, "date": ISO-8601,
      "rig": {"id": str, "layout": str},          # who took them (checked against calib files)
      "units": "dn_normalized",                    # 1.0 = full scale, linear
      "cameras": {name: {kind, width, height, field_mm, position_mm, has_analyzer,
-                        "sensitivities": str}},   # colour space: camera_raw:<sensitivities>
+                        "sensitivities": str,     # colour space: camera_raw:<sensitivities>
+                        "white_level": [r, g, b]}},   # optional, version 2: see below
      "markers": {camera: [[row0, row1, col0, col1], ...]},   # white markers on the holder
      "chart": {"layout": {rows, cols, pitch_mm, patch_mm}, "corners": {camera: [[x, y] x 4]}},
      "groups": [{"id", "target", "patch", "camera", "light": {"kind", "id"},
@@ -17,6 +18,12 @@
 ``target`` is one of ``dark``, ``white_sheet``, ``chart``, ``patch`` (one ColorChecker patch
 filling the micro field, index in ``patch``), ``dot_grid`` or ``polarization``.  A group is
 one scene under one light and analyser setting; its files are the exposure brackets.
+
+``white_level`` (version 2, optional): the raw level per channel, in normalised DN before dark
+subtraction, at which the camera clips (a sensor may top out below nominal full scale 1.0).  It
+must be in ``(0, 1]``.  When a camera record has none (every version 1 file), the calibration
+measures it from the brackets (:func:`dualscale.calib.hdr.measure_white_level`).  Version 1
+files still read; the writer writes version 2.
 """
 
 from __future__ import annotations
@@ -37,7 +44,9 @@ from dualscale.formats.versioned import read_versioned_json
 from dualscale.errors import CalibrationError, ImageSizeError, MissingBracketsError
 
 FORMAT = "dualscale-calib-captures"
-VERSION = 1
+VERSION = 2
+READ_VERSIONS = (1, 2)
+"""Versions :func:`read_captures` accepts: 1 (no white level) and 2 (optional ``white_level``)."""
 TARGETS = ("dark", "white_sheet", "chart", "patch", "dot_grid", "polarization")
 
 
@@ -95,6 +104,24 @@ class Group:
         return g
 
 
+def white_level_record(value: Any, where: str) -> list[float] | None:
+    """A camera record's ``white_level`` as ``[r, g, b]`` normalised DN, or ``None`` when absent;
+    one number stands for all three channels.  :class:`CalibrationError` naming ``where`` when
+    it is not 1 or 3 finite numbers in ``(0, 1]``."""
+    if value is None:
+        return None
+    try:
+        v = np.asarray(value, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError) as e:
+        raise CalibrationError(f"{where}: white_level must be 1 or 3 numbers in (0, 1] normalised DN, "
+                               f"got {value!r}") from e
+    if v.size == 1:
+        v = np.repeat(v, 3)
+    if v.size != 3 or not np.all(np.isfinite(v)) or np.any(v <= 0) or np.any(v > 1.0):
+        raise CalibrationError(f"{where}: white_level must be 1 or 3 numbers in (0, 1] normalised DN, got {value!r}")
+    return [float(x) for x in v]
+
+
 def _now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
 
@@ -115,9 +142,14 @@ class CaptureWriter:
         self.root = Path(self.root)
         (self.root / "images").mkdir(parents=True, exist_ok=True)
 
-    def add_camera(self, camera: Camera, sensitivities: str) -> None:
-        self.cameras[camera.name] = {**{k: v for k, v in asdict(camera).items() if k != "name"},
-                                     "sensitivities": sensitivities}
+    def add_camera(self, camera: Camera, sensitivities: str, white_level: float | list[float] | None = None) -> None:
+        """Describe a camera; ``white_level`` (one value or ``[r, g, b]``, normalised raw DN in
+        ``(0, 1]``) declares where it clips; ``None`` leaves it to be measured."""
+        rec = {**{k: v for k, v in asdict(camera).items() if k != "name"}, "sensitivities": sensitivities}
+        wl = white_level_record(white_level, f"camera {camera.name!r}")
+        if wl is not None:
+            rec["white_level"] = wl
+        self.cameras[camera.name] = rec
 
     def add(self, target: str, camera: Camera, light_kind: str, light_id: int | None, exposures_s: list[float],
             images: list[np.ndarray], patch: int | None = None, analyzer_deg: float | None = None,
@@ -167,7 +199,18 @@ class CaptureSet:
         except KeyError as e:
             raise CalibrationError(f"camera {name!r} is not described in the capture manifest") from e
         c.pop("sensitivities", None)
+        c.pop("white_level", None)
         return Camera.from_json(name, c, f"{self.root / 'captures.json'}")
+
+    def white_level(self, name: str) -> list[float] | None:
+        """The declared white level ``[r, g, b]`` (normalised raw DN) of camera ``name``, or
+        ``None`` when the manifest declares none (version 1, or left to be measured)."""
+        try:
+            rec = self.manifest["cameras"][name]
+        except KeyError as e:
+            raise CalibrationError(f"camera {name!r} is not described in the capture manifest") from e
+        return white_level_record(rec.get("white_level"),
+                                  f"{self.root / 'captures.json'}: cameras.{name}.white_level")
 
     def select(self, **criteria: Any) -> list[Group]:
         return [g for g in self.groups if all(getattr(g, k) == v for k, v in criteria.items())]
@@ -189,12 +232,16 @@ class CaptureSet:
 
 
 def read_captures(root: str | Path) -> CaptureSet:
-    """Open and validate a capture set (every listed bracket must exist)."""
+    """Open and validate a capture set (version 1 or 2; every listed bracket must exist, every
+    declared white level must be valid)."""
     root = Path(root)
     path = root / "captures.json"
-    m = read_versioned_json(path, FORMAT, VERSION, CalibrationError)
+    m = read_versioned_json(path, FORMAT, READ_VERSIONS, CalibrationError)
     if not m.get("rig", {}).get("id"):
         raise CalibrationError(f"{path}: no rig identity")
+    for name, rec in (m.get("cameras") or {}).items():
+        if isinstance(rec, dict):
+            white_level_record(rec.get("white_level"), f"{path}: cameras.{name}.white_level")
     groups = [Group.from_json(d) for d in m.get("groups", [])]
     for g in groups:
         if g.camera not in m.get("cameras", {}):

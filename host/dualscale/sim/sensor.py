@@ -45,7 +45,15 @@ def spectral_matrix(camera: str = "Nikon 5100 (NPL)", illuminant: str = "D65") -
 @dataclass(frozen=True)
 class SensorModel:
     """Sensor parameters.  Radiance ``x`` (relative units) becomes ``x * exposure_s * gain_e``
-    photo-electrons; the output is in DN normalised to full scale (1.0 = 2^bits - 1)."""
+    photo-electrons; the output is in DN normalised to full scale (1.0 = 2^bits - 1).
+
+    ``white_level`` (normalised DN, one value or one per raw channel R, G, B): with
+    ``saturate``, a sensor whose pixels clip below nominal full scale (their well, or the
+    converter, tops out there).  The clip is applied to the photo-electrons before read noise,
+    so the plateau carries read noise and quantisation as a real one does;
+    ``white_level_spread`` adds a fixed per-pixel relative spread (sigma) of that level (the
+    wells' non-uniformity).  With the defaults (1.0, 0.0) the sensor clips at full scale after
+    read noise, as it always did."""
 
     exposure_s: float = 0.01
     gain_e: float = 2.0e5
@@ -59,6 +67,15 @@ class SensorModel:
     vignetting: float = 0.0
     spectral_camera: str | None = None
     illuminant: str = "D65"
+    white_level: float | tuple[float, float, float] = 1.0
+    white_level_spread: float = 0.0
+
+    def __post_init__(self) -> None:
+        wl = np.broadcast_to(np.asarray(self.white_level, dtype=np.float64), (3,))
+        if not np.all((wl > 0) & (wl <= 1.0)):
+            raise ValueError(f"white_level must be in (0, 1] normalised DN, got {self.white_level}")
+        if not 0.0 <= self.white_level_spread < 0.2:
+            raise ValueError(f"white_level_spread must be in [0, 0.2), got {self.white_level_spread}")
 
     @classmethod
     def realistic(cls, **kw) -> "SensorModel":
@@ -93,6 +110,14 @@ def capture(radiance: Tensor, camera: Camera, sensor: SensorModel, seed: int | N
     g = torch.Generator().manual_seed(seed) if seed is not None else None
     if sensor.shot_noise:
         e = torch.poisson(e, generator=g)
+    wl = torch.as_tensor(np.broadcast_to(np.asarray(sensor.white_level, np.float64), (3,)).copy())
+    if sensor.saturate and (bool((wl < 1.0).any()) or sensor.white_level_spread > 0):
+        well = wl * sensor.full_well_e
+        if sensor.white_level_spread > 0:  # fixed pattern: the same for every shot of this size
+            fp = torch.Generator().manual_seed(7919 + camera.height * 65537 + camera.width)
+            well = well * (1.0 + sensor.white_level_spread * torch.randn((camera.height, camera.width, 1),
+                                                                         generator=fp, dtype=e.dtype))
+        e = torch.minimum(e, well.to(e.dtype))
     if sensor.read_noise:
         e = e + sensor.read_noise_e * torch.randn(e.shape, generator=g, dtype=e.dtype)
     if sensor.saturate:

@@ -11,6 +11,11 @@ Defects (all with known truth): per-LED irradiance gains, a per-LED linear irrad
 the micro field (collimation), analyser misalignment, spatially varying Gaussian blur of the
 micro optics, vignetting, dark signal (bias + dark current), shot/read noise, 12-bit
 quantisation and saturation, and exposure jitter of the mid-range (DSLR) diffuse captures.
+
+A sensor that clips below nominal full scale is ``SynthConfig(white_level=0.95)`` (every camera;
+one value or ``(r, g, b)``); ``declare_white_level`` says whether the capture set declares it
+(else the calibration has to measure it).  The virtual rig's capture tool meters and plans its
+brackets against the sensor's white level, as a real one does against the declared one.
 """
 
 from __future__ import annotations
@@ -33,7 +38,7 @@ from dualscale.sim.sensor import SensorModel, capture, vignetting_map
 from dualscale.calib import colourref as cr
 from dualscale.formats.captures import CaptureWriter, light_key
 from dualscale.calib.chart import DOT_DIAMETER_UM, DOT_PITCH_UM, ChartLayout
-from dualscale.calib.hdr import meter, plan_brackets
+from dualscale.calib.hdr import WHITE_MARGIN, meter, plan_brackets
 from dualscale.calib.radiometric import micro_footprint_mask
 from dualscale.errors import InputError
 from dualscale.progress import Progress, Tracker, tracker
@@ -77,6 +82,18 @@ class SynthConfig:
     dark_rate: float = 0.01
     rig_id: str = "virtual-dome-0"
     cameras: tuple[str, ...] = ("micro", "mid", "polar0", "polar1")
+    white_level: float | tuple[float, float, float] = 1.0
+    white_level_spread: float = 0.0
+    declare_white_level: bool = True
+
+    def sensor(self) -> SensorModel:
+        """The cameras' sensor model (:data:`SENSOR` with this white level)."""
+        return replace(SENSOR, white_level=self.white_level, white_level_spread=self.white_level_spread)
+
+    def saturation(self) -> float:
+        """The raw level the capture tool meters and plans against: the lowest channel's white
+        level less the merge's margin (:data:`dualscale.calib.hdr.WHITE_MARGIN`)."""
+        return float(np.min(self.white_level)) * (1.0 - WHITE_MARGIN)
 
     def sens(self, cam: str) -> str:
         return dict(self.sensitivities)[cam]
@@ -228,7 +245,7 @@ class Exposer:
         self.count = 0
 
     def __call__(self, radiance: np.ndarray, exposure_s: float) -> np.ndarray:
-        s = SENSOR
+        s = self.cfg.sensor()
         dark_dn = self.bias + self.cfg.dark_rate * exposure_s
         x = radiance * self.vig + dark_dn * s.full_well_e / (exposure_s * s.gain_e)
         self.count += 1
@@ -255,8 +272,8 @@ def capture_material(radiance: np.ndarray, exposer: Exposer, kind: str, light_id
     the camera's sensitivities (:func:`dualscale.sim.sensor.spectral_matrix`, white -> raw green 1,
     like :func:`dualscale.calib.colourref.camera_raw`); an LED adds its gain and collimation ramp;
     then ``exposer`` (:func:`rig_exposer`: vignetting, dark signal, noise, 12 bits) takes one
-    exposure, metered so that the 99.9th percentile of the signal lands at ``target`` of full
-    scale (the rig's auto-exposure; a black image, e.g. an opaque sample's back light, meters to
+    exposure, metered so that the 99.9th percentile of the signal lands at ``target`` of the
+    sensor's white level (full scale unless ``SynthConfig.white_level`` is lower) (the rig's auto-exposure; a black image, e.g. an opaque sample's back light, meters to
     the longest exposure, 1 s).
     """
     from dualscale.sim.sensor import spectral_matrix
@@ -269,10 +286,10 @@ def capture_material(radiance: np.ndarray, exposer: Exposer, kind: str, light_id
         raw = raw * led_gains(n, defects)[light_id] * collimation_ramp(camera, light_id, defects)[..., None]
     if float(raw.max()) <= 0:
         return exposer(raw, 1.0), 1.0
-    shot, t = meter(lambda t: exposer(raw, t))
+    shot, t = meter(lambda t: exposer(raw, t), saturation=cfg.saturation())
     dark = float(exposer.bias.mean()) + cfg.dark_rate * t
     peak = max(float(np.percentile(shot - dark, 99.9)), 1e-6)
-    t = float(f"{t * target / peak:.3g}")
+    t = float(f"{t * target * float(np.min(cfg.white_level)) / peak:.3g}")
     return exposer(raw, t), t
 
 
@@ -283,10 +300,12 @@ def rig_record(cfg: SynthConfig = SynthConfig()) -> dict[str, str]:
 
 def bracket(exposer: Exposer, radiance: np.ndarray, dark_pixels_ignore: float = 0.0) -> tuple[list[float], list[np.ndarray]]:
     """Meter, plan brackets from the metering shot and capture them."""
-    mshot, t0 = meter(lambda t: exposer(radiance, t))
-    dark = exposer.bias.mean() + exposer.cfg.dark_rate * t0
+    cfg = exposer.cfg
+    mshot, t0 = meter(lambda t: exposer(radiance, t), saturation=cfg.saturation())
+    dark = exposer.bias.mean() + cfg.dark_rate * t0
     times = plan_brackets(np.clip(mshot - dark, 0, None), t0, ignore_fraction=dark_pixels_ignore,
-                          dark=(float(exposer.bias.max()), exposer.cfg.dark_rate))
+                          dark=(float(exposer.bias.max()), cfg.dark_rate), saturation=cfg.saturation(),
+                          high=0.8 * float(np.min(cfg.white_level)))
     return times, [exposer(radiance, t) for t in times]
 
 
@@ -386,7 +405,7 @@ def _write_session(root: Path, cfg: SynthConfig, defects: Defects, parts: tuple[
     gains = led_gains(dome.n_leds, defects)
     seed = 0
     for name, cam in cams.items():
-        w.add_camera(cam, cfg.sens(name))
+        w.add_camera(cam, cfg.sens(name), white_level=cfg.white_level if cfg.declare_white_level else None)
         if name == "mid":
             w.markers[name] = marker_boxes(cam)
         seed += 1
@@ -501,8 +520,8 @@ def _polarization(w: CaptureWriter, cam: Camera, cfg: SynthConfig, defects: Defe
             rads.append(col * g_d[..., None] + white * g_s[..., None])
         # one metered exposure for the whole sweep, so intensities compare across angles
         brightest = max(rads, key=lambda r: float(r.max()))
-        mshot, t0 = meter(lambda t: ex(brightest, t))
-        t = 0.8 * t0 / max(float(mshot.max()), 1e-6)
+        mshot, t0 = meter(lambda t: ex(brightest, t), saturation=cfg.saturation())
+        t = 0.8 * float(np.min(cfg.white_level)) * t0 / max(float(mshot.max()), 1e-6)
         for a, rad in zip(angles, rads):
             w.add("polarization", cam, "led", lid, [t], [ex(rad, t)], analyzer_deg=float(a), analyzer_relative=False)
         bar.update(what=f"polarisation led{lid}")
