@@ -2,6 +2,7 @@
 #     make -C firmware fuzz [FUZZ_SECONDS=20]      both harnesses, FUZZ_SECONDS in total
 #     make -C firmware fuzz-long [FUZZ_LONG_RUNS=5000000]   that many inputs per harness
 #     make -C firmware fuzz-corpus                 regenerate the committed seed corpus
+#     make -C firmware fuzz-coverage               line/branch coverage of the core by the corpora
 # Seeds: fuzz/corpus/<harness>/ (committed; make_corpus.py from protocol/vectors.toml), plus a
 # fresh generation from the current vectors in build/fuzz/corpus/. Units the fuzzer finds go
 # to build/fuzz/corpus/<harness>.live/ (not committed). Builds into build/fuzz/.
@@ -32,7 +33,7 @@ FUZZ_CORE_OBJS := $(patsubst core/src/%.c,$(FUZZ_DIR)/core/%.o,$(CORE_SRCS))
 FUZZ_HEADERS := $(wildcard $(FUZZ_FW)/core/include/*.h $(FUZZ_FW)/core/src/*.h $(FUZZ_FW)/fuzz/*.h) $(FUZZ_FW)/fuzz/fuzz.mk
 EACH_SECONDS = $(shell expr $(FUZZ_SECONDS) / 2 \| 1)
 
-.PHONY: fuzz fuzz-long fuzz-build fuzz-corpus fuzz-seeds fuzz-clean
+.PHONY: fuzz fuzz-long fuzz-build fuzz-corpus fuzz-seeds fuzz-coverage fuzz-clean
 .SECONDARY: $(FUZZ_CORE_OBJS)
 
 # $(call fuzz_run,LIBFUZZER_LIMIT): each harness from its live corpus and both seed sets.
@@ -76,6 +77,27 @@ $(FUZZ_DIR)/core/%.o: $(FUZZ_FW)/core/src/%.c $(FUZZ_HEADERS)
 $(FUZZ_DIR)/fuzz_%: $(FUZZ_FW)/fuzz/fuzz_%.c $(FUZZ_CORE_OBJS) $(FUZZ_HEADERS)
 	@mkdir -p $(dir $@)
 	$(FUZZ_CC) $(FUZZ_CFLAGS) $< $(FUZZ_CORE_OBJS) -o $@
+
+# Source coverage of the core by everything in the corpora (seeds + what the fuzzers found):
+# the harnesses rebuilt with clang's source-based coverage, each corpus replayed once (-runs=0).
+FUZZ_COV_DIR := $(FUZZ_DIR)/cov
+FUZZ_LLVM_PROFDATA ?= llvm-profdata
+FUZZ_LLVM_COV ?= llvm-cov
+fuzz-coverage: fuzz-seeds
+	@mkdir -p $(FUZZ_COV_DIR)
+	@set -e; for f in $(FUZZ_NAMES); do \
+		kind=$${f#fuzz_}; mkdir -p $(FUZZ_DIR)/corpus/$$kind.live; \
+		$(FUZZ_CC) -std=c11 -O1 -g -fsanitize=fuzzer -fprofile-instr-generate -fcoverage-mapping \
+			$(addprefix -I$(FUZZ_FW)/,$(CORE_INCS)) $(FUZZ_FW)/fuzz/$$f.c \
+			$(addprefix $(FUZZ_FW)/,$(CORE_SRCS)) -o $(FUZZ_COV_DIR)/$$f; \
+		LLVM_PROFILE_FILE=$(FUZZ_COV_DIR)/$$f.profraw $(FUZZ_COV_DIR)/$$f -runs=0 \
+			-max_len=$(FUZZ_MAX_LEN) $(FUZZ_DIR)/corpus/$$kind.live $(FUZZ_SEEDS)/$$kind \
+			$(FUZZ_DIR)/corpus/$$kind > $(FUZZ_COV_DIR)/$$f.log 2>&1; \
+		$(FUZZ_LLVM_PROFDATA) merge -sparse $(FUZZ_COV_DIR)/$$f.profraw -o $(FUZZ_COV_DIR)/$$f.profdata; \
+		echo "== $$f: corpus $$(ls $(FUZZ_DIR)/corpus/$$kind.live | wc -l) found + seeds"; \
+		$(FUZZ_LLVM_COV) report $(FUZZ_COV_DIR)/$$f -instr-profile=$(FUZZ_COV_DIR)/$$f.profdata \
+			$(addprefix $(FUZZ_FW)/,$(CORE_SRCS)); \
+	done
 
 fuzz-clean:
 	rm -rf $(FUZZ_DIR)

@@ -101,6 +101,16 @@ FZ_HARNESS static void fz_triggers(void *ctx, uint8_t mask)
     f->triggers = mask;
 }
 
+/* The line format the core hands the UART: only what a Modbus write of the pair may set
+ * (Modbus over Serial Line v1.02 §2.5.1: no parity needs two stop bits). */
+FZ_HARNESS static void fz_uart_format(void *ctx, uint8_t parity, uint8_t stop_bits)
+{
+    (void)ctx;
+    FZ_CHECK(parity == DS_PARITY_NONE || parity == DS_PARITY_ODD || parity == DS_PARITY_EVEN);
+    FZ_CHECK(stop_bits == 1u || stop_bits == 2u);
+    FZ_CHECK(parity != DS_PARITY_NONE || stop_bits == 2u);
+}
+
 FZ_HARNESS static void fz_init_slow(fz_t *f, ds_core_t *c)
 {
     memset(f, 0, sizeof *f);
@@ -112,6 +122,7 @@ FZ_HARNESS static void fz_init_slow(fz_t *f, ds_core_t *c)
     f->hal.light_latch = fz_latch;
     f->hal.polarizer_set = fz_polarizer;
     f->hal.triggers_write = fz_triggers;
+    f->hal.uart_format = fz_uart_format;
     f->now = 1000;
     ds_core_init(c, &f->hal, 1, f->now);
     ds_core_set_target(c, "posix");
@@ -213,6 +224,16 @@ FZ_HARNESS static void fz_rx(fz_t *f, ds_core_t *c, const uint8_t *buf, size_t n
     ds_core_rx(c, buf, n, f->now);
     uint64_t end = f->now + c->t35_us;
     if (n > 0 && f->next > end) {
+        f->next = end;
+    }
+}
+
+/* One character with UART errors (DS_UART_ERR_* mask): like a byte for the frame's timing. */
+FZ_HARNESS static void fz_rx_error(fz_t *f, ds_core_t *c, uint8_t errors)
+{
+    ds_core_rx_error(c, errors, f->now);
+    uint64_t end = f->now + c->t35_us;
+    if (f->next > end) {
         f->next = end;
     }
 }

@@ -3,7 +3,8 @@
  *   op % 4 == 0: feed arg % 64 bytes that follow, all at `now`
  *   op % 4 == 1: time passes: arg * 16 us, or arg * 8 ms when op bit 2 is set; with op bit 3
  *                set, a poll at the new time whether anything is due or not
- *   op % 4 == 2: camera edge on input arg % 5 (4 = no such camera)
+ *   op % 4 == 2: camera edge on input arg % 5 (4 = no such camera); with op bit 2 set, a
+ *                character received with the UART errors arg & 0x0F (DS_UART_ERR_*) instead
  *   op % 4 == 3: feed the arg % 64 bytes that follow as one frame with a valid CRC appended,
  *                address 1 (so requests get past the CRC check), one byte every 87 us */
 #include "fuzz_common.h"
@@ -38,8 +39,14 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
             fz_check_response(fz.uart, fz.uart_len);
             break;
         case 2:
-            ds_core_camera_edge(&core, (uint8_t)(arg % 5u), fz.now);
-            fz_touched(&fz);
+            if (op & 4) {
+                fz.uart_len = 0;
+                fz_rx_error(&fz, &core, (uint8_t)(arg & 0x0Fu));
+                FZ_CHECK(fz.uart_len == 0); /* a bad character is never answered at once */
+            } else {
+                ds_core_camera_edge(&core, (uint8_t)(arg % 5u), fz.now);
+                fz_touched(&fz);
+            }
             break;
         default: {
             size_t n = arg % 64u;
