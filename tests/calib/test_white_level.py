@@ -178,7 +178,8 @@ def test_old_capture_file_without_white_level_loads_and_is_measured(tmp_path):
 @pytest.mark.slow
 def test_calibration_of_a_clipping_sensor_carries_its_white_level(tmp_path):
     """End to end on a session whose sensors clip at 0.95, undeclared: the calibration measures
-    and records the level, and the white-sheet irradiance stays within 1 % of the truth."""
+    and records the level, and the white-sheet irradiance ``r_c`` stays within 1 % of the truth
+    in every channel up to one scale per camera (the fixed 0.98 threshold tints it by 4 %)."""
     from dualscale.calib.pipeline import calibrate
     from dualscale.formats.calibration import read_calibration, white_level, write_calibration
     from dualscale.formats.captures import read_captures
@@ -193,11 +194,9 @@ def test_calibration_of_a_clipping_sensor_carries_its_white_level(tmp_path):
     worst = 0.0
     for cam, per_light in data["r_c"].items():
         keys = [k for k in per_light if not (cam == "mid" and k == "diffuse")]  # that one uses markers
-        rec = np.array([per_light[k] for k in keys])
-        tru = np.array([truth.white_sheet[(cam, k)] for k in keys])
-        ratio = (rec / rec.mean(0)) / (tru / tru.mean(0))
-        worst = max(worst, float(np.abs(ratio - 1).max()))
-    assert worst < 0.01, worst
+        ratio = np.array([per_light[k] for k in keys]) / np.array([truth.white_sheet[(cam, k)] for k in keys])
+        worst = max(worst, float(np.abs(ratio / ratio.mean() - 1).max()))  # one scale per camera: colour counts
+    assert worst < 0.01, worst  # 0.25 % measured; 4.0 % with the fixed 0.98 threshold
 
 
 def test_dataset_clipping_mask_uses_the_calibrations_white_level(tmp_path):
