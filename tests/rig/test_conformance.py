@@ -22,7 +22,8 @@ def lit(index=0, **kw) -> Step:
 def test_identity_and_version(rig, sim):
     ident = rig.identity
     assert ident.protocol == rm.PROTOCOL_VERSION and ident.firmware == rm.FIRMWARE_VERSION
-    assert "dualscale" in ident.text and "fw=0.1.0" in ident.text and "proto=1.0" in ident.text
+    assert "dualscale" in ident.text and "fw=0.1.0" in ident.text \
+        and "proto={}.{}".format(*rm.PROTOCOL_VERSION) in ident.text
     assert ident.target == ("stm32f405" if sim.target == "qemu" else "posix")
     assert ident.server_id == 1 and ident.running
     objs = rig.device_identification(read_code=2)
@@ -32,7 +33,7 @@ def test_identity_and_version(rig, sim):
 
 def test_input_block_describes_the_rig(rig):
     w = rig.read_input(rm.IR.MAGIC, 8)
-    assert w == [rm.MAGIC, 0x0100, 0x0001, 0, rm.N_LEDS, rm.N_BACKLIGHTS, rm.MAX_STEPS, rm.FIFO_DEPTH]
+    assert w == [rm.MAGIC, (rm.PROTOCOL_VERSION[0] << 8) | rm.PROTOCOL_VERSION[1], 0x0001, 0, rm.N_LEDS, rm.N_BACKLIGHTS, rm.MAX_STEPS, rm.FIFO_DEPTH]
 
 
 def test_holding_defaults_match_the_register_map(rig, sim):

@@ -828,17 +828,30 @@ class RigClient:
         self._last_seq = None
 
     def poll_events(self) -> list[Event]:
-        """New events since the last call, oldest first; acks what was handed over.
+        """Every event pending since the last call, oldest first; acks what was handed over.
 
-        Write EVT_ACK (the last SEQ we kept), then read the window (as many events as the
-        adaptive request size allows; the rest come next time). A lost response only means the
-        same events come back next time; they are dropped by SEQ.
+        Each round writes EVT_ACK (the last SEQ we kept), then reads the window (as many events as
+        the adaptive request size allows); rounds repeat while a read came back full, so a small
+        request size on a noisy link never leaves pending events for a later call.  A lost
+        response only means the same events come back; they are dropped by SEQ.
         """
+        fresh: list[Event] = []
+        for _round in range(rm.FIFO_DEPTH + 1):
+            batch, full = self._poll_round()
+            fresh += batch
+            if not full or not batch:
+                break
+        return fresh
+
+    def _poll_round(self) -> tuple[list[Event], bool]:
+        """One ack + window read: ``(fresh events, whether the window read was full)``."""
         if self._last_seq is not None:
             self.write_register(rm.HR.EVT_ACK, self._last_seq)
+        asked = [0]
 
         def read() -> list[int]:
             k = max(1, min(rm.EVT_WINDOW_COUNT, self.chunk_words // rm.EVENT_WORDS))
+            asked[0] = k
             return self._call(f"reading the event window ({k} events)", self._mb.read_input_registers,
                               rm.IR.EVT_WINDOW, count=k * rm.EVENT_WORDS, retries=0).registers
 
@@ -849,7 +862,7 @@ class RigClient:
             if self._last_seq is None or 0 < ((e.seq - self._last_seq) & WORD_MAX) <= WORD_MAX // 2:
                 fresh.append(e)
                 self._last_seq = e.seq
-        return fresh
+        return fresh, len(events) >= asked[0] and asked[0] < rm.EVT_WINDOW_COUNT
 
     def _arm_watchdog(self, watchdog_ms: int | None) -> tuple[int, int]:
         """Set WATCHDOG_MS for a run: `watchdog_ms`, or the device's own value when that is
