@@ -17,12 +17,12 @@ shared.  With both analyser modes captured, a subset uses both images of each of
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 from typing import Any, Callable
 
 from dualscale.bsdf import MaterialMaps
+from dualscale.formats.atomic import atomic_path, write_json, write_text
 from dualscale.geometry.dome import ring_layout
 
 from .core import fit_observations, split_holdout
@@ -114,7 +114,8 @@ def _plot(rows: list[dict[str, Any]], path: Path, title: str) -> None:
         ax.text(i, r["heldout_ssim"], f"{r['leds']}", ha="center", va="bottom", fontsize=8)
     ax.set_title(title + " (bar labels: LEDs)")
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120)
     plt.close(fig)
 
 
@@ -162,9 +163,9 @@ def write_study(rep: dict[str, Any], out: str | Path) -> None:
     """``study.json``, ``study.md`` (table) and ``study.png`` (SSIM per subset) in ``out``."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "study.json").write_text(json.dumps(rep, indent=1))
-    (out / "study.md").write_text(rep["table_markdown"] + "\n\nRecommendation: " + rep["recommendation"]["subset"]
-                                  + " (" + rep["recommendation"]["reason"] + ")\n")
+    write_json(out / "study.json", rep)
+    write_text(out / "study.md", rep["table_markdown"] + "\n\nRecommendation: " + rep["recommendation"]["subset"]
+               + " (" + rep["recommendation"]["reason"] + ")\n")
     _plot(rep["rows"], out / "study.png", f"{rep.get('material') or 'dataset'} ({rep['preset']})")
 
 

@@ -29,8 +29,6 @@ files still read; the writer writes version 2.
 from __future__ import annotations
 
 import datetime as _dt
-import json
-import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -38,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from dualscale.geometry.cameras import Camera
+from dualscale.formats.atomic import write_json
 from dualscale.formats.exr import read_exr, write_exr
 from dualscale.formats.versioned import read_versioned_json
 
@@ -176,11 +175,7 @@ class CaptureWriter:
         manifest = {"format": FORMAT, "version": VERSION, "date": _now(), "rig": self.rig, "units": "dn_normalized",
                     "cameras": self.cameras, "markers": self.markers, "chart": self.chart,
                     "groups": [g.to_json() for g in self.groups], "extra": self.extra}
-        path = self.root / "captures.json"
-        tmp = path.with_suffix(".json.tmp")
-        tmp.write_text(json.dumps(manifest, indent=1))
-        os.replace(tmp, path)
-        return path
+        return write_json(self.root / "captures.json", manifest)
 
 
 @dataclass

@@ -139,5 +139,7 @@ class DomeGeometry:
 
     def to_calibration(self, path: str | Path) -> None:
         """Write the directions in the format :meth:`from_calibration` reads."""
-        Path(path).write_text(json.dumps({"radius_mm": self.radius_mm, "leds": [
-            {"id": i, "direction": [float(x) for x in d]} for i, d in enumerate(self.led_dirs)]}, indent=1))
+        from dualscale.formats.atomic import write_json
+
+        write_json(path, {"radius_mm": self.radius_mm, "leds": [
+            {"id": i, "direction": [float(x) for x in d]} for i, d in enumerate(self.led_dirs)]})

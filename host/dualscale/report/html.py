@@ -15,7 +15,7 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
-from dualscale.formats.atomic import write_bytes
+from dualscale.formats.atomic import atomic_path, write_bytes
 
 from . import format as fmt
 
@@ -102,7 +102,8 @@ class Assets:
         src = Path(src)
         name = self._name(stem or src.stem)
         dst = self.dir / f"{name}{src.suffix}"
-        shutil.copyfile(src, dst)
+        with atomic_path(dst) as tmp:
+            shutil.copyfile(src, tmp)
         return self.rel(dst)
 
 
