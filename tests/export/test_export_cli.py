@@ -153,3 +153,20 @@ def test_tile_carries_its_physical_size_into_every_format(tmp_path, capsys):
     assert "realworldimagesize" in (out / "mtlx" / "tw.mtlx").read_text()
     ex = json.loads((out / "exr" / "exchange.json").read_text())
     assert ex["tiled"] and ex["repeat_mm"] == pytest.approx([1.2, 1.2], abs=0.002)
+
+
+def test_another_sources_export_folder_needs_overwrite(twill, tmp_path, capsys):
+    """An export folder of another material is refused (issue 13: foreign outputs) unless
+    --overwrite; a rerun of the same export into its own folder is not foreign."""
+    out = tmp_path / "out"
+    assert main(["export", str(twill), "-o", str(out), "--format", "glb"]) == 0
+    assert main(["export", str(twill), "-o", str(out), "--format", "glb,mtlx"]) == 0  # same source: fine
+    other = tmp_path / "other" / "maps"
+    save_maps(other, generate("satin", size=16, texel_mm=0.02, seed=4).maps, {}, texel_mm=0.02)
+    capsys.readouterr()
+    assert main(["export", str(other), "-o", str(out), "--format", "glb"]) == 2
+    assert "--overwrite" in capsys.readouterr().err
+    assert read_export(out)["source"] == str(twill)  # untouched
+    assert main(["export", str(other), "-o", str(out), "--format", "glb", "--overwrite"]) == 0
+    doc = read_export(out)
+    assert doc["source"] == str(other) and set(doc["formats"]) == {"maps", "glb"}

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from dualscale.errors import InputError
 
-from .common import add_output
+from .common import add_output, output_folder
 
 FORMATS_HELP = "exr (Standard Surface inputs, float), mtlx (MaterialX), gltf, glb, u3m (.u3ma)"
 
@@ -43,8 +43,13 @@ def cmd_export(args: argparse.Namespace) -> int:
     from dualscale.export.material import export_material
 
     formats = parse_formats(args.format)
-    doc = export_material(args.maps, args.output, formats, name=args.name, tile=args.tile,
-                          swatch_mm=parse_size_mm(args.swatch_mm), skip_unsized=args.format.strip() == "all")
+    from dualscale.export.material import check_output
+
+    swatch = parse_size_mm(args.swatch_mm)
+    check_output(args.maps, args.output)
+    with output_folder(args, "export", [args.maps, bool(args.tile)]):
+        doc = export_material(args.maps, args.output, formats, name=args.name, tile=args.tile,
+                              swatch_mm=swatch, skip_unsized=args.format.strip() == "all")
     size = doc["repeat_mm"]
     where = f"{size[0]:.3g} x {size[1]:.3g} mm" if size else "physical size unknown (no texel size)"
     print(f"exported {doc['name']} ({'seamless tile, ' if doc['tiled'] else ''}{where}):")

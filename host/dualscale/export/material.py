@@ -94,10 +94,8 @@ def export_material(maps_dir: str | Path, out: str | Path, formats: Sequence[str
         raise InputError(f"unknown export format(s) {unknown}; choose from {sorted(reg)}")
     if not formats:
         raise InputError("no export format given")
-    src, dst = maps_dir.resolve(), out.resolve()
-    if src == dst or dst in src.parents:
-        raise InputError(f"output folder {out} holds the source maps {maps_dir}: the export would replace "
-                         "them; choose another output folder")
+    check_output(maps_dir, out)
+    src = maps_dir.resolve()
     if name is None:
         stem = src.parent.name if src.name == "maps" else src.name
         name = re.sub(r"[^A-Za-z0-9_.-]", "_", stem).strip("._-") or "material"
@@ -158,6 +156,15 @@ def export_material(maps_dir: str | Path, out: str | Path, formats: Sequence[str
            "skipped": skipped, "generator": ctx.meta["generator"]}
     write_json(out / "export.json", doc)
     return {**doc, "reused": reused}
+
+
+def check_output(maps_dir: str | Path, out: str | Path) -> None:
+    """Refuse (``InputError``) an output folder that is or holds the source maps: the export
+    writes ``OUT/maps`` and the format folders, which would replace them."""
+    src, dst = Path(maps_dir).resolve(), Path(out).resolve()
+    if src == dst or dst in src.parents:
+        raise InputError(f"output folder {out} holds the source maps {maps_dir}: the export would replace "
+                         "them; choose another output folder")
 
 
 def check_name(name: str) -> str:
