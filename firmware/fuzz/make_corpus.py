@@ -7,6 +7,9 @@ frame: each vector's request as one fuzz_frame record (file vNNN), plus the vect
 in order in pieces of at most N bytes (files allNN), so the fuzzer starts from states that need
 earlier writes (e.g. an armed camera sequence) without inputs longer than its -max_len.
 rtu: the same requests as fuzz_rtu "feed" ops, each followed by a t3.5 gap.
+Both also get fifo_fill: the vectors' one-step upload made a 10-step sequence (settle 10 us, so
+the trigger line falls between steps) and started 17 times without an ack: 17 x 32 events
+overflow the 512-event FIFO (EVT_DROPPED), which no input under 1 KiB reached by chance.
 Deterministic: the same vectors give the same bytes. The committed set is fuzz/corpus/
 (`make -C firmware fuzz-corpus`); --clean first removes the files this script writes there.
 """
@@ -28,6 +31,33 @@ def rtu_ops(req: bytes) -> bytes:
         chunk = req[i:i + 63]
         out += bytes([0x00, len(chunk)]) + chunk
     return out + bytes([0x01, 200])  # 3.2 ms of silence ends the frame
+
+
+def crc16(data: bytes) -> int:
+    """CRC-16/MODBUS, as firmware/core/src/crc.c."""
+    crc = 0xFFFF
+    for b in data:
+        crc ^= b
+        for _ in range(8):
+            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
+    return crc
+
+
+def with_crc(body: bytes) -> bytes:
+    c = crc16(body)
+    return body + bytes([c & 0xFF, c >> 8])
+
+
+def fifo_fill(vecs: dict[str, bytes], steps: int = 10, starts: int = 17) -> list[bytes]:
+    """Requests that overflow the event FIFO: see the module docstring."""
+    one = vecs["upload_one_step"]          # 01 10 1000 000a 14 <20 bytes of step> crc
+    assert one[1] == 0x10 and one[6] == 20, "upload_one_step is no longer a one-step FC 10"
+    step = bytearray(one[7:27])
+    step[6:10] = (10).to_bytes(4, "big")   # SETTLE_US (words 3-4, u32) = 10 us
+    words = bytes(step) * steps
+    upload = with_crc(bytes([1, 0x10, 0x10, 0x00, 0, 10 * steps, 20 * steps]) + words)
+    seq_len = with_crc(bytes([1, 0x06, 0x00, 0x02, 0, steps]))
+    return [upload, seq_len] + [vecs["start_device_master"]] * starts
 
 
 def pieces(records: list[bytes], max_len: int) -> list[bytes]:
@@ -54,13 +84,17 @@ def main() -> None:
         d = a.out / kind
         d.mkdir(parents=True, exist_ok=True)
         if a.clean:
-            for old in list(d.glob("v[0-9][0-9][0-9]")) + list(d.glob("all*")):
+            for old in list(d.glob("v[0-9][0-9][0-9]")) + list(d.glob("all*")) + list(d.glob("fifo_fill")):
                 old.unlink()
         recs = [enc(bytes.fromhex(v["request"])) for v in vecs]
         for i, r in enumerate(recs):
             (d / f"v{i:03d}").write_bytes(r)
         for j, p in enumerate(pieces(recs, a.max_len)):
             (d / f"all{j:02d}").write_bytes(p)
+        by_name = {v["name"]: bytes.fromhex(v["request"]) for v in vecs}
+        fill = b"".join(enc(r) for r in fifo_fill(by_name))
+        assert len(fill) <= a.max_len, len(fill)
+        (d / "fifo_fill").write_bytes(fill)
     print(f"seed corpus: {len(vecs)} vectors -> {a.out}")
 
 
