@@ -61,10 +61,16 @@ CASES = {
     "keystone 20 %": (dict(shape=(100, 120), centre=(60.3, 49.6), px_per_mm=1.0, tilt=0.2), None),
     "low contrast (gain 0.3, flare 0.3)": (dict(shape=(54, 91), centre=(45.2, 26.6), px_per_mm=0.52, angle_deg=-8,
                                                 background=0.1, gain=0.3, flare=0.3, noise=0.01, seed=7), None),
+    "below the segmentation detector's reach (48x40, 5.6 px pitch)": (dict(shape=(40, 48), centre=(23.7, 19.2),
+                                                                           px_per_mm=0.4), None),
+    "very low contrast (gain 0.1, flare 0.5)": (dict(shape=(60, 90), centre=(45.3, 30.2), px_per_mm=0.8, gain=0.1,
+                                                     flare=0.5, noise=0.02, seed=3), None),
     "occluded: 2 swatches, black card": (dict(shape=(86, 114), centre=(57.4, 43.3), px_per_mm=1.0,
-                                              occlude=(30, 20, 45, 35, 0.02)), "colour residual"),
+                                              occlude=(30, 20, 45, 35, 0.02)), "swatch 1 (light skin) residual"),
     "occluded: magenta, black card": (dict(shape=(86, 114), centre=(57.4, 43.3), px_per_mm=1.0,
                                            occlude=(70, 50, 80, 60, 0.02)), "swatch 16 (magenta) residual"),
+    "occluded: a whole row": (dict(shape=(86, 114), centre=(57.4, 43.3), px_per_mm=1.0,
+                                   occlude=(15, 15, 100, 25, 0.5)), "residual"),
 }
 
 
@@ -159,6 +165,7 @@ def test_verify_refuses_a_chart_without_its_neutral_order():
 
 
 def test_too_small_chart_is_refused_not_guessed():
-    img, _ = render_chart(shape=(40, 48), centre=(23.7, 19.2), px_per_mm=0.4)
+    """A 3.5 px pitch: the window sampled in each swatch would touch its edges."""
+    img, _ = render_chart(shape=(40, 48), centre=(23.7, 19.2), px_per_mm=0.25)
     with pytest.raises(ChartNotFoundError):
         detect_chart(img)

@@ -216,7 +216,7 @@ def verify_chart(image: np.ndarray, corners: np.ndarray,
       residual <= ``MAX_ORIENTATION_RESIDUAL``, and the next orientation is worse by a factor
       >= ``MIN_ORIENTATION_MARGIN``;
     * colour: the affine colour fit to the reference leaves a relative residual <=
-      ``MAX_COLOUR_RESIDUAL`` (rms) and <= ``MAX_SWATCH_RESIDUAL`` on every swatch, and the six
+      ``MAX_SWATCH_RESIDUAL`` on every swatch and <= ``MAX_COLOUR_RESIDUAL`` (rms), and the six
       neutrals, through that fit, decrease monotonically, each step >= ``MIN_NEUTRAL_STEP`` of
       the reference's.
 
@@ -249,12 +249,12 @@ def verify_chart(image: np.ndarray, corners: np.ndarray,
                                  f"{margin:.2f} < {MIN_ORIENTATION_MARGIN:g}")
     samples = sample_patches(img, oriented, layout)
     c_res, worst, w_res, step = _colour_fit(samples)
-    if not c_res <= MAX_COLOUR_RESIDUAL:
-        raise ChartNotFoundError(f"chart check failed: swatch colour residual {c_res:.3f} > {MAX_COLOUR_RESIDUAL:g} "
-                                 "(affine fit to the reference)")
     if not w_res <= MAX_SWATCH_RESIDUAL:
         raise ChartNotFoundError(f"chart check failed: swatch {worst} ({cr.patch_names()[worst]}) residual "
                                  f"{w_res:.3f} > {MAX_SWATCH_RESIDUAL:g} (occluded or misplaced?)")
+    if not c_res <= MAX_COLOUR_RESIDUAL:
+        raise ChartNotFoundError(f"chart check failed: swatch colour residual {c_res:.3f} > {MAX_COLOUR_RESIDUAL:g} "
+                                 "(affine fit to the reference)")
     if not step >= MIN_NEUTRAL_STEP:
         raise ChartNotFoundError(f"chart check failed: neutral row not decreasing, smallest step {step:.2f} of the "
                                  f"reference's < {MIN_NEUTRAL_STEP:g}")
@@ -340,26 +340,72 @@ def refine_corners(image: np.ndarray, corners: np.ndarray, layout: ChartLayout =
 
 
 def detect_chart(image: np.ndarray, layout: ChartLayout = ChartLayout()) -> np.ndarray:
-    """Corners ``(4, 2)`` of the ColorChecker in a linear RGB image ``(H, W, 3)`` (any exposure):
-    found by colour-checker-detection's segmentation detector (offline), refined to sub-pixel
-    precision (:func:`refine_corners`), oriented and verified (:func:`verify_chart`: geometry,
-    orientation fit, agreement of the swatches with the reference chart).  Raises
-    :class:`ChartNotFoundError` if there is none, or if the detection fails a check (the message
-    names the check, the measured value and its bound)."""
+    """Corners ``(4, 2)`` of the ColorChecker in a linear RGB image ``(H, W, 3)`` (any exposure).
+
+    Candidates, in order: colour-checker-detection's segmentation detector (offline), then, if it
+    finds nothing or its find fails the checks, the outline of the image's strongest block of
+    edges (:func:`_moment_guesses`, for small charts the detector misses).  Each candidate is
+    refined to sub-pixel precision (:func:`refine_corners`), oriented and verified
+    (:func:`verify_chart`: geometry, orientation fit, agreement of the swatches with the
+    reference chart); the first that passes is returned.  Raises :class:`ChartNotFoundError`
+    if none passes: the message names the failed check, the measured value and its bound."""
     img = np.asarray(image, dtype=np.float64)
     if img.ndim != 3 or img.shape[-1] < 3 or not np.isfinite(img[..., :3]).all():
         raise ValueError("chart image must be a finite (H, W, 3) array")
     img = img[..., :3]
-    quad = _segmentation_quad(img)
-    guess = _long_side_first(_outer_corners(quad, layout))
-    refined = refine_corners(img, guess, layout)
+    errors: list[str] = []
     try:
-        return verify_chart(img, refined, layout)[0]
-    except ChartNotFoundError as refined_error:
-        try:  # the refinement can only help; the detector's own quad gets the same checks
-            return verify_chart(img, guess, layout)[0]
-        except ChartNotFoundError:
-            raise refined_error from None
+        seg = _long_side_first(_outer_corners(_segmentation_quad(img), layout))
+    except ChartNotFoundError as e:
+        errors.append(str(e))
+    else:
+        seg_errors = []
+        for cand in (refine_corners(img, seg, layout), seg):  # the refinement can only help
+            try:
+                return verify_chart(img, cand, layout)[0]
+            except ChartNotFoundError as e:
+                seg_errors.append(e)
+        errors.append(f"segmentation detector's find: {seg_errors[0]}")
+    fallback_errors = []
+    for guess in _moment_guesses(img, layout):
+        try:
+            return verify_chart(img, refine_corners(img, guess, layout), layout)[0]
+        except ChartNotFoundError as e:
+            fallback_errors.append(e)
+    if fallback_errors and not any(str(fallback_errors[0]) in e for e in errors):
+        errors.append(f"edge-outline fallback: {fallback_errors[0]}")
+    raise ChartNotFoundError("; ".join(errors))
+
+
+def _moment_guesses(img: np.ndarray, layout: ChartLayout) -> list[np.ndarray]:
+    """Chart outlines ``[(4, 2)]`` guessed from the largest connected block of strong edges
+    (a chart is a grid of edges): its centroid and principal axes give the centre and the
+    orientation, its second moments the size (a uniform rectangle of side L has variance
+    L^2 / 12), at 3 scales; the aspect is the layout's."""
+    from scipy import ndimage
+
+    x = np.sqrt(np.clip(img / (float(np.quantile(img, 0.99)) or 1.0), 0.0, None))
+    g = sum(np.hypot(ndimage.sobel(x[..., k], 0), ndimage.sobel(x[..., k], 1)) for k in range(3))
+    m = ndimage.binary_closing(g > 0.25 * float(np.quantile(g, 0.98)), iterations=2)
+    lab, n = ndimage.label(m)
+    if n == 0:
+        return []
+    blob = lab == 1 + int(np.argmax(ndimage.sum(m, lab, range(1, n + 1))))
+    ys, xs = np.nonzero(blob)
+    if len(xs) < 16:
+        return []
+    c = np.array([xs.mean(), ys.mean()])
+    w, v = np.linalg.eigh(np.cov(np.stack([xs - c[0], ys - c[1]])))
+    major = v[:, 1] if v[0, 1] >= 0 else -v[:, 1]
+    minor = np.array([-major[1], major[0]])
+    aspect = layout.cols / layout.rows
+    length = 0.5 * (np.sqrt(12 * w[1]) + aspect * np.sqrt(12 * max(w[0], 0.0)))
+    out = []
+    for scale in (1.0, 0.93, 1.07):
+        hw, hh = scale * length / 2, scale * length / aspect / 2
+        out.append(np.array([c - major * hw - minor * hh, c + major * hw - minor * hh,
+                             c + major * hw + minor * hh, c - major * hw + minor * hh]))
+    return out
 
 
 def _segmentation_quad(img: np.ndarray) -> np.ndarray:
