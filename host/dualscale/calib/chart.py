@@ -220,8 +220,11 @@ def verify_chart(image: np.ndarray, corners: np.ndarray,
       neutrals, through that fit, decrease monotonically, each step >= ``MIN_NEUTRAL_STEP`` of
       the reference's.
 
-    Returns the oriented corners ``(4, 2)`` and the measures.  Raises
-    :class:`ChartNotFoundError` naming the first failed check, its value and its bound."""
+    The swatches feed the anchor ``i_wp`` and the CCM fit (supplementary Sec. 2), so a
+    misplaced quad must never reach them.  Bounds and their reasons: docs/CALIBRATION.md,
+    "Chart detection".  Returns the oriented corners ``(4, 2)`` and the measures.  Raises
+    :class:`ChartNotFoundError` naming the first failed check, its value and its bound (one
+    line)."""
     img = np.asarray(image, dtype=np.float64)
     if img.ndim != 3 or img.shape[-1] < 3:
         raise ValueError(f"chart image must be (H, W, 3), got {img.shape}")
@@ -292,13 +295,15 @@ def _model_design(c: np.ndarray, xs: np.ndarray, ys: np.ndarray, layout: ChartLa
 
 def refine_corners(image: np.ndarray, corners: np.ndarray, layout: ChartLayout = ChartLayout(),
                    max_pixels: int = 3000) -> np.ndarray:
-    """Sub-pixel swatch-area corners ``(4, 2)`` refined from a close guess (within about half
-    a swatch pitch): a least-squares fit of the chart as 26 flat regions (24 swatches, the
+    """Sub-pixel swatch-area corners ``(4, 2)`` refined from a close guess (within about a
+    third of a swatch pitch): a least-squares fit of the chart as 26 flat regions (24 swatches, the
     black body, the outside), each pixel covered in proportion to its area, with the regions'
     colours solved for at each step (variable projection; free colours, so exposure, white
     balance, flare and the orientation do not matter).  The fit uses the pixels within half a
     pitch of the guessed chart, decimated to at most ``max_pixels``; a robust loss lets an
-    occluder or a marker lose its weight.  Returns the guess unchanged if the fit fails."""
+    occluder or a marker lose its weight.  Corners are image ``(x, y)`` px (module doc).
+    Returns the guess unchanged if the fit fails or moves a corner by more than 0.75 pitch (it
+    has then left this chart); the result is only a candidate for :func:`verify_chart`."""
     from scipy.optimize import least_squares
 
     img = np.asarray(image, dtype=np.float64)[..., :3]
