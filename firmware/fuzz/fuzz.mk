@@ -16,8 +16,9 @@ FUZZ_CC ?= clang
 FUZZ_SECONDS ?= 20
 FUZZ_LONG_RUNS ?= 5000000
 # Longest input. Every input costs in proportion to its length (a poll of the core scans every
-# light source), and libFuzzer grows inputs up to this bound: 1 KiB holds 16 full-length
-# RTU frames or 4 FC 10 uploads of 120 registers, enough to load, start and play a sequence.
+# light source), and libFuzzer grows inputs up to this bound: 1 KiB holds 15 whole frames of
+# fuzz_rtu or 4 FC 10 uploads of 120 registers in fuzz_frame: enough to load, start and play a
+# sequence (corpus/*/fifo_fill).
 FUZZ_MAX_LEN ?= 1024
 FUZZ_DIR := $(FUZZ_FW)/build/fuzz
 FUZZ_SEEDS := $(FUZZ_FW)/fuzz/corpus
