@@ -469,6 +469,42 @@ static void test_all_off_and_abort_switch_manual_lights_off(void **state)
     assert_int_equal(ds_core_state(&core), DS_STATE_IDLE); /* nothing was running */
 }
 
+/* lit_count (which spares every poll a scan of all sources) equals the lights actually on,
+ * through manual coils, a running sequence, ALL_OFF and ABORT. */
+static uint16_t count_lit(void)
+{
+    uint16_t n = 0;
+    for (uint16_t i = 0; i < DS_N_SOURCES; i++) {
+        n += core.lights[i].intensity != 0u;
+    }
+    return n;
+}
+
+static void test_lit_count_follows_the_lights(void **state)
+{
+    (void)state;
+    assert_int_equal(core.lit_count, 0);
+    assert_int_equal(th_coil(&core, &th, 0, 1), 0);
+    assert_int_equal(th_coil(&core, &th, 3, 1), 0);
+    assert_int_equal(th_coil(&core, &th, 3, 1), 0); /* on twice counts once */
+    assert_int_equal(core.lit_count, 2);
+    assert_int_equal(core.lit_count, count_lit());
+    assert_int_equal(th_coil(&core, &th, 0, 0), 0);
+    assert_int_equal(core.lit_count, 1);
+    assert_true(ds_core_any_light_on(&core));
+    assert_int_equal(th_write1(&core, &th, DS_HR_COMMAND, DS_CMD_ALL_OFF), 0);
+    assert_int_equal(core.lit_count, 0);
+    assert_false(ds_core_any_light_on(&core));
+    th_step_t s[2] = {good(), good()};
+    assert_int_equal(th_upload(&core, &th, s, 2), 0);
+    assert_int_equal(th_write1(&core, &th, DS_HR_COMMAND, DS_CMD_START), 0);
+    ds_core_poll(&core, 1100u); /* the first step's light is on */
+    assert_int_equal(core.lit_count, count_lit());
+    assert_int_equal(th_write1(&core, &th, DS_HR_COMMAND, DS_CMD_ABORT), 0);
+    assert_int_equal(core.lit_count, 0);
+    assert_int_equal(core.lit_count, count_lit());
+}
+
 static void test_bucket_drain_math(void **state)
 {
     (void)state;
@@ -507,6 +543,7 @@ int main(void)
         cmocka_unit_test_setup(test_watchdog_guards_manual_lights_and_ignores_other_servers, setup),
         cmocka_unit_test_setup(test_broadcast_feeds_watchdog, setup),
         cmocka_unit_test_setup(test_all_off_and_abort_switch_manual_lights_off, setup),
+        cmocka_unit_test_setup(test_lit_count_follows_the_lights, setup),
         cmocka_unit_test_setup(test_bucket_drain_math, setup),
     };
     return cmocka_run_group_tests(tests, NULL, NULL);

@@ -94,6 +94,7 @@ typedef struct ds_core {
     uint16_t preload_intensity;
 
     ds_light_t lights[DS_N_SOURCES];
+    uint16_t lit_count;        /* how many lights[] have a non-zero intensity (kept by ds_light_track) */
 
     /* scratch for the leaky-bucket replay at START (kept here: no big stack frames) */
     uint64_t sim_level[DS_N_SOURCES];

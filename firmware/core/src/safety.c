@@ -94,6 +94,11 @@ void ds_light_track(ds_core_t *c, uint16_t src, uint16_t intensity, uint8_t manu
     }
     ds_light_t *l = &c->lights[src];
     bucket_advance(c, l, now);
+    if (!l->intensity && intensity) {
+        c->lit_count++;
+    } else if (l->intensity && !intensity) {
+        c->lit_count--;
+    }
     l->intensity = intensity;
     l->manual = intensity ? manual : 0u;
 }
@@ -111,7 +116,7 @@ void ds_light_set(ds_core_t *c, uint16_t src, uint16_t intensity, uint8_t manual
 
 void ds_all_off(ds_core_t *c, uint64_t now)
 {
-    for (uint16_t i = 0; i < DS_N_SOURCES; i++) {
+    for (uint16_t i = 0; c->lit_count != 0u && i < DS_N_SOURCES; i++) {
         if (c->lights[i].intensity) {
             ds_light_set(c, i, 0u, 0u, now);
         }
@@ -123,12 +128,7 @@ void ds_all_off(ds_core_t *c, uint64_t now)
 
 int ds_core_any_light_on(const ds_core_t *c)
 {
-    for (uint16_t i = 0; i < DS_N_SOURCES; i++) {
-        if (c->lights[i].intensity) {
-            return 1;
-        }
-    }
-    return 0;
+    return c->lit_count != 0u; /* ds_light_track keeps the count: no scan of every source per poll */
 }
 
 /* A light whose bucket is enforced at run time: manual lights, and in camera-master the
@@ -168,7 +168,7 @@ uint64_t ds_safety_deadline(const ds_core_t *c)
     if (watchdog_guarding(c)) {
         d = watchdog_time(c);
     }
-    for (uint16_t i = 0; i < DS_N_SOURCES; i++) {
+    for (uint16_t i = 0; c->lit_count != 0u && i < DS_N_SOURCES; i++) {
         if (enforced(c, i)) {
             uint64_t t = limit_time(c, i);
             if (t < d) {
@@ -204,7 +204,7 @@ void ds_safety_run(ds_core_t *c, uint64_t now)
         c->watchdog_trips++;
         enter_fault(c, DS_ERR_WATCHDOG, DS_STEP_NONE);
     }
-    for (uint16_t i = 0; i < DS_N_SOURCES; i++) {
+    for (uint16_t i = 0; c->lit_count != 0u && i < DS_N_SOURCES; i++) {
         if (enforced(c, i) && now >= limit_time(c, i)) {
             uint8_t kind, index;
             uint16_t step = (c->lights[i].manual || !ds_seq_active(c)) ? DS_STEP_NONE : c->cur_step;
