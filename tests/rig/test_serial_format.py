@@ -50,4 +50,4 @@ def test_the_console_takes_parity_and_refuses_8n1(tmp_path):
                         "-c", "id"], capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "parity N needs 2 stop bits" in r.stderr
     r = subprocess.run([*DUALSCALE, "demo", "--help"], capture_output=True, text=True, timeout=60)
-    assert "--parity {E,O,N}" in r.stdout and "--stopbits" in r.stdout
+    assert "--parity {E,O,N}" in r.stdout and "--stop-bits" in r.stdout

@@ -212,7 +212,8 @@ def _prepare_out(out: Path) -> None:
     if out.exists():
         if not out.is_dir():
             raise InputError(f"-o {out}: exists and is not a folder")
-        if any(out.iterdir()) and not (out / "manifest.json").is_file():
+        # hidden files (the output folder's record, interrupted temporary files) are not outputs
+        if any(not p.name.startswith(".") for p in out.iterdir()) and not (out / "manifest.json").is_file():
             raise InputError(f"-o {out}: exists, is not empty and is not a dataset; choose another -o")
 
 

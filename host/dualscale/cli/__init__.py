@@ -80,12 +80,12 @@ class _Parser(argparse.ArgumentParser):
 
 
 def _serial_format_options(p: argparse.ArgumentParser) -> None:
-    """--parity/--stopbits of a command that opens the rig's serial port (PROTOCOL.md §1)."""
+    """--parity/--stop-bits of a command that opens the rig's serial port (PROTOCOL.md §1; the simulator binary spells it the same)."""
     from dualscale.rig.client import DEFAULT_PARITY, PARITIES
 
     p.add_argument("--parity", choices=PARITIES, default=DEFAULT_PARITY, type=str.upper,
                    help=f"serial parity (default {DEFAULT_PARITY}: 8E1, the Modbus serial-line default)")
-    p.add_argument("--stopbits", type=int, choices=(1, 2), default=None,
+    p.add_argument("--stop-bits", "--stopbits", dest="stopbits", type=int, choices=(1, 2), default=None,
                    help="stop bits (default 1 with parity, 2 with --parity N; the rig refuses 8N1)")
 
 

@@ -114,7 +114,7 @@ def _clear(out: Path, inputs: Sequence[object]) -> None:
 
 def _writable_error(out: Path, e: OSError) -> Exception:
     what = e.strerror or str(e)
-    if e.errno in (errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOTDIR, errno.EEXIST, errno.EISDIR):
+    if e.errno in (errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOTDIR, errno.EEXIST, errno.EISDIR, errno.ENOENT):
         return InputError(f"cannot write the output folder {out}: {what}")
     return ToolError(f"cannot write the output folder {out}: {what}")
 
@@ -147,6 +147,7 @@ def output_folder(args: argparse.Namespace, command: str, inputs: Sequence[objec
             if not getattr(args, "overwrite", False):
                 raise InputError(f"-o {out}: {why}; pass --overwrite to replace them, or choose another folder")
             _clear(out, inputs)
+    had_record = (out / RECORD).is_file()
     try:
         probe_writable(out)
         if record:
@@ -157,7 +158,12 @@ def output_folder(args: argparse.Namespace, command: str, inputs: Sequence[objec
         yield out
         if record and not (out / RECORD).is_file():  # a writer that replaced the whole folder (atomic_dir)
             write_json(out / RECORD, {"format": RECORD_FORMAT, "version": 1, **ident})
-    except BaseException:
+    except BaseException as e:
+        if record and not had_record and isinstance(e, InputError) and (out / RECORD).is_file():
+            # refused on its input: leave a folder that was already there as it was (an interrupted
+            # run keeps its record, so that the rerun resumes)
+            with contextlib.suppress(OSError):
+                (out / RECORD).unlink()
         for d in created:
             left = [x for x in d.iterdir()] if d.is_dir() else []
             if d == out.absolute() and all(x.name == RECORD for x in left):

@@ -95,6 +95,25 @@ def _raise_priority() -> None:
         pass
 
 
+def _die_with_parent() -> None:
+    """Linux: the simulator gets SIGTERM when the process that started it dies, even by
+    ``kill -9`` (prctl PR_SET_PDEATHSIG), so no orphaned simulator keeps the pty.  Elsewhere a
+    no-op."""
+    try:
+        import ctypes
+        import signal
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, int(signal.SIGTERM), 0, 0, 0)  # PR_SET_PDEATHSIG = 1
+    except (OSError, AttributeError):
+        pass
+
+
+def _qemu_preexec() -> None:
+    _die_with_parent()
+    _raise_priority()
+
+
 class SimError(RigError):
     """The simulated rig could not be started, or died."""
 
@@ -149,7 +168,8 @@ class SimulatedRig:
                    "--parity", self.parity, "--stop-bits", str(self.stop_bits)]
             if self.hw_socket:
                 cmd += ["--hw-socket", str(self.hw_socket)]
-            self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+            self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                         preexec_fn=_die_with_parent)
             line = self._read_line(self.proc.stdout, lambda s: s.startswith("/dev/"))
             self.port = line.strip()
         else:
@@ -161,7 +181,7 @@ class SimulatedRig:
             # QEMU 7.2 prints "char device redirected to /dev/pts/N" on stdout: read both
             self.proc = subprocess.Popen(qemu_command(elf, self.icount), stdin=subprocess.DEVNULL,
                                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                         preexec_fn=_raise_priority)
+                                         preexec_fn=_qemu_preexec)
             line = self._read_line(self.proc.stdout, lambda s: "redirected to /dev/" in s)
             m = re.search(r"(/dev/\S+)", line)
             if not m:
