@@ -70,6 +70,23 @@ class RigError(DualscaleError, RuntimeError):
     exit_code = 3
 
 
+class CameraError(RigError):
+    """A camera (of the rig, or a backend of :mod:`dualscale.capture`) did not do what was asked."""
+
+
+class CameraTimeout(CameraError):
+    """Fewer frames arrived than the camera was armed for, before the timeout.  ``frames``: the
+    ones that did arrive (kept, never silently dropped)."""
+
+    def __init__(self, message: str, frames: list | None = None):
+        super().__init__(message)
+        self.frames = list(frames or [])
+
+
+class CameraDisconnected(CameraError):
+    """The camera stopped answering or went away."""
+
+
 class ToolError(DualscaleError, RuntimeError):
     """An external tool or environment requirement is missing (a flasher, a compiler, a browser)."""
 
