@@ -9,3 +9,4 @@ __all__ = ["BACKENDS", "Camera", "Frame", "SensorInfo", "TriggerInfo", "TriggerM
 
 from . import gphoto2cam  # noqa: E402,F401  registers "gphoto2" (python-gphoto2 is loaded on open)
 from . import uvc  # noqa: E402,F401  registers "uvc"
+from . import genicam  # noqa: E402,F401  registers "genicam" (Aravis is loaded on open)
