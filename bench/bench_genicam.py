@@ -28,8 +28,9 @@ def main() -> None:
     ap.add_argument("--format", default="Mono8")
     a = ap.parse_args()
     fake = shutil.which("arv-fake-gv-camera-0.8")
-    if fake is None:
-        raise SystemExit("arv-fake-gv-camera-0.8 not installed (Debian aravis-tools)")
+    if fake is None:  # `make bench` runs every bench: say why this one has no table, and go on
+        print("bench_genicam: skipped: arv-fake-gv-camera-0.8 not installed (Debian aravis-tools)")
+        return
     serial = f"BENCH{os.getpid()}"
     proc = subprocess.Popen([fake, "-i", "127.0.0.1", "-s", serial], stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
