@@ -14,10 +14,13 @@ Deterministic: the same vectors give the same bytes. The committed set is fuzz/c
 (`make -C firmware fuzz-corpus`); --clean first removes the files this script writes there.
 """
 import argparse
+import sys
 import tomllib
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT / "host"))
+from dualscale.protocol.crc import rtu_frame  # noqa: E402  (pure Python: no package dependencies)
 
 
 def frame_record(req: bytes) -> bytes:
@@ -33,19 +36,9 @@ def rtu_ops(req: bytes) -> bytes:
     return out + bytes([0x01, 200])  # 3.2 ms of silence ends the frame
 
 
-def crc16(data: bytes) -> int:
-    """CRC-16/MODBUS, as firmware/core/src/crc.c."""
-    crc = 0xFFFF
-    for b in data:
-        crc ^= b
-        for _ in range(8):
-            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
-    return crc
-
-
 def with_crc(body: bytes) -> bytes:
-    c = crc16(body)
-    return body + bytes([c & 0xFF, c >> 8])
+    """Address + PDU + CRC-16/MODBUS (the host's one implementation, as firmware/core/src/crc.c)."""
+    return rtu_frame(body)
 
 
 def fifo_fill(vecs: dict[str, bytes], steps: int = 10, starts: int = 17) -> list[bytes]:
