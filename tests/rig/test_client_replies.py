@@ -149,3 +149,37 @@ def test_a_lost_abort_or_clear_reply_is_confirmed_by_the_status(link, cmd):
     assert st.error == rm.Error.NONE
     assert c.stats.confirmed_by_status == 1
     assert c.lights_on() == []
+
+
+def test_a_slow_reply_whose_data_looks_like_a_frame_is_read_whole(tmp_path):
+    """Data bytes ff ff 00 00 00 pass as an exception frame from server 255 with a valid CRC. When a
+    reply arrives slowly (QEMU's USART: a byte per main-loop turn), the client used to find that
+    'frame' inside the unfinished reply, cut the buffer there and call the reply corrupted: every
+    status read after a servo move failed on QEMU. A frame from our server that is still arriving
+    is now waited for."""
+    import os
+    import threading
+
+    import serial
+
+    words = [0, 0, 0xFFFF, 0, 0xFFFF, 0, 0x23, 0xAAAF, 0, 2, 0, 0, 0x0B, 0, 0, 0, 0, 0, 0]
+    reply = rtu_frame(bytes([1, 4, 2 * len(words)]) + b"".join(w.to_bytes(2, "big") for w in words))
+    assert bytes.fromhex("ff ff 00 00 00") in reply
+    master, slave = os.openpty()
+    port = os.ttyname(slave)
+    client = RigClient(port, parity="N", stopbits=2, timeout=1.0)
+    try:
+        def answer():
+            req = b""
+            while len(req) < 8:
+                req += os.read(master, 64)
+            for b in reply:  # one byte every 2 ms
+                os.write(master, bytes([b]))
+                time.sleep(0.002)
+
+        threading.Thread(target=answer, daemon=True).start()
+        assert client.read_input(rm.IR.STATE, len(words)) == words
+    finally:
+        client.close()
+        os.close(master)
+        os.close(slave)
