@@ -10,7 +10,7 @@ import pytest
 
 import dualscale.capture.uvc  # noqa: F401  (registers "uvc")
 from dualscale.capture.camera import TriggerInfo, TriggerMode, open_camera
-from dualscale.capture.uvc import split_options
+from dualscale.capture.camera import split_options
 from dualscale.errors import CameraDisconnected, InputError
 
 try:  # tests/capture may or may not be a package

@@ -43,7 +43,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from dualscale.capture.camera import SensorInfo, register_backend
-from dualscale.capture.uvc import HostTriggeredCamera, option_float, split_options
+from dualscale.capture.camera import HostTriggeredCamera, option_float, split_options
 from dualscale.errors import CameraDisconnected, CameraError, InputError, ToolError
 
 SHUTTER_KEYS = ("shutterspeed", "shutterspeed2", "exptime")

@@ -23,47 +23,23 @@ delivers ``uint16`` frames (16-bit PNG/TIFF sequences: ``DN/65535``).  Colour fr
 A source that stops delivering (device unplugged, files gone, end of a recording) raises
 :class:`~dualscale.errors.CameraDisconnected` naming the source; a recording never loops.
 
-:class:`HostTriggeredCamera` is the lifecycle shared by the backends whose frames are grabbed by
+:class:`~dualscale.capture.camera.HostTriggeredCamera` is the lifecycle shared by the backends whose frames are grabbed by
 the host, one per ``trigger()`` (``uvc``, ``gphoto2``).
 """
 
 from __future__ import annotations
 
 import os
-import threading
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from dualscale.capture.camera import (Deadline, Frame, SensorInfo, TriggerInfo, TriggerMode, frame_metadata,
-                                      register_backend)
-from dualscale.errors import CameraDisconnected, CameraError, CameraTimeout, InputError
+from dualscale.capture.camera import HostTriggeredCamera, SensorInfo, option_float, register_backend, split_options
+from dualscale.errors import CameraDisconnected, CameraError, InputError
 
 IMAGE_EXTS = {".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp", ".pgm", ".ppm", ".pnm", ".exr", ".webp"}
-
-
-def split_options(rest: str) -> tuple[str, dict[str, str]]:
-    """``"0?pixel_um=3&x=1"`` -> ``("0", {"pixel_um": "3", "x": "1"})``; a ``?`` not followed by
-    ``key=value`` pairs stays part of the target (a path may contain one)."""
-    target, sep, query = rest.rpartition("?")
-    if not sep or not query or not all("=" in kv and kv.split("=", 1)[0].isidentifier() for kv in query.split("&")):
-        return rest, {}
-    return target, dict(kv.split("=", 1) for kv in query.split("&"))
-
-
-def option_float(opts: dict[str, str], key: str, spec: str, default: float | None = None) -> float | None:
-    """A positive float option, ``InputError`` naming the spec and key otherwise."""
-    if key not in opts:
-        return default
-    try:
-        v = float(opts[key])
-    except ValueError:
-        v = float("nan")
-    if not (np.isfinite(v) and v > 0):
-        raise InputError(f"camera {spec!r}: option {key}={opts[key]!r} must be a positive number")
-    return v
 
 
 def normalise(raw: np.ndarray, source: str) -> tuple[np.ndarray, int]:
@@ -85,86 +61,6 @@ def normalise(raw: np.ndarray, source: str) -> tuple[np.ndarray, int]:
     out = np.ascontiguousarray(img, dtype=np.float32)
     out *= np.float32(1.0 / (2 ** bits - 1))
     return out, bits
-
-
-class HostTriggeredCamera:
-    """The lifecycle of a camera whose frames the host grabs, one per :meth:`trigger`
-    (``internal`` trigger only).  Subclasses implement ``_apply_exposure(exposure_s)`` (at
-    :meth:`prepare`) and ``_grab() -> (image, timestamp_s, exposure_s, extra_metadata)``, raising
-    ``CameraDisconnected`` when the source is gone."""
-
-    spec: str = ""
-    serial: str = ""
-
-    def __init__(self) -> None:
-        self._cond = threading.Condition()
-        self._info: TriggerInfo | None = None
-        self._armed = False
-        self._frames: list[Frame] = []
-
-    # -- to implement ------------------------------------------------------------------------------
-    def _apply_exposure(self, exposure_s: float) -> None:  # pragma: no cover - abstract
-        raise NotImplementedError
-
-    def _grab(self) -> tuple[np.ndarray, float, float, dict[str, Any]]:  # pragma: no cover - abstract
-        raise NotImplementedError
-
-    # -- the contract ------------------------------------------------------------------------------
-    def supported_modes(self) -> tuple[TriggerMode, ...]:
-        return (TriggerMode.INTERNAL,)
-
-    def prepare(self, info: TriggerInfo) -> None:
-        """Declare the acquisition; ``InputError`` for a mode other than ``internal`` or an
-        exposure the camera cannot take."""
-        if info.mode not in self.supported_modes():
-            raise InputError(f"camera {self.spec!r}: trigger mode {info.mode.value!r} is not supported "
-                             f"(only {', '.join(m.value for m in self.supported_modes())}: the host grabs each frame)")
-        with self._cond:
-            self._armed = False
-        self._apply_exposure(info.exposure_s)
-        self._info = info
-
-    def arm(self) -> None:
-        if self._info is None:
-            raise InputError(f"camera {self.spec!r}: arm() before prepare()")
-        with self._cond:
-            self._frames = []
-            self._armed = True
-
-    def trigger(self) -> None:
-        """Grab one frame now (blocks for its exposure and readout)."""
-        info = self._info
-        if info is None or not self._armed:
-            raise InputError(f"camera {self.spec!r}: trigger() while not armed (prepare() and arm() first)")
-        if len(self._frames) >= info.frames:
-            raise InputError(f"camera {self.spec!r}: trigger() beyond the {info.frames} frame(s) armed for")
-        image, ts, exposure, extra = self._grab()
-        meta = {**frame_metadata(self, info), **extra}  # type: ignore[arg-type]
-        with self._cond:
-            self._frames.append(Frame(image=image, index=len(self._frames), timestamp_s=ts, exposure_s=exposure,
-                                      metadata=meta))
-            self._cond.notify_all()
-
-    def collect(self, timeout_s: float | None = None) -> list[Frame]:
-        """The armed frames; fewer by ``timeout_s`` (default ``TriggerInfo.total_timeout()``, counted
-        from this call) raises ``CameraTimeout`` carrying those that arrived."""
-        info = self._info
-        if info is None:
-            raise InputError(f"camera {self.spec!r}: collect() before prepare()")
-        wait = info.total_timeout() if timeout_s is None else float(timeout_s)
-        deadline = Deadline(wait)
-        with self._cond:
-            while len(self._frames) < info.frames and not deadline.expired():
-                self._cond.wait(deadline.remaining())
-            frames = list(self._frames)
-        if len(frames) < info.frames:
-            raise CameraTimeout(f"camera {self.spec!r}: {len(frames)} of {info.frames} frame(s) within {wait:.3g} s "
-                                f"(each needs a trigger())", frames=frames)
-        return frames
-
-    def disarm(self) -> None:
-        with self._cond:
-            self._armed = False
 
 
 class UVCCamera(HostTriggeredCamera):
