@@ -18,12 +18,14 @@ conversion from our parameters happens once, in :mod:`.exchange`; docs/EXPORT.md
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
 from .exchange import Exchange, exchange
 
+NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")  # a material's name: the files' stem
 DEFAULT_SWATCH_MM = 100.0  # the side of the glTF swatch when the texel size is unknown
 
 

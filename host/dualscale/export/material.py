@@ -35,13 +35,12 @@ from dualscale.formats.atomic import atomic_dir, write_json
 from dualscale.formats.maps import load_maps, save_maps
 from dualscale.formats.versioned import read_versioned_json
 
-from . import ExportContext, _registry
+from . import NAME_RE, ExportContext, _registry
 from .exchange import exchange
 
 FORMAT = "dualscale-export"
 VERSION = 1
 ALL_FORMATS = ("exr", "mtlx", "gltf", "glb", "u3m")
-_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 
 
 def formats_available() -> dict[str, Callable]:
@@ -169,7 +168,7 @@ def check_output(maps_dir: str | Path, out: str | Path) -> None:
 
 def check_name(name: str) -> str:
     """Refuse (``InputError``) a material name that is not a safe file stem."""
-    if not _NAME.match(name or ""):
+    if not NAME_RE.match(name or ""):
         raise InputError(f"material name {name!r}: use letters, digits, '_', '.', '-' (at most 64, not "
                          "starting with '.' or '-')")
     return name

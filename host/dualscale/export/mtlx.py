@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import json
 import math
-import re
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -49,14 +48,13 @@ import numpy as np
 from dualscale.errors import InputError
 from dualscale.formats.atomic import write_text
 
-from . import ExportContext
+from . import NAME_RE, ExportContext
 from .exchange import Exchange, openpbr_anisotropy, standard_surface_anisotropy, thin_walled_translucency
 from .textures import encode_normal, write_float, write_png
 
 MTLX_VERSION = "1.39"
 WORKING_SPACE = "lin_rec709"
 SRGB = "srgb_texture"
-_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")  # as dualscale.export.material accepts
 
 # Custom attributes on each surfacematerial: (attribute, MaterialX type, description).
 ATTRIBUTES = (
@@ -108,7 +106,7 @@ class _Tex:
 
 
 def _check_name(name: str) -> str:
-    if not isinstance(name, str) or not _NAME.match(name):
+    if not isinstance(name, str) or not NAME_RE.match(name):
         raise InputError(f"MaterialX export: name {name!r} must be 1-64 characters of letters, digits, "
                          "'_', '.' or '-', starting with a letter or digit (it is the files' stem)")
     return name

@@ -40,6 +40,8 @@ from dualscale.bsdf import MaterialMaps
 from dualscale.bsdf.ggx import ALPHA_MIN, ggx_d_aniso, smith_visibility
 from dualscale.errors import GeometryError
 
+from .exchange import LUMINANCE
+
 
 def _t(a: np.ndarray | None, dtype=torch.float64) -> Tensor | None:
     if a is None:
@@ -244,7 +246,7 @@ def principled_bsdf(params: dict[str, np.ndarray | float | None], light_dirs: np
     t, b, n = _frame(_t(params.get("normal")), direction, (h, w))
     l4, v4 = l.reshape(-1, 1, 1, 3), v.reshape(1, 1, 1, 3)
     dv, cos_d, cl, cv = _microfacet(l4, v4, t, b, n, at[None], ab[None])
-    lum = (base * torch.as_tensor(_luminance(), dtype=torch.float64)).sum(-1, keepdim=True)
+    lum = (base * torch.as_tensor(LUMINANCE, dtype=torch.float64)).sum(-1, keepdim=True)
     ctint = torch.where(lum > 1e-6, base / lum.clamp_min(1e-6), torch.ones_like(base))
     st = field("specular_tint", 0.0)
     f0 = 0.08 * field("specular", 0.5) * (1 - st + st * ctint)
@@ -255,12 +257,6 @@ def principled_bsdf(params: dict[str, np.ndarray | float | None], light_dirs: np
     front = (cl > 0) & (cv > 0) & (l4[..., 2:3] > 0)
     out = torch.where(front, f * cl.clamp_min(0), torch.zeros_like(f)) * field("alpha", 1.0)[None]
     return out.numpy()
-
-
-def _luminance() -> np.ndarray:
-    from .exchange import LUMINANCE
-
-    return LUMINANCE
 
 
 def relative_error(a: np.ndarray, ref: np.ndarray) -> np.ndarray:
