@@ -7,15 +7,11 @@ import pytest
 import serial
 
 from dualscale.protocol import regmap as rm
-from dualscale.protocol.crc import crc16, rtu_frame
-from dualscale.rig.client import RigClient
+from dualscale.protocol.crc import rtu_frame
+from dualscale.rig.client import RigClient, _crc_ok
 from dualscale.rig.launcher import SimulatedRig
 
 TARGETS = ["posix", pytest.param("qemu", marks=pytest.mark.qemu)]
-
-
-def _crc_ok(frame: bytes) -> bool:
-    return len(frame) >= 4 and crc16(frame[:-2]) == int.from_bytes(frame[-2:], "little")
 
 
 class RawLink:
