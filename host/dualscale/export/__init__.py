@@ -69,27 +69,15 @@ Writer = Callable[[Exchange, ExportContext, Path], list[Path]]
 
 
 def _registry() -> dict[str, Writer]:
-    reg: dict[str, Writer] = {}
+    """The writers by format name (imported on first use: pygltflib and MaterialX load only when
+    an export runs)."""
     from . import exr as _exr
+    from . import gltf as _gltf
+    from . import mtlx as _mtlx
+    from . import u3m as _u3m
 
-    reg["exr"] = _exr.write
-    try:
-        from . import mtlx as _mtlx
-        reg["mtlx"] = _mtlx.write
-    except ImportError:  # pragma: no cover - the module lands with its tests
-        pass
-    try:
-        from . import gltf as _gltf
-        reg["gltf"] = _gltf.write_gltf
-        reg["glb"] = _gltf.write_glb
-    except ImportError:  # pragma: no cover
-        pass
-    try:
-        from . import u3m as _u3m
-        reg["u3m"] = _u3m.write
-    except ImportError:  # pragma: no cover
-        pass
-    return reg
+    return {"exr": _exr.write, "mtlx": _mtlx.write, "gltf": _gltf.write_gltf, "glb": _gltf.write_glb,
+            "u3m": _u3m.write}
 
 
 __all__ = ["Exchange", "ExportContext", "exchange"]
