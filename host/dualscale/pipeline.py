@@ -178,6 +178,46 @@ class _Progress:
         self.bar.close()
 
 
+def run_stage(run: Path, name: str, inputs: dict[str, Any], params: dict[str, Any], versions_: dict[str, str],
+              fn: Callable[[Path], dict[str, Any]]) -> StageResult:
+    """Run (or skip, when its record matches and its outputs are intact) the stage ``name`` of the
+    run folder ``run``: ``fn(work)`` fills ``RUN/work/<name>/`` and returns the summary; the work
+    folder is then renamed to ``RUN/<name>/`` and the record written (module docstring)."""
+    key = json_sha256({"stage": name, "inputs": inputs, "params": params, "versions": versions_})
+    final = run / name
+    rec = read_stage(run, name)
+    if rec is not None and rec.get("key") == key and final.is_dir() \
+            and tree_sha256(final) == rec.get("outputs_sha256"):
+        return StageResult(name, rec, True)
+    work = run / "work" / name
+    key_file = work / ".stage-key"
+    if work.is_dir() and (not key_file.is_file() or key_file.read_text().strip() != key):
+        shutil.rmtree(work)  # left by a run with other inputs or parameters: not resumable
+    work.mkdir(parents=True, exist_ok=True)
+    clean_stale(work)
+    write_text(key_file, key)
+    t0 = time.perf_counter()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        summary = fn(work)
+    stage_warnings = list(summary.pop("warnings", []))
+    stage_warnings += sorted({f"{w.category.__name__}: {w.message}" for w in caught
+                              if not issubclass(w.category, (DeprecationWarning, PendingDeprecationWarning))})
+    key_file.unlink()
+    stage_path(run, name).unlink(missing_ok=True)
+    if final.exists():
+        shutil.rmtree(final)
+    os.replace(work, final)
+    outputs = sorted(str(p.relative_to(run)) for p in final.rglob("*") if p.is_file())
+    record = {"key": key, "inputs": inputs, "params": params, "versions": versions_,
+              "seconds": round(time.perf_counter() - t0, 3),
+              "finished": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+              "warnings": stage_warnings, "outputs": outputs, "outputs_sha256": tree_sha256(final),
+              "summary": summary}
+    write_stage(run, name, record)
+    return StageResult(name, record, False)
+
+
 class Digitizer:
     """Runs the stages of one run folder (see the module docstring)."""
 
@@ -226,39 +266,7 @@ class Digitizer:
     # -- the stage runner
     def _stage(self, name: str, inputs: dict[str, str | None], params: dict[str, Any],
                fn: Callable[[Path], dict[str, Any]]) -> StageResult:
-        key = json_sha256({"stage": name, "inputs": inputs, "params": params, "versions": self.versions})
-        final = self.out(name)
-        rec = read_stage(self.run, name)
-        if rec is not None and rec.get("key") == key and final.is_dir() \
-                and tree_sha256(final) == rec.get("outputs_sha256"):
-            return StageResult(name, rec, True)
-        work = self.run / "work" / name
-        key_file = work / ".stage-key"
-        if work.is_dir() and (not key_file.is_file() or key_file.read_text().strip() != key):
-            shutil.rmtree(work)  # left by a run with other inputs or parameters: not resumable
-        work.mkdir(parents=True, exist_ok=True)
-        clean_stale(work)
-        write_text(key_file, key)
-        t0 = time.perf_counter()
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            summary = fn(work)
-        stage_warnings = list(summary.pop("warnings", []))
-        stage_warnings += sorted({f"{w.category.__name__}: {w.message}" for w in caught
-                                  if not issubclass(w.category, (DeprecationWarning, PendingDeprecationWarning))})
-        key_file.unlink()
-        stage_path(self.run, name).unlink(missing_ok=True)
-        if final.exists():
-            shutil.rmtree(final)
-        os.replace(work, final)
-        outputs = sorted(str(p.relative_to(self.run)) for p in final.rglob("*") if p.is_file())
-        record = {"key": key, "inputs": inputs, "params": params, "versions": self.versions,
-                  "seconds": round(time.perf_counter() - t0, 3),
-                  "finished": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-                  "warnings": stage_warnings, "outputs": outputs, "outputs_sha256": tree_sha256(final),
-                  "summary": summary}
-        write_stage(self.run, name, record)
-        return StageResult(name, record, False)
+        return run_stage(self.run, name, inputs, params, self.versions, fn)
 
     def _prev(self, name: str) -> str:
         rec = read_stage(self.run, name)
@@ -468,16 +476,80 @@ def _options_json(o: DigitizeOptions) -> dict[str, Any]:
     return {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(o).items() if k not in ("run",)}
 
 
+@dataclass
+class RigCapture:
+    """``digitize --rig``: the opened rig (:class:`dualscale.rig.client.RigClient`), its cameras
+    by role (:class:`dualscale.capture.camera.Camera`, opened), the micro plan's LED selection and
+    the capture options (:class:`dualscale.capture.session.CaptureOptions`)."""
+
+    rig: Any
+    cameras: dict[str, Any]
+    lights: str = "ALL"
+    options: Any = None
+
+
+CAPTURE_STAGE = "capture"
+
+
+def capture_stage(run: Path, rc: RigCapture, progress: Callable[[int, int, str], None] | None = None) -> StageResult:
+    """The stage before ``calibrate`` when digitizing from the rig: the micro plan (and the mid
+    plan when a mid camera is given) captured into ``RUN/capture/{micro,mid}/``
+    (:class:`dualscale.capture.session.CaptureSession`).  Its inputs are the rig's identification
+    and the cameras' specs and serials, its parameters the plans and options; an interrupted
+    capture resumes from its journal in ``RUN/work/capture/``."""
+    from dualscale.capture.plan import make_plan
+    from dualscale.capture.session import CaptureOptions, CaptureSession, stable_spec
+
+    plans = [make_plan("micro", rc.lights)] + ([make_plan("mid")] if "mid" in rc.cameras else [])
+    opts = rc.options or CaptureOptions()
+    ident = rc.rig.identity
+    inputs = {"rig": None if ident is None else ident.text,
+              "cameras": {r: [stable_spec(c.spec), c.serial] for r, c in sorted(rc.cameras.items())}}
+    params = {"lights": rc.lights, "plans": [p.name for p in plans],
+              "options": {k: v for k, v in asdict(opts).items() if k != "timeout_margin_s"}}
+
+    def fn(work: Path) -> dict[str, Any]:
+        out = {}
+        for plan in plans:
+            cams = {r: rc.cameras[r] for r in plan.roles}
+            summary = CaptureSession(rc.rig, cams, plan, work / plan.name, opts, resume=True, progress=progress).run()
+            out[plan.name] = {k: v for k, v in asdict(summary).items() if k != "dataset"}
+        return out
+
+    return run_stage(run, CAPTURE_STAGE, inputs, params, versions(), fn)
+
+
 def digitize(opts: DigitizeOptions, on_stage: Callable[[StageResult], None] | None = None,
-             on_start: Callable[[], None] | None = None) -> RunResult:
+             on_start: Callable[[], None] | None = None, rig: RigCapture | None = None) -> RunResult:
     """Run ``dualscale digitize`` (see the module docstring); ``on_start`` is called once the
     inputs passed their checks, ``on_stage`` after each stage.  Raises :class:`~dualscale.errors.InputError` (and subclasses) for input a stage
-    cannot interpret, before anything of that stage is written."""
+    cannot interpret, before anything of that stage is written.
+
+    ``rig``: digitize from the rig: :func:`capture_stage` runs first, and its micro dataset (and
+    mid guidance, unless ``opts.guidance`` is given) are the input of the other stages."""
     if opts.threads:
         import torch
 
         torch.set_num_threads(opts.threads)
+    captured = None
+    if rig is not None:
+        if opts.calibration is None:
+            raise UnitsError("digitize --rig: the rig captures camera counts: give its calibration file with "
+                             "--calibration CAL (dualscale calibrate)")
+        if opts.calibration is not None and not opts.calibration.is_file():
+            raise FileNotFoundError(f"calibration file not found: {opts.calibration}")
+        opts.run.mkdir(parents=True, exist_ok=True)
+        captured = capture_stage(opts.run, rig)
+        if on_stage is not None:
+            on_stage(captured)
+        opts.input = opts.run / CAPTURE_STAGE / "micro"
+        mid = opts.run / CAPTURE_STAGE / "mid"
+        if opts.guidance is None and (mid / "manifest.json").is_file():
+            opts.guidance = mid
     d = Digitizer(opts)
     if on_start is not None:
         on_start()
-    return d.digitize(on_stage)
+    result = d.digitize(on_stage)
+    if captured is not None:
+        result.stages.insert(0, captured)
+    return result

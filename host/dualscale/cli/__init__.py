@@ -127,6 +127,9 @@ def build_parser() -> argparse.ArgumentParser:
     _serial_format_options(d)
     d.set_defaults(fn=cmd_demo)
 
+    from .capture import register as register_capture
+
+    register_capture(sub)
     from .sim import register as register_appearance
 
     register_appearance(sub)

@@ -24,16 +24,34 @@ def _line(st) -> str:
 def cmd_digitize(a: argparse.Namespace) -> int:
     from .export import parse_formats
 
-    from dualscale.pipeline import DigitizeOptions, digitize
+    from dualscale.pipeline import CAPTURE_STAGE, DigitizeOptions, RigCapture, digitize
 
-    opts = DigitizeOptions(input=a.input, run=a.output, calibration=a.calibration, guidance=a.guidance,
+    from dualscale.errors import InputError
+
+    if (a.input is None) == (a.rig is None):
+        raise InputError("digitize: give a dataset folder INPUT, or --rig PORT with --camera SPEC (not both)")
+    if a.rig is not None and not a.camera:
+        raise InputError("digitize --rig: add the cameras, e.g. --camera sim:micro --camera sim:mid")
+    inp = a.input if a.input is not None else Path(a.output) / CAPTURE_STAGE / "micro"
+    opts = DigitizeOptions(input=inp, run=a.output, calibration=a.calibration, guidance=a.guidance,
                            guidance_transfer=a.transfer, guidance_texel_mm=a.guidance_texel_mm, quality=a.quality,
                            until=a.until, threads=apply_threads(a), progress=want_progress(a), seed=a.seed,
                            export=tuple(parse_formats(a.export, '--export')), tile=a.tile, name=a.name)
+    def start() -> None:
+        print(f"digitize {opts.input} -> {opts.run} (quality {opts.quality})", flush=True)
+
     with output_folder(a, "digitize", record=False):  # the run folder's own records say whose it is
-        res = digitize(opts, on_stage=lambda st: print(_line(st), flush=True),
-                       on_start=lambda: print(f"digitize {opts.input} -> {opts.run} (quality {opts.quality})",
-                                              flush=True))
+        if a.rig is None:
+            res = digitize(opts, on_stage=lambda st: print(_line(st), flush=True), on_start=start)
+        else:
+            from .capture import capture_options, rig_and_cameras
+
+            roles = ("micro", "mid")
+            with rig_and_cameras(a.rig, a.camera, roles, a.parity, a.stopbits, a.sim_speed) as (rig, cams):
+                print(f"digitize from the rig {a.rig} ({', '.join(f'{r}: {c.spec}' for r, c in cams.items())})",
+                      flush=True)
+                res = digitize(opts, on_stage=lambda st: print(_line(st), flush=True), on_start=start,
+                               rig=RigCapture(rig, cams, a.lights, capture_options(a, a.rig)))
     run = Path(a.output)
     fit = res.record("fit")
     if fit is not None:
@@ -66,7 +84,11 @@ def register(sub) -> None:
                                    "RUN/report/index.html the report. Rerunning the same command skips finished "
                                    "stages and resumes an interrupted one. Exit codes: 0 done, 2 bad input, "
                                    "130 interrupted (see README).")
-    d.add_argument("input", help="photometric dataset folder (manifest.json), or a folder holding micro/")
+    d.add_argument("input", nargs="?", default=None,
+                   help="photometric dataset folder (manifest.json), or a folder holding micro/; or use --rig")
+    d.add_argument("--rig", default=None, metavar="PORT",
+                   help="capture on the rig first (its serial port, or 'sim' for the simulated rig): the micro plan "
+                        "with the micro camera, and the guidance with a mid camera if given (RUN/capture/)")
     add_output(d, "run folder RUN (created; reused to resume)")
     d.add_argument("--calibration", default=None, metavar="CAL",
                    help="calibration file (`dualscale calibrate`); required for datasets in sensor units")
@@ -85,5 +107,8 @@ def register(sub) -> None:
     d.add_argument("--tile", action="store_true",
                    help="export a seamless tile of whole repeats of the propagated maps (docs/TILE.md)")
     d.add_argument("--name", default=None, help="material name in the exports (default: the input folder's name)")
+    from .capture import add_capture_options
+
+    add_capture_options(d)
     add_work_options(d)
     d.set_defaults(fn=cmd_digitize)

@@ -103,6 +103,11 @@ class DomeGeometry:
             w[sel] = band / int(sel.sum())
         return w
 
+    def signature(self) -> str:
+        """Short identity of the layout (LED count, radius and source), e.g.
+        ``127leds/r300mm/regmap``: the ``layout`` of a dataset's or calibration's ``rig`` record."""
+        return f"{self.n_leds}leds/r{self.radius_mm:g}mm/{self.source}"
+
     @classmethod
     def from_regmap(cls) -> "DomeGeometry":
         return cls(led_directions(torch.float64))

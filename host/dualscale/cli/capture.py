@@ -1,0 +1,160 @@
+"""``dualscale capture PLAN -o DATASET --port PORT --camera SPEC...``: a capture on the rig
+(:mod:`dualscale.capture.session`; docs/CAPTURE.md).
+
+``--port sim`` starts the POSIX firmware simulator with its hardware side channel for the
+duration of the command, and every ``sim:`` camera spec without ``hw=`` is connected to it: the
+whole virtual rig, through the real firmware core.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import tempfile
+from pathlib import Path
+from typing import Iterator
+
+from dualscale.errors import InputError
+
+from .common import add_output, add_work_options, apply_threads, output_folder, want_progress
+
+SIM_PORT = "sim"
+
+
+def _with_option(spec: str, key: str, value: str) -> str:
+    scheme, _, rest = spec.partition(":")
+    if f"{key}=" in rest:
+        return spec
+    return f"{spec}{'&' if '?' in rest else '?'}{key}={value}"
+
+
+def parse_camera_args(values: list[str]) -> list[tuple[str | None, str]]:
+    """``--camera [ROLE=]SPEC`` values as ``(role or None, spec)``."""
+    from dualscale.protocol import regmap as rm
+
+    out = []
+    for v in values:
+        role, sep, spec = v.partition("=")
+        if sep and role in rm.CAMERA_NAMES and ":" in spec:
+            out.append((role, spec))
+        else:
+            out.append((None, v))
+    return out
+
+
+@contextlib.contextmanager
+def rig_and_cameras(port: str, cameras: list[str], roles: tuple[str, ...], parity: str = "E",
+                    stopbits: int | None = None, sim_speed: float = 1.0) -> Iterator[tuple[object, dict]]:
+    """Open the rig (``port``, or ``sim``: start the simulator) and the cameras; yields ``(rig
+    client, role -> camera)``; closes everything at the end."""
+    import dualscale.sim.camera  # noqa: F401  registers the "sim" camera backend (the virtual rig's cameras)
+    from dualscale.capture.camera import open_camera
+    from dualscale.rig.client import RigClient
+    from dualscale.rig.launcher import SimulatedRig
+
+    with contextlib.ExitStack() as stack:
+        hw = None
+        if port == SIM_PORT:
+            tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="dualscale-rig-")))
+            hw = tmp / "hw.sock"
+            sim = stack.enter_context(SimulatedRig("posix", speed=sim_speed, hw_socket=hw, parity=parity,
+                                                   stop_bits=stopbits))
+            port = sim.port
+        opened: dict[str, object] = {}
+        for role, spec in parse_camera_args(cameras):
+            if spec.startswith("sim:"):
+                if hw is None and "hw=" not in spec:
+                    raise InputError(f"--camera {spec}: a sim camera needs the simulated rig (--port sim) or hw=SOCKET")
+                if hw is not None:
+                    spec = _with_option(spec, "hw", str(hw))
+            cam = open_camera(spec)
+            stack.callback(cam.close)
+            if role is None:
+                g = getattr(cam, "geometry", None)
+                if callable(g):
+                    role = g().name
+                elif len(roles) == 1:
+                    role = roles[0]
+                else:
+                    raise InputError(f"--camera {spec}: say which rig camera it is, e.g. --camera micro={spec}")
+            if role in opened:
+                raise InputError(f"two cameras for the {role} role")
+            opened[role] = cam
+        rig = RigClient(port, parity=parity, stopbits=stopbits)
+        rig.open()
+        stack.callback(rig.close)
+        yield rig, opened
+
+
+def capture_options(a: argparse.Namespace, port: str):
+    """The session's options from the command line; on the simulated rig the host watchdog is
+    scaled to the simulator's speed (:func:`dualscale.rig.demo.demo_watchdog_ms`: its device clock
+    runs that much faster than the host's)."""
+    from dualscale.capture.session import CaptureOptions
+    from dualscale.rig.client import DEFAULT_WATCHDOG_MS
+    from dualscale.rig.demo import demo_watchdog_ms
+
+    wd = demo_watchdog_ms(a.sim_speed) if port == SIM_PORT else DEFAULT_WATCHDOG_MS
+    return CaptureOptions(intensity=a.intensity, max_exposure_s=a.max_exposure, batch_steps=a.batch, retakes=a.retakes,
+                          trigger=a.trigger, rig_id=a.rig_id, calibration_id=a.calibration_id, watchdog_ms=wd)
+
+
+def cmd_capture(a: argparse.Namespace) -> int:
+    from dualscale.capture.plan import make_plan
+    from dualscale.capture.session import CaptureSession
+    from dualscale.progress import tracker
+
+    apply_threads(a)
+    plan = make_plan(a.plan, a.lights)
+    opts = capture_options(a, a.port)
+    with output_folder(a, "capture", [f"plan:{a.plan}", f"lights:{a.lights}", *a.camera]):
+        with rig_and_cameras(a.port, a.camera, plan.roles, a.parity, a.stopbits, a.sim_speed) as (rig, cams), \
+                tracker(want_progress(a), len(plan.shots), f"capture {plan.name}", "shot") as bar:
+            seen = [0]
+
+            def progress(done: int, total: int, key: str) -> None:
+                bar.update(done - seen[0], what=key)
+                seen[0] = done
+
+            summary = CaptureSession(rig, cams, plan, a.output, opts, resume=a.resume, progress=progress).run()
+    for line in summary.lines():
+        print(line)
+    return 0
+
+
+def add_capture_options(p: argparse.ArgumentParser) -> None:
+    """The rig and camera options ``capture`` and ``digitize --rig`` share."""
+    p.add_argument("--camera", action="append", default=[], metavar="[ROLE=]SPEC",
+                   help="a camera: sim:micro, genicam:SERIAL, gphoto2:, uvc:0 (ROLE = micro|mid|polar0|polar1 when "
+                        "the spec does not say it); repeat for several")
+    p.add_argument("--trigger", choices=("device", "camera"), default="device",
+                   help="device: the rig times every exposure (gate triggers, HDR brackets); camera: camera-master")
+    p.add_argument("--lights", default="ALL", metavar="ALL|MODn|ROWa+b|FILE",
+                   help="the LEDs of the micro plan (default ALL)")
+    p.add_argument("--intensity", type=int, default=65535, help="LED drive level, 1..65535 (default full)")
+    p.add_argument("--max-exposure", type=float, default=4.0, metavar="S",
+                   help="longest exposure a bracket may have [s] (default 4)")
+    p.add_argument("--batch", type=int, default=64, metavar="STEPS", help="steps per device sequence (default 64)")
+    p.add_argument("--retakes", type=int, default=3, help="how often a shot is taken again before giving up")
+    p.add_argument("--rig-id", default=None, help="the rig's id in the dataset (checked against calibrations); "
+                                                  "default: the device's identification")
+    p.add_argument("--calibration-id", default=None, help="the calibration this capture is for (recorded)")
+    p.add_argument("--sim-speed", type=float, default=1.0,
+                   help="--port sim: simulator speed (1 = real time, 0 = as fast as possible)")
+    from . import _serial_format_options
+
+    _serial_format_options(p)
+
+
+def register(sub) -> None:
+    """Add ``capture`` to an argparse subparsers object."""
+    from dualscale.capture.plan import PLANS
+
+    p = sub.add_parser("capture", help="capture a plan on the rig with its cameras (resumable)")
+    p.add_argument("plan", choices=sorted(PLANS), help="micro: the photometric dataset; mid: the guidance image")
+    add_output(p, "dataset folder (manifest.json, frames/, journal.jsonl, capture.json)")
+    p.add_argument("--port", required=True, help="the rig's serial port, or 'sim' for the simulated rig")
+    p.add_argument("--resume", action="store_true", help="continue an interrupted capture in the same folder")
+    add_capture_options(p)
+    add_work_options(p)
+    p.set_defaults(fn=cmd_capture)
