@@ -235,10 +235,12 @@ def true_radiance(target: str, camera: Camera, kind: str, light_id: int | None, 
 
 class Exposer:
     """The sensor side: vignetting, dark signal (fixed-pattern bias + dark current), noise,
-    saturation, quantisation.  ``__call__(radiance, t)`` returns normalised DN."""
+    saturation, quantisation.  ``__call__(radiance, t)`` returns normalised DN.  ``noise=False``
+    leaves out shot and read noise (everything else, the dark fixed pattern included, is the
+    same), for checks that must be exact."""
 
-    def __init__(self, camera: Camera, cfg: SynthConfig, defects: Defects, seed: int) -> None:
-        self.camera, self.cfg, self.defects, self.seed = camera, cfg, defects, seed
+    def __init__(self, camera: Camera, cfg: SynthConfig, defects: Defects, seed: int, noise: bool = True) -> None:
+        self.camera, self.cfg, self.defects, self.seed, self.noise = camera, cfg, defects, seed, noise
         self.vig = vignetting_map(camera, defects.vignetting).numpy() if defects.vignetting > 0 else 1.0
         rng = np.random.default_rng([defects.seed, 11, seed])
         self.bias = cfg.dark_bias * (1.0 + 0.1 * rng.standard_normal((camera.height, camera.width, 1)))
@@ -246,6 +248,8 @@ class Exposer:
 
     def __call__(self, radiance: np.ndarray, exposure_s: float) -> np.ndarray:
         s = self.cfg.sensor()
+        if not self.noise:  # the deterministic sensor: dark signal, saturation and 12 bits only
+            s = replace(s, shot_noise=False, read_noise=False)
         dark_dn = self.bias + self.cfg.dark_rate * exposure_s
         x = radiance * self.vig + dark_dn * s.full_well_e / (exposure_s * s.gain_e)
         self.count += 1
@@ -254,10 +258,34 @@ class Exposer:
         return out.numpy()
 
 
-def rig_exposer(camera: Camera, cfg: SynthConfig = SynthConfig(), defects: Defects = Defects()) -> Exposer:
+def rig_exposer(camera: Camera, cfg: SynthConfig = SynthConfig(), defects: Defects = Defects(),
+                noise: bool = True) -> Exposer:
     """The sensor side of the virtual rig's camera ``camera.name``: one per camera, as in
     :func:`write_session` (same seed, hence the same dark fixed pattern at the same size)."""
-    return Exposer(camera, cfg, defects, cfg.cameras.index(camera.name) + 1)
+    return Exposer(camera, cfg, defects, cfg.cameras.index(camera.name) + 1, noise=noise)
+
+
+def raw_signal(radiance: np.ndarray, camera: Camera, kind: str, light_id: int | None,
+               cfg: SynthConfig = SynthConfig(), defects: Defects = Defects()) -> np.ndarray:
+    """The raw camera signal ``(H, W, 3)`` float64 of ``camera`` (the input of an :class:`Exposer`)
+    for one light's rendered radiance: what reaches the sensor before vignetting and the dark signal.
+
+    ``radiance``: linear Rec.709 relative radiance ``(H, W, 3)`` from :func:`dualscale.sim.render.render`
+    for one light (``kind`` ``led`` with ``light_id``, ``diffuse`` or ``backlight``).  Its colour is
+    read as Smits (1999) spectra under the rig's illuminant for that light (``cfg.illum(kind)``) and
+    integrated against the camera's sensitivities (:func:`dualscale.sim.sensor.spectral_matrix`,
+    white -> raw green 1, like :func:`dualscale.calib.colourref.camera_raw`); an LED adds its
+    irradiance gain (:func:`led_gains`) and collimation ramp (:func:`collimation_ramp`).  Linear in
+    ``radiance``, so the signals of several lights add.  Used by :func:`capture_material`
+    (``synth --realistic``) and the simulated camera (:mod:`dualscale.sim.camera`)."""
+    from dualscale.sim.sensor import spectral_matrix
+
+    m = spectral_matrix(cfg.sens(camera.name), cfg.illum(kind))
+    raw = np.asarray(radiance, np.float64) @ m.T
+    if kind == "led":
+        n = DomeGeometry.from_regmap().n_leds
+        raw = raw * led_gains(n, defects)[light_id] * collimation_ramp(camera, light_id, defects)[..., None]
+    return raw
 
 
 def capture_material(radiance: np.ndarray, exposer: Exposer, kind: str, light_id: int | None,
@@ -267,23 +295,15 @@ def capture_material(radiance: np.ndarray, exposer: Exposer, kind: str, light_id
     exposure [s])``.
 
     ``radiance``: linear Rec.709 relative radiance ``(H, W, 3)`` from :func:`dualscale.sim.render.render`
-    for one light (``kind`` ``led`` with ``light_id``, ``diffuse`` or ``backlight``).  Its colour is
-    read as Smits (1999) spectra under the rig's illuminant for that light and integrated against
-    the camera's sensitivities (:func:`dualscale.sim.sensor.spectral_matrix`, white -> raw green 1,
-    like :func:`dualscale.calib.colourref.camera_raw`); an LED adds its gain and collimation ramp;
-    then ``exposer`` (:func:`rig_exposer`: vignetting, dark signal, noise, 12 bits) takes one
-    exposure, metered so that the 99.9th percentile of the signal lands at ``target`` of the
-    sensor's white level (full scale unless ``SynthConfig.white_level`` is lower) (the rig's auto-exposure; a black image, e.g. an opaque sample's back light, meters to
-    the longest exposure, 1 s).
+    for one light (``kind`` ``led`` with ``light_id``, ``diffuse`` or ``backlight``), made the raw
+    camera signal by :func:`raw_signal` (spectra, LED gain and collimation ramp); then ``exposer``
+    (:func:`rig_exposer`: vignetting, dark signal, noise, 12 bits) takes one exposure, metered so
+    that the 99.9th percentile of the signal lands at ``target`` of the sensor's white level (full
+    scale unless ``SynthConfig.white_level`` is lower) (the rig's auto-exposure; a black image,
+    e.g. an opaque sample's back light, meters to the longest exposure, 1 s).
     """
-    from dualscale.sim.sensor import spectral_matrix
-
-    cfg, camera, defects = exposer.cfg, exposer.camera, exposer.defects
-    m = spectral_matrix(cfg.sens(camera.name), cfg.illum(kind))
-    raw = np.asarray(radiance, np.float64) @ m.T
-    if kind == "led":
-        n = DomeGeometry.from_regmap().n_leds
-        raw = raw * led_gains(n, defects)[light_id] * collimation_ramp(camera, light_id, defects)[..., None]
+    cfg = exposer.cfg
+    raw = raw_signal(radiance, exposer.camera, kind, light_id, cfg, exposer.defects)
     if float(raw.max()) <= 0:
         return exposer(raw, 1.0), 1.0
     shot, t = meter(lambda t: exposer(raw, t), saturation=cfg.saturation())

@@ -1,0 +1,719 @@
+"""``sim``: a simulated camera on the simulated rig's trigger lines (issue 14 §2).
+
+The POSIX firmware simulator (``firmware/targets/posix``; ``dualscale sim --hw-socket PATH``,
+:class:`dualscale.rig.launcher.SimulatedRig`) publishes its "hardware" on a Unix socket as
+newline-delimited JSON (``hello``, ``light`` {kind, index, intensity}, ``polarizer`` {cdeg},
+``triggers`` {mask}, ``event`` {kind, arg, step, seq}, ``preload``, ``latch``; each with ``t_us``,
+the device clock in µs) and takes camera-master edges ``{"ev":"edge","camera":C}``.  This camera
+is a client of that socket, driven by it exactly as a real camera is driven by the rig's trigger
+lines (the paper's Sec. 3 rig: micro camera with the servo-turned analyser, mid-range camera,
+oblique polar cameras; PROTOCOL.md §3.1 device-master and §3.2 camera-master timing):
+
+* a reader thread consumes the side channel without ever blocking it (the simulator drops a
+  client that stalls 2 s) and keeps the live state: lights and their intensities, the analyser
+  angle, the trigger mask, the last device time;
+* ``edge`` mode: each rising edge of its trigger bit (``rm.TRIGGER_NAMES.index(camera)``) starts
+  one exposure of the prepared ``exposure_s``; ``gate`` mode: the exposure lasts from the rising
+  to the falling edge (device time).  The light state is the one live at the rising edge (the
+  firmware latches a step's light before its trigger rises, §3.1).  An edge while the camera is
+  still exposing or reading out (``readout_ms`` after each exposure) is missed, as on a real
+  camera (``busy_triggers``); edges beyond the armed count are ignored (``ignored_triggers``);
+* ``internal`` mode: :meth:`SimCamera.trigger` exposes the state now (an idle rig gives a dark
+  frame).  With ``master=1`` (camera-master, §3.2) it first sends its exposure-active edge to
+  the simulator and exposes the state after the firmware handled it (the latched step's light);
+  the firmware's ``CAMERA_EDGE`` event is in the frame's metadata (``master_edge``);
+* a render worker turns each exposure into a frame: the radiance of every light that is on
+  (:func:`dualscale.sim.render.render`, intensity = register value / ``INTENSITY_MAX``, the
+  analyser at ``polarizer_cdeg / 100`` degrees relative to each LED's polariser for the cameras
+  with an analyser) made camera raw signal by :func:`dualscale.sim.targets.raw_signal` (the
+  rig's LED spectra, camera sensitivities, LED gain and collimation ramp), summed over the lights
+  (the renderer is linear in the light), then the camera's sensor
+  (:func:`dualscale.sim.targets.rig_exposer`: vignetting, dark signal, shot/read noise, 12 bits)
+  at this frame's exposure: exactly the sensor path of ``dualscale synth --realistic``.  The raw
+  signal is cached per (lights, analyser) state, so the brackets of one step render once.
+
+Spec: ``sim:CAMERA?hw=SOCKET&OPTION=VALUE&...`` with CAMERA one of ``rm.CAMERA_NAMES`` (``micro``,
+``mid``, ``polar0``, ``polar1``).  Options (:data:`OPTIONS`):
+
+* ``hw`` (required): the simulator's side-channel socket;
+* the sample: ``material=NAME`` (a :data:`dualscale.sim.materials.MATERIALS` name, default
+  ``twill``, generated at ``size`` texels of ``texel_um`` with ``seed``, as ``dualscale synth``)
+  or ``maps=PATH`` (any maps folder, :func:`dualscale.formats.maps.load_maps`);
+* ``size`` [px]: the image (micro: the map grid, one pixel per texel, as ``synth --dataset``;
+  default 512, or the maps' width; mid/polar: the image size, default 256, as ``synth --mid``);
+* ``texel_um`` [µm]: the texel (= micro pixel) size (micro default 1.8; mid/polar default
+  ``field_mm / size``, which generates the material as ``synth --mid`` does; with ``maps`` the
+  folder's own texel when it records one);
+* ``field_mm`` [mm]: the field of the mid/polar cameras (default 100, the rig's);
+* ``seed`` (default 0), ``shadows=0|1`` (cast shadows of the relief; micro only),
+  ``noise=1|0`` (0: no shot/read noise, for exact checks), ``white_level`` (normalised DN where
+  the sensor clips, default 1.0), ``readout_ms`` (dead time after each exposure, default 5);
+* ``master=0|1``: camera-master (``internal`` triggers send edges to the simulator);
+* fault injection: ``drop=P`` (probability that an exposed frame never arrives; its index is
+  used up, so the delivered indices show the gap) with ``fault_seed=N``.
+
+The serial is stable for a sample: ``SIM-<camera>-<8 hex digits of the sample, size and seed>``.
+
+Timestamps (``Frame.timestamp_s``) are device time [s]: exact (the side-channel line's ``t_us``)
+for edge, gate and camera-master frames; for a plain internal trigger the camera's estimate of
+the device clock (last side-channel time + real time since x the simulator's speed;
+``metadata["device_t_exact"]`` is False).
+
+This module registers the ``sim`` scheme of :func:`dualscale.capture.camera.open_camera` when
+imported; no production module imports it (the CLI does, to offer ``sim:`` cameras).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import queue
+import socket
+import threading
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dualscale.capture.camera import (Deadline, Frame, SensorInfo, TriggerInfo, TriggerMode, frame_metadata,
+                                      register_backend, split_options)
+from dualscale.errors import CameraDisconnected, CameraError, CameraTimeout, InputError
+from dualscale.protocol import regmap as rm
+
+OPTIONS = ("hw", "material", "maps", "size", "texel_um", "field_mm", "seed", "shadows", "noise", "white_level",
+           "readout_ms", "master", "drop", "fault_seed")
+"""The spec options this backend knows (module docstring); any other is an ``InputError``."""
+
+DEFAULT_MATERIAL = "twill"
+DEFAULT_READOUT_MS = 5.0
+EXPOSURE_RANGE_S = (1e-6, 60.0)
+"""The exposures a frame may have [s]: the firmware's bracket range (PROTOCOL.md §5: 1 µs .. 60 s)."""
+HELLO_S = 5.0
+"""Longest wait for the simulator's ``hello`` after connecting [s]."""
+SYNC_S = 2.0
+"""Longest wait for the side channel's answer to a synchronising line [s] (the simulator itself
+drops a client that stalls this long)."""
+SOURCE_KIND = {int(rm.Source.LED): "led", int(rm.Source.BACKLIGHT): "backlight", int(rm.Source.DIFFUSE): "diffuse"}
+"""Side-channel light ``kind`` (``rm.Source``) -> the light kind of :mod:`dualscale.sim.targets`."""
+RADIANCE_CACHE = 16
+"""How many (lights, analyser) states keep their raw signal (a step's brackets reuse it)."""
+
+Lights = tuple[tuple[int, int, int], ...]  # ((kind, index, intensity register value), ...), sorted
+
+
+# ---- the spec ------------------------------------------------------------------------------------
+
+def _opt_int(opts: dict[str, str], key: str, spec: str, default: int, low: int = 0) -> int:
+    if key not in opts:
+        return default
+    try:
+        v = int(opts[key])
+    except ValueError:
+        v = low - 1
+    if v < low:
+        raise InputError(f"camera {spec!r}: option {key}={opts[key]!r} must be an integer >= {low}")
+    return v
+
+
+def _opt_num(opts: dict[str, str], key: str, spec: str, default: float | None, low: float = 0.0,
+             high: float = math.inf, low_open: bool = True) -> float | None:
+    if key not in opts:
+        return default
+    try:
+        v = float(opts[key])
+    except ValueError:
+        v = math.nan
+    ok = math.isfinite(v) and (v > low if low_open else v >= low) and v <= high
+    if not ok:
+        rng = f"{'(' if low_open else '['}{low:g}, {high:g}]"
+        raise InputError(f"camera {spec!r}: option {key}={opts[key]!r} must be a number in {rng}")
+    return v
+
+
+def _opt_bool(opts: dict[str, str], key: str, spec: str, default: bool) -> bool:
+    if key not in opts:
+        return default
+    if opts[key] not in ("0", "1"):
+        raise InputError(f"camera {spec!r}: option {key}={opts[key]!r} must be 0 or 1")
+    return opts[key] == "1"
+
+
+@dataclass(frozen=True)
+class SimOptions:
+    """A parsed ``sim:`` spec (module docstring; lengths in the units their names say)."""
+
+    camera: str
+    hw: str
+    material: str | None = DEFAULT_MATERIAL
+    maps: str | None = None
+    size: int | None = None
+    texel_um: float | None = None
+    field_mm: float = 100.0
+    seed: int = 0
+    shadows: bool = False
+    noise: bool = True
+    white_level: float = 1.0
+    readout_ms: float = DEFAULT_READOUT_MS
+    master: bool = False
+    drop: float = 0.0
+    fault_seed: int = 0
+
+    @classmethod
+    def parse(cls, rest: str) -> SimOptions:
+        """``"micro?hw=/tmp/hw.sock&material=twill&size=32"`` -> options; ``InputError`` naming the
+        spec and the option for anything it cannot use."""
+        spec = f"sim:{rest}"
+        name, opts = split_options(rest)
+        if name not in rm.CAMERA_NAMES:
+            raise InputError(f"camera {spec!r}: give sim:CAMERA?hw=SOCKET with CAMERA one of "
+                             f"{', '.join(rm.CAMERA_NAMES)}")
+        unknown = sorted(set(opts) - set(OPTIONS))
+        if unknown:
+            raise InputError(f"camera {spec!r}: unknown option(s) {', '.join(unknown)}; known: {', '.join(OPTIONS)}")
+        if not opts.get("hw"):
+            raise InputError(f"camera {spec!r}: option hw=SOCKET (the simulator's --hw-socket) is required")
+        if "material" in opts and "maps" in opts:
+            raise InputError(f"camera {spec!r}: give material=NAME or maps=PATH, not both")
+        shadows = _opt_bool(opts, "shadows", spec, False)
+        if shadows and name != "micro":
+            raise InputError(f"camera {spec!r}: shadows=1 works on the map grid only (the micro camera)")
+        return cls(camera=name, hw=opts["hw"], material=None if "maps" in opts else opts.get("material", DEFAULT_MATERIAL),
+                   maps=opts.get("maps"), size=_opt_int(opts, "size", spec, 0, low=8) or None,
+                   texel_um=_opt_num(opts, "texel_um", spec, None), field_mm=_opt_num(opts, "field_mm", spec, 100.0),
+                   seed=_opt_int(opts, "seed", spec, 0), shadows=shadows, noise=_opt_bool(opts, "noise", spec, True),
+                   white_level=_opt_num(opts, "white_level", spec, 1.0, high=1.0),
+                   readout_ms=_opt_num(opts, "readout_ms", spec, DEFAULT_READOUT_MS, low_open=False),
+                   master=_opt_bool(opts, "master", spec, False),
+                   drop=_opt_num(opts, "drop", spec, 0.0, high=1.0, low_open=False),
+                   fault_seed=_opt_int(opts, "fault_seed", spec, 0))
+
+
+# ---- the scene: sample, camera geometry, sensor --------------------------------------------------
+
+class Scene:
+    """What the camera looks at and how it records it: the sample's maps on the dome, the camera's
+    geometry (:mod:`dualscale.geometry.cameras`) and its sensor (:func:`~dualscale.sim.targets.rig_exposer`).
+
+    :meth:`raw` is the raw camera signal ``(H, W, 3)`` float64 of a light state (cached);
+    :meth:`expose` one exposure of it in normalised DN."""
+
+    def __init__(self, o: SimOptions, spec: str):
+        import torch
+
+        from dualscale.geometry.cameras import micro_camera, mid_camera, polar_camera
+        from dualscale.geometry.dome import DomeGeometry
+        from dualscale.sim.targets import Defects, SynthConfig, rig_exposer
+
+        self.options = o
+        geometry = None
+        if o.maps is not None:
+            from dualscale.formats.maps import load_maps
+
+            maps, meta = load_maps(o.maps, dtype=torch.float32)
+            h, w = maps.shape
+            meta_texel_um = float(meta["texel_mm"]) * 1000.0 if meta.get("texel_mm") else None
+            if o.camera == "micro":
+                if h != w:
+                    raise InputError(f"camera {spec!r}: the micro camera needs square maps, {o.maps} is {h}x{w}")
+                if o.size is not None and o.size != w:
+                    raise InputError(f"camera {spec!r}: size={o.size}, but the micro camera images the map grid "
+                                     f"and {o.maps} is {w} texels wide (leave size out)")
+            if o.shadows:
+                from dualscale.formats.relief import load_geometry
+
+                path = Path(o.maps) / "geometry.exr"
+                if not path.is_file():
+                    raise InputError(f"camera {spec!r}: shadows=1 needs the relief {path}")
+                geometry = load_geometry(path)
+            texel_um = o.texel_um or meta_texel_um or 1.8
+            source = f"maps:{Path(o.maps).resolve()}"
+            size = w if o.camera == "micro" else (o.size or 256)
+        else:
+            from dualscale.sim.materials import generate
+
+            size = o.size or (512 if o.camera == "micro" else 256)
+            texel_um = o.texel_um or (1.8 if o.camera == "micro" else o.field_mm * 1000.0 / size)
+            mat = generate(o.material or DEFAULT_MATERIAL, size, texel_um / 1000.0, o.seed)
+            maps, meta = mat.maps, mat.meta
+            geometry = mat.geometry if o.shadows else None
+            source = f"material:{o.material}"
+        if o.shadows and geometry is None:
+            raise InputError(f"camera {spec!r}: shadows=1, but the material has no relief")
+        if o.camera == "micro":
+            cam, texel_mm = micro_camera(maps.shape[1], texel_um), None
+        elif o.camera == "mid":
+            cam, texel_mm = mid_camera(size, field_mm=o.field_mm), texel_um / 1000.0
+        else:
+            cam, texel_mm = polar_camera(int(o.camera[-1]), size, field_mm=o.field_mm), texel_um / 1000.0
+        self.maps, self.meta, self.geometry, self.camera, self.texel_mm = maps, meta, geometry, cam, texel_mm
+        self.texel_um, self.source = texel_um, source
+        self.dome = DomeGeometry.from_regmap()
+        self.cfg = SynthConfig(white_level=o.white_level)
+        self.defects = Defects()
+        self.exposer = rig_exposer(cam, self.cfg, self.defects, noise=o.noise)
+        self._cache: OrderedDict[tuple, np.ndarray] = OrderedDict()
+        self.renders = 0
+        self.render_s = 0.0
+
+    def identity(self) -> str:
+        """The sample and sensor geometry the serial is made from."""
+        o = self.options
+        return f"{self.source}|seed={o.seed}|size={self.camera.width}|texel_um={self.texel_um:g}|field_mm={o.field_mm:g}"
+
+    def raw(self, lights: Lights, polarizer_cdeg: int | None) -> np.ndarray:
+        """The raw signal ``(H, W, 3)`` (:func:`dualscale.sim.targets.raw_signal`, summed over the
+        lights that are on) for ``lights`` ((rm.Source kind, index, intensity register value), ...)
+        with the analyser at ``polarizer_cdeg`` [centidegrees] (ignored by a camera without one)."""
+        import torch
+
+        from dualscale.sim.render import Analyzer, LightRealism, LightState, render
+        from dualscale.sim.targets import raw_signal
+
+        cdeg = polarizer_cdeg if self.camera.has_analyzer else None
+        key = (lights, cdeg)
+        hit = self._cache.get(key)
+        if hit is not None:
+            self._cache.move_to_end(key)
+            return hit
+        t0 = time.perf_counter()
+        an = None if cdeg is None else Analyzer(cdeg / 100.0, relative=True)
+        out = np.zeros((self.camera.height, self.camera.width, 3))
+        for kind, index, intensity in lights:
+            name = SOURCE_KIND.get(kind)
+            if name is None or intensity <= 0:
+                continue
+            level = intensity / rm.INTENSITY_MAX
+            state = (LightState.led(index, level) if name == "led" else
+                     LightState.backlight(index, level) if name == "backlight" else LightState.diffuse_group(level))
+            rad = render(self.maps, self.camera, state, self.dome, an, texel_mm=self.texel_mm, geometry=self.geometry,
+                         realism=LightRealism(shadows=self.geometry is not None))
+            with torch.no_grad():
+                rad_np = rad.detach().double().cpu().numpy()
+            out = out + raw_signal(rad_np, self.camera, name, index if name != "diffuse" else None,
+                                   self.cfg, self.defects)
+        self.renders += 1
+        self.render_s += time.perf_counter() - t0
+        self._cache[key] = out
+        while len(self._cache) > RADIANCE_CACHE:
+            self._cache.popitem(last=False)
+        return out
+
+    def expose(self, raw: np.ndarray, exposure_s: float) -> np.ndarray:
+        """One exposure of ``raw`` for ``exposure_s`` [s]: float32 normalised DN ``(H, W, 3)``."""
+        return np.asarray(self.exposer(raw, exposure_s), dtype=np.float32)
+
+
+# ---- the camera ----------------------------------------------------------------------------------
+
+@dataclass
+class _Exposure:
+    """One exposure waiting for the render worker."""
+
+    generation: int
+    index: int
+    t_us: int
+    exposure_s: float
+    lights: Lights
+    polarizer_cdeg: int
+    info: TriggerInfo
+    source: str                      # "edge", "gate", "software" or "master"
+    exact: bool                      # t_us is a side-channel time (not an estimate)
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+class SimCamera:
+    """A camera of the simulated rig (module docstring).  Implements
+    :class:`dualscale.capture.camera.Camera`; open it with ``open_camera("sim:...")``."""
+
+    def __init__(self, rest: str):
+        self.spec = f"sim:{rest}"
+        o = SimOptions.parse(rest)
+        self.options = o
+        self.name = o.camera
+        self.bit = rm.TRIGGER_NAMES.index(o.camera)
+        self.camera_index = rm.CAMERA_NAMES.index(o.camera)
+        self.scene = Scene(o, self.spec)
+        digest = hashlib.sha1(self.scene.identity().encode()).hexdigest()[:8].upper()
+        self.serial = f"SIM-{o.camera}-{digest}"
+        self.readout_s = o.readout_ms / 1000.0
+        self._rng = np.random.default_rng(o.fault_seed)
+        self._cond = threading.Condition()
+        self._send_lock = threading.Lock()
+        # live state (reader thread)
+        self._lights: dict[tuple[int, int], int] = {}
+        self._polarizer = 0
+        self._level: int | None = None
+        self._last_t_us = 0
+        self._last_mono = time.monotonic()
+        self._rate = 1.0
+        self._hello: dict[str, Any] | None = None
+        self._syncs = 0
+        self._edge_events: list[dict[str, Any]] = []
+        self._disconnected: str | None = None
+        self._failed: str | None = None  # a frame that could not be rendered (a bug, not the link)
+        self._stop = False
+        # acquisition
+        self._info: TriggerInfo | None = None
+        self._armed = False
+        self._generation = 0
+        self._exposed = 0            # exposures started this acquisition (dropped ones included)
+        self._pending = 0            # exposures queued and not yet rendered
+        self._busy_until_us = -1     # device time until which the sensor is exposing / reading out
+        self._gate: tuple[int, Lights, int] | None = None
+        self._frames: list[Frame] = []
+        self._counters = {"ignored_triggers": 0, "busy_triggers": 0, "dropped_frames": 0, "unarmed_triggers": 0}
+        self._jobs: queue.Queue[_Exposure | None] = queue.Queue()
+        self._sock = self._connect(o.hw)
+        self._reader = threading.Thread(target=self._read_loop, name=f"sim-camera-{o.camera}-sidechan", daemon=True)
+        self._worker = threading.Thread(target=self._render_loop, name=f"sim-camera-{o.camera}-render", daemon=True)
+        self._reader.start()
+        self._worker.start()
+        deadline = Deadline(HELLO_S)
+        with self._cond:
+            while self._hello is None and self._disconnected is None and not deadline.expired():
+                self._cond.wait(deadline.remaining())
+            hello = self._hello
+        if hello is None:
+            why = self._disconnected or f"no hello within {HELLO_S:g} s"
+            self.close()
+            raise CameraDisconnected(f"camera {self.spec!r}: the simulator's side channel {o.hw} did not greet ({why})")
+
+    # -- the side channel ----------------------------------------------------------------------
+    def _connect(self, path: str) -> socket.socket:
+        s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        try:
+            s.connect(path)
+        except OSError as e:
+            s.close()
+            raise CameraDisconnected(f"camera {self.spec!r}: cannot connect to the simulator's side channel "
+                                     f"{path} ({e.strerror or e}); start it with `dualscale sim --hw-socket {path}`") from e
+        s.settimeout(0.2)
+        return s
+
+    def _send(self, line: dict[str, Any]) -> None:
+        data = (json.dumps(line, separators=(",", ":")) + "\n").encode()
+        try:
+            with self._send_lock:
+                self._sock.sendall(data)
+        except OSError as e:
+            self._lost(f"sending failed: {e}")
+            raise CameraDisconnected(f"camera {self.spec!r}: the simulator's side channel {self.options.hw} "
+                                     f"is gone ({e})") from e
+
+    def _lost(self, why: str) -> None:
+        with self._cond:
+            if self._disconnected is None:
+                self._disconnected = why
+            self._cond.notify_all()
+
+    def _read_loop(self) -> None:
+        buf = b""
+        while not self._stop:
+            try:
+                chunk = self._sock.recv(65536)
+            except socket.timeout:
+                continue
+            except OSError as e:
+                self._lost(f"read failed: {e}")
+                return
+            if not chunk:
+                self._lost("the simulator closed the side channel")
+                return
+            buf += chunk
+            *lines, buf = buf.split(b"\n")
+            with self._cond:
+                for ln in lines:
+                    if ln.strip():
+                        try:
+                            self._handle(json.loads(ln))
+                        except (ValueError, KeyError, TypeError):
+                            continue  # not a line of ours to judge; the state is unchanged
+                self._cond.notify_all()
+
+    def _handle(self, o: dict[str, Any]) -> None:
+        """One side-channel line, under ``self._cond``."""
+        ev = o.get("ev")
+        if "t_us" in o:
+            t = int(o["t_us"])
+            if t >= self._last_t_us:
+                self._last_t_us, self._last_mono = t, time.monotonic()
+        if ev == "light":
+            key = (int(o["kind"]), int(o["index"]))
+            if int(o["intensity"]) > 0:
+                self._lights[key] = int(o["intensity"])
+            else:
+                self._lights.pop(key, None)
+        elif ev == "polarizer":
+            self._polarizer = int(o["cdeg"])
+        elif ev == "triggers":
+            self._on_triggers(int(o["mask"]), int(o["t_us"]))
+        elif ev == "event":
+            if int(o["kind"]) == rm.Event.CAMERA_EDGE and (int(o["arg"]) & ~rm.EDGE_IGNORED) == self.camera_index:
+                self._edge_events.append({k: o[k] for k in ("t_us", "seq", "step", "arg")}
+                                         | {"ignored": bool(int(o["arg"]) & rm.EDGE_IGNORED)})
+        elif ev in ("error", "pong"):  # the answer to a synchronising line (_sync)
+            self._syncs += 1
+        elif ev == "hello":
+            speed = float(o.get("speed", 1.0))
+            self._rate = speed if speed > 0 else 1.0  # speed 0 runs at 1x between jumps (sim.h)
+            self._hello = o
+
+    def _snapshot(self) -> Lights:
+        return tuple(sorted((k, i, v) for (k, i), v in self._lights.items()))
+
+    def _on_triggers(self, mask: int, t_us: int) -> None:
+        level = (mask >> self.bit) & 1
+        prev, self._level = self._level, level
+        if prev is None or level == prev:
+            return
+        info = self._info
+        hw_mode = info is not None and info.mode in (TriggerMode.EDGE, TriggerMode.GATE)
+        if level:  # rising edge
+            if not (self._armed and hw_mode):
+                self._counters["unarmed_triggers"] += 1
+                return
+            if self._exposed >= info.frames:
+                self._counters["ignored_triggers"] += 1
+                return
+            if t_us < self._busy_until_us:
+                self._counters["busy_triggers"] += 1
+                return
+            if info.mode == TriggerMode.EDGE:
+                self._busy_until_us = t_us + round(info.exposure_s * 1e6 + self.readout_s * 1e6)
+                self._queue(t_us, info.exposure_s, self._snapshot(), "edge", True)
+            else:
+                self._gate = (t_us, self._snapshot(), self._polarizer)
+                self._busy_until_us = 2 ** 63  # exposing until the gate falls
+        elif self._gate is not None and self._armed and info is not None and info.mode == TriggerMode.GATE:
+            t0, lights, cdeg = self._gate
+            self._gate = None
+            self._busy_until_us = t_us + round(self.readout_s * 1e6)
+            exposure = max((t_us - t0) / 1e6, EXPOSURE_RANGE_S[0])
+            self._queue(t0, exposure, lights, "gate", True, polarizer_cdeg=cdeg)
+
+    def _queue(self, t_us: int, exposure_s: float, lights: Lights, source: str, exact: bool,
+               polarizer_cdeg: int | None = None, extra: dict[str, Any] | None = None) -> None:
+        """Start exposure number ``self._exposed`` (under ``self._cond``); ``drop`` may lose it."""
+        index = self._exposed
+        self._exposed += 1
+        if self.options.drop > 0 and self._rng.random() < self.options.drop:
+            self._counters["dropped_frames"] += 1
+            return
+        self._pending += 1
+        self._jobs.put(_Exposure(self._generation, index, int(t_us), float(exposure_s), lights,
+                                 self._polarizer if polarizer_cdeg is None else polarizer_cdeg, self._info,
+                                 source, exact, dict(extra or {})))
+
+    def _device_now_us(self) -> int:
+        """The device clock now [µs], estimated (under ``self._cond``)."""
+        return self._last_t_us + int((time.monotonic() - self._last_mono) * self._rate * 1e6)
+
+    def _sync(self) -> None:
+        """Wait until every line the simulator published before now has been handled: send a line
+        the simulator answers (it answers anything but an edge with an ``error`` line, and handles
+        a client's lines in order, after publishing what they caused).  ``CameraDisconnected`` if
+        the side channel is gone or silent for :data:`SYNC_S`."""
+        with self._cond:
+            n0 = self._syncs
+        self._send({"ev": "ping"})
+        deadline = Deadline(SYNC_S)
+        with self._cond:
+            while self._syncs <= n0 and self._disconnected is None and not deadline.expired():
+                self._cond.wait(deadline.remaining())
+            if self._syncs <= n0:
+                why = self._disconnected or f"no answer within {SYNC_S:g} s"
+                raise CameraDisconnected(f"camera {self.spec!r}: the simulator's side channel {self.options.hw} "
+                                         f"stopped answering ({why})")
+
+    # -- rendering -----------------------------------------------------------------------------
+    def _render_loop(self) -> None:
+        while True:
+            job = self._jobs.get()
+            if job is None:
+                return
+            try:
+                raw = self.scene.raw(job.lights, job.polarizer_cdeg)
+                image = self.scene.expose(raw, job.exposure_s)
+                error = None
+            except Exception as e:  # noqa: BLE001 - reported through collect(), never lost silently
+                image, error = None, f"{type(e).__name__}: {e}"
+            with self._cond:
+                self._pending -= 1
+                if error is not None:
+                    self._failed = self._failed or f"rendering frame {job.index} failed: {error}"
+                elif job.generation == self._generation:
+                    meta = frame_metadata(self, job.info)
+                    meta.update({"device_t_us": job.t_us, "device_t_exact": job.exact,
+                                 "lights": [list(x) for x in job.lights],
+                                 "polarizer_cdeg": job.polarizer_cdeg if self.scene.camera.has_analyzer else None,
+                                 "trigger_source": job.source, **job.extra})
+                    self._frames.append(Frame(image=image, index=job.index, timestamp_s=job.t_us / 1e6,
+                                              exposure_s=job.exposure_s, metadata=meta))
+                self._cond.notify_all()
+
+    # -- the contract --------------------------------------------------------------------------
+    def geometry(self):
+        """The camera's geometry on the rig (:class:`dualscale.geometry.cameras.Camera`: name,
+        projection, size, field [mm], analyser), the one its frames are rendered with: what a
+        dataset records for this camera."""
+        return self.scene.camera
+
+    def sensor(self) -> SensorInfo:
+        """The simulated sensor: the camera's size, pixel pitch [µm] (the micro camera's texel, a
+        mid/polar camera's field / size), 12 bits, black level 0 (the dark signal is measured from
+        dark frames, as on the rig), white level ``SynthConfig.white_level``."""
+        cam = self.scene.camera
+        return SensorInfo(width=cam.width, height=cam.height, pixel_um=cam.pixel_mm[0] * 1000.0,
+                          bit_depth=self.scene.cfg.sensor().bits, black_level=0.0,
+                          white_level=float(np.min(self.scene.cfg.white_level)), pixel_format="RGB12")
+
+    def settings(self) -> dict[str, Any]:
+        o = self.options
+        with self._cond:
+            counters = dict(self._counters)
+        return {"backend": "sim", "camera": o.camera, "hw": o.hw, "sample": self.scene.source,
+                "size": self.scene.camera.width, "texel_um": self.scene.texel_um,
+                "field_mm": None if o.camera == "micro" else o.field_mm, "seed": o.seed, "shadows": o.shadows,
+                "noise": o.noise, "white_level": o.white_level, "readout_s": self.readout_s, "master": o.master,
+                "trigger_bit": self.bit, "sensitivity": self.scene.cfg.sens(o.camera),
+                "drop": o.drop, "fault_seed": o.fault_seed, **counters}
+
+    def supported_modes(self) -> tuple[TriggerMode, ...]:
+        return (TriggerMode.INTERNAL, TriggerMode.EDGE, TriggerMode.GATE)
+
+    def prepare(self, info: TriggerInfo) -> None:
+        """Declare the acquisition; ``InputError`` for an exposure outside 1 µs .. 60 s, or a
+        hardware-trigger mode on a camera-master camera (it is triggered by :meth:`trigger`)."""
+        lo, hi = EXPOSURE_RANGE_S
+        if not lo <= info.exposure_s <= hi:
+            raise InputError(f"camera {self.spec!r}: exposure {info.exposure_s!r} s outside {lo:g} .. {hi:g} s")
+        if self.options.master and info.mode != TriggerMode.INTERNAL:
+            raise InputError(f"camera {self.spec!r}: a camera-master camera (master=1) takes internal triggers only "
+                             f"(each trigger() sends its edge to the rig), not {info.mode.value!r}")
+        with self._cond:
+            self._armed = False
+            self._gate = None
+            self._info = info
+
+    def arm(self) -> None:
+        with self._cond:
+            if self._info is None:
+                raise InputError(f"camera {self.spec!r}: arm() before prepare()")
+            self._generation += 1
+            self._frames = []
+            self._exposed = 0
+            self._gate = None
+            self._counters = {k: 0 for k in self._counters}
+            self._armed = True
+
+    def trigger(self) -> None:
+        """``internal`` mode: expose now (blocks until the sensor is free of its previous
+        exposure and readout, in device time).  With ``master=1`` first send the camera-master
+        edge and expose the state the firmware latched on it."""
+        with self._cond:
+            info = self._info
+            if info is None or not self._armed:
+                raise InputError(f"camera {self.spec!r}: trigger() while not armed (prepare() and arm() first)")
+            if info.mode != TriggerMode.INTERNAL:
+                raise InputError(f"camera {self.spec!r}: trigger() in {info.mode.value} mode (the rig's trigger "
+                                 "line starts the exposures)")
+            if self._exposed >= info.frames:
+                raise InputError(f"camera {self.spec!r}: trigger() beyond the {info.frames} frame(s) armed for")
+            if self._disconnected is not None:
+                raise CameraDisconnected(f"camera {self.spec!r}: the simulator's side channel is gone "
+                                         f"({self._disconnected})")
+            wait_us = self._busy_until_us - self._device_now_us()
+            rate = self._rate
+        if wait_us > 0:
+            time.sleep(wait_us / 1e6 / rate)
+        with self._cond:
+            n_edges = len(self._edge_events)
+        if self.options.master:
+            self._send({"ev": "edge", "camera": self.camera_index})
+        self._sync()
+        with self._cond:
+            extra: dict[str, Any] = {}
+            edges = self._edge_events[n_edges:] if self.options.master else []
+            if self.options.master:
+                extra["master_edge"] = edges[0] if edges else None  # None: the rig did not count it
+            if edges:
+                t_us, exact = int(edges[0]["t_us"]), True
+            else:
+                t_us, exact = max(self._device_now_us(), self._busy_until_us, self._last_t_us), False
+            self._busy_until_us = t_us + round((info.exposure_s + self.readout_s) * 1e6)
+            self._queue(t_us, info.exposure_s, self._snapshot(), "master" if self.options.master else "software",
+                        exact, extra=extra)
+
+    def collect(self, timeout_s: float | None = None) -> list[Frame]:
+        """The armed frames, in order.  Fewer by ``timeout_s`` (default
+        ``TriggerInfo.total_timeout()``, from this call) raise ``CameraTimeout`` carrying those that
+        arrived (at once when every armed exposure was taken and the rest were lost to ``drop``);
+        a side channel that closed raises ``CameraDisconnected`` (its ``frames`` likewise)
+        once the exposures taken before are rendered; a frame that could not be rendered raises
+        ``CameraError`` (with ``frames``) at once."""
+        info = self._info
+        if info is None:
+            raise InputError(f"camera {self.spec!r}: collect() before prepare()")
+        wait = info.total_timeout() if timeout_s is None else float(timeout_s)
+        deadline = Deadline(wait)
+        with self._cond:
+            while len(self._frames) < info.frames and not deadline.expired() and self._failed is None:
+                if self._pending == 0 and (self._disconnected is not None or self._exposed >= info.frames):
+                    break  # nothing more can come: the link is gone, or every armed exposure is done
+                self._cond.wait(min(deadline.remaining(), 0.5))
+            frames = sorted(self._frames, key=lambda f: f.index)
+            gone, failed, counters = self._disconnected, self._failed, dict(self._counters)
+            done = self._exposed >= info.frames and self._pending == 0
+        if len(frames) < info.frames:
+            seen = ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in counters.items() if v)
+            msg = (f"camera {self.spec!r}: {len(frames)} of {info.frames} frame(s)"
+                   + (f"; {seen}" if seen else ""))
+            err: CameraError
+            if failed is not None:
+                err = CameraError(f"{msg}; {failed}")
+            elif gone is not None:
+                err = CameraDisconnected(f"{msg}; the simulator's side channel is gone ({gone})")
+            elif done:  # lost frames (drop=): known at once, as a real camera knows a frame-id gap
+                raise CameraTimeout(f"{msg}; all {info.frames} armed exposure(s) taken, the missing frame(s) "
+                                    f"were lost", frames=frames)
+            else:
+                raise CameraTimeout(f"{msg} within {wait:.3g} s", frames=frames)
+            err.frames = frames  # type: ignore[attr-defined]  # never drop what arrived
+            raise err
+        return frames
+
+    def disarm(self) -> None:
+        with self._cond:
+            self._armed = False
+            self._gate = None
+
+    def close(self) -> None:
+        """Stop both threads and close the socket; safe to call more than once."""
+        self._stop = True
+        try:
+            self._sock.shutdown(socket.SHUT_RDWR)
+        except OSError:
+            pass
+        self._jobs.put(None)
+        for th in (getattr(self, "_reader", None), getattr(self, "_worker", None)):
+            if th is not None and th.is_alive() and th is not threading.current_thread():
+                th.join(timeout=10.0)
+        self._sock.close()
+
+    def __enter__(self) -> SimCamera:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def open_sim_camera(rest: str) -> SimCamera:
+    """The ``sim`` backend's factory: ``rest`` is the spec after ``sim:`` (module docstring)."""
+    return SimCamera(rest)
+
+
+register_backend("sim", open_sim_camera)
