@@ -87,14 +87,18 @@ test-slow: deps
 	$(MAKE) -C firmware all
 	$(PY) -m pytest -m slow -q
 
-# The main job on the simulated rig: the capture sequence on the firmware simulator, then a
-# synthetic twill captured by the virtual rig's sensor (camera counts, per-LED exposures), the
-# calibration targets and their calibration, and `dualscale digitize` on them.  Each step is
-# skipped when its output exists, and digitize resumes by itself: rerunning `make demo`
-# continues where it stopped.  To stay within 10 minutes on 2 cores the demo captures every
-# 4th LED (the calibration covers the same LEDs), a micro field of 128 px of 7.2 um (the rig's
-# 0.92 mm field binned 4x) and a guidance image of 512 px over 12.5 mm (24 um per pixel, the
-# pitch of the rig's 4072 px mid-range camera); docs/DIGITIZE.md measures it.
+# The main job on the simulated rig: the capture sequence on the firmware simulator, the
+# calibration targets of the virtual rig and their calibration, then `dualscale digitize --rig sim`:
+# the POSIX firmware simulator (the real C core) times every exposure, simulated micro and mid
+# cameras on its trigger lines take a synthetic twill (camera counts: LED spectra and gains,
+# vignetting, dark signal, noise; metered HDR brackets), and the run goes on through calibrate,
+# fit, propagate, export and report.  Each step is skipped when its output exists, and digitize
+# resumes by itself (the capture from its journal): rerunning `make demo` continues where it
+# stopped.  To stay within 10 minutes on 2 cores the demo captures every 4th LED (the
+# calibration covers the same LEDs), a micro field of 128 px of 7.2 um (the rig's 0.92 mm field
+# binned 4x) and a guidance image of 512 px over 12.5 mm (24 um per pixel, the pitch of the
+# rig's 4072 px mid-range camera), with the simulator's clock at 10x real time; docs/DIGITIZE.md
+# measures it.
 DEMO ?= $(BUILD)/demo
 DEMO_SIZE ?= 128
 DEMO_TEXEL_UM ?= 7.2
@@ -102,6 +106,7 @@ DEMO_LED_STEP ?= 4
 DEMO_MID_SIZE ?= 512
 DEMO_MID_FIELD_MM ?= 12.5
 DEMO_QUALITY ?= standard
+DEMO_SIM_SPEED ?= 10
 # one thread: on a shared 2-core machine a second torch thread per process costs far more than it gives
 DEMO_THREADS ?= 1
 DS := $(VENV)/bin/dualscale
@@ -111,11 +116,11 @@ demo: deps
 	@test -f $(DEMO)/targets/captures.json || $(DS) synth-targets -o $(DEMO)/targets --led-step $(DEMO_LED_STEP) \
 	    --threads $(DEMO_THREADS)
 	@test -f $(DEMO)/calibration.json || $(DS) calibrate $(DEMO)/targets -o $(DEMO)/calibration.json --threads $(DEMO_THREADS)
-	@test -f $(DEMO)/sample/mid/manifest.json || $(DS) synth twill -o $(DEMO)/sample --size $(DEMO_SIZE) \
-	    --texel-um $(DEMO_TEXEL_UM) --dataset --lights mod$(DEMO_LED_STEP) --mid --mid-size $(DEMO_MID_SIZE) \
-	    --mid-field-mm $(DEMO_MID_FIELD_MM) --realistic --threads $(DEMO_THREADS)
-	$(DS) digitize $(DEMO)/sample/micro -o $(DEMO)/run --calibration $(DEMO)/calibration.json \
-	    --guidance $(DEMO)/sample/mid --quality $(DEMO_QUALITY) --tile --threads $(DEMO_THREADS)
+	$(DS) digitize --rig sim --sim-speed $(DEMO_SIM_SPEED) --rig-id virtual-dome-0 --lights MOD$(DEMO_LED_STEP) \
+	    --camera 'sim:micro?material=twill&size=$(DEMO_SIZE)&texel_um=$(DEMO_TEXEL_UM)' \
+	    --camera 'sim:mid?material=twill&size=$(DEMO_MID_SIZE)&field_mm=$(DEMO_MID_FIELD_MM)' \
+	    -o $(DEMO)/run --calibration $(DEMO)/calibration.json --name twill \
+	    --quality $(DEMO_QUALITY) --tile --threads $(DEMO_THREADS)
 
 # Every benchmark prints a markdown table for the doc it belongs to (see each script's docstring).
 bench: deps

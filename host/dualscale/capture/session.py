@@ -133,7 +133,8 @@ class CaptureSummary:
     retake_reasons: dict[str, int] = field(default_factory=dict)
     resumed_shots: int = 0
     sequences: int = 0
-    sequence_device_s: float = 0.0   # Σ scheduled device time of the capture sequences
+    sequence_device_s: float = 0.0   # Σ scheduled device time of every sequence (metering included)
+    capture_device_s: float = 0.0    # Σ scheduled device time of the capture sequences (retakes included)
     floor_s: float = 0.0             # Σ settle + exposure + gap (+ servo) of the plan's steps
     capture_wall_s: float = 0.0      # wall time of the capture sequences (upload to last frame)
     meter_wall_s: float = 0.0
@@ -506,6 +507,7 @@ class CaptureSession:
         while pending:
             batch, pending = pending[:self.opts.batch_steps], pending[self.opts.batch_steps:]
             steps, events, frames, err = self._run_sequence(batch, plans)
+            self.summary.capture_device_s += schedule(steps, self._gap_us())[-1].end / 1e6
             matched: dict[str, dict[int, list[Frame]]] = {}
             bad_all: dict[int, str] = {}
             for role in self.plan.roles:
