@@ -105,22 +105,34 @@ def main() -> None:
     ap.add_argument("--fault-runs", type=int, default=10)
     ap.add_argument("--heavy-runs", type=int, default=3)
     ap.add_argument("--kills", type=int, default=10)
+    ap.add_argument("--kill-lights", default="MOD16")
+    ap.add_argument("--parts", default="floor,faults,kills")
     a = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="bench-capture-"))
     print(f"### capture on the simulated rig ({header()})\n")
 
-    # 1. floor
-    r = capture(tmp / "floor", a.floor_lights, 1.0)["summary"]
+    parts = a.parts.split(",")
+    ref = tmp / "ref"
+    if "floor" in parts:
+        floor(tmp, a.floor_lights)
+    if "faults" in parts:
+        capture(ref, a.fault_lights, 10.0)
+        faults(tmp, ref, a)
+    if "kills" in parts:
+        kills(tmp, a)
+
+
+def floor(tmp: Path, lights: str) -> None:
+    r = capture(tmp / "floor", lights, 1.0)["summary"]
     over = r.capture_wall_s / r.floor_s - 1
     print(f"| plan (speed 1) | shots | frames | physical floor | capture | over the floor | device time "
           f"of the capture sequences | metering |")
     print("|---|---:|---:|---:|---:|---:|---:|---:|")
-    print(f"| micro {a.floor_lights} | {r.shots} | {r.frames} | {r.floor_s:.2f} s | {r.capture_wall_s:.2f} s | "
+    print(f"| micro {lights} | {r.shots} | {r.frames} | {r.floor_s:.2f} s | {r.capture_wall_s:.2f} s | "
           f"{100 * over:+.1f} % | {r.capture_device_s:.2f} s | {r.meter_wall_s:.2f} s |\n")
 
-    # 2. link faults
-    ref = tmp / "ref"
-    capture(ref, a.fault_lights, 10.0)
+
+def faults(tmp: Path, ref: Path, a: argparse.Namespace) -> None:
     print("| corruption per byte | runs completed | bytes corrupted (median) | frames lost | frames doubled | "
           "images differing | shots taken again (median) | reconnects (median) |")
     print("|---|---:|---:|---:|---:|---:|---:|---:|")
@@ -146,9 +158,12 @@ def main() -> None:
               f"{statistics.median(retakes) if retakes else '-'} | {statistics.median(recon) if recon else '-'} |")
     print()
 
-    # 3. kill -9 and resume
+
+def kills(tmp: Path, a: argparse.Namespace) -> None:
+    ref = tmp / "ref-kills"
+    capture(ref, a.kill_lights, 10.0)
     cmd = [sys.executable, "-m", "dualscale.cli", "capture", "micro", "-o", "", "--port", "sim", "--camera", CAM,
-           "--lights", a.fault_lights, "--rig-id", "virtual-dome-0", "--sim-speed", "10", "--no-progress"]
+           "--lights", a.kill_lights, "--rig-id", "virtual-dome-0", "--sim-speed", "10", "--no-progress"]
     rng = np.random.default_rng(1)
     same = killed = 0
     delays = []
@@ -159,7 +174,7 @@ def main() -> None:
         t0 = time.monotonic()
         p = subprocess.Popen(c, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
                              cwd=ROOT)
-        delay = float(rng.uniform(0.5, 5.0))
+        delay = float(rng.uniform(0.5, 8.0))
         delays.append(delay)
         try:
             p.wait(delay)
@@ -167,13 +182,15 @@ def main() -> None:
             os.killpg(p.pid, signal.SIGKILL)
             p.wait()
             killed += 1
-        rc = subprocess.run(c + ["--resume"], capture_output=True, text=True, cwd=ROOT).returncode
+        done = subprocess.run(c + ["--resume"], capture_output=True, text=True, cwd=ROOT)
+        rc = done.returncode
         if rc == 0 and compare(ref, out) == (0, 0, 0) and journal_duplicates(out) == 0:
             same += 1
         else:
-            print(f"<!-- kill {k} after {delay:.1f} s: rc {rc}, compare {compare(ref, out) if rc == 0 else '-'} -->")
+            why = compare(ref, out) if rc == 0 else (done.stderr.strip().splitlines() or ["?"])[-1]
+            print(f"<!-- kill {k} after {delay:.1f} s: rc {rc}: {why} -->")
         _ = time.monotonic() - t0
-    print(f"| kill -9 at a random moment 0.5-5 s after the start of a {a.fault_lights} capture (speed 10), then "
+    print(f"| kill -9 at a random moment 0.5-8 s after the start of a {a.kill_lights} capture (speed 10), then "
           f"--resume | killed before the end | resumed datasets identical to an uninterrupted one |")
     print("|---|---:|---:|")
     print(f"| {a.kills} runs | {killed} | {same}/{a.kills} |")
