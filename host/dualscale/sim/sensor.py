@@ -12,6 +12,7 @@ white reflector gives raw green = 1.
 from __future__ import annotations
 
 import functools
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -35,7 +36,12 @@ def spectral_matrix(camera: str = "Nikon 5100 (NPL)", illuminant: str = "D65") -
     for rgb in np.eye(3):
         sd = colour.recovery.RGB_to_sd_Smits1999(colour.XYZ_to_RGB(
             colour.sRGB_to_XYZ(rgb, apply_cctf_decoding=False), "sRGB", apply_cctf_encoding=False))
-        basis.append(sd.copy().align(shape).values)
+        with warnings.catch_warnings():
+            # Smits' basis is tabulated on non-uniform wavelengths; aligning it to the camera's
+            # grid interpolates, which is what is wanted (colour warns "not uniform" each time)
+            warnings.filterwarnings("ignore", ".*spectral distribution is not uniform.*",
+                                    colour.utilities.ColourRuntimeWarning)
+            basis.append(sd.copy().align(shape).values)
     s = np.stack(basis, 0)  # (3 basis, n_lambda)
     r = sens.values.T  # (3 channels, n_lambda)
     m = r @ (s * ill.values[None]).T  # (channel, basis)
