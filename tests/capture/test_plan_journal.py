@@ -48,8 +48,8 @@ def test_micro_plan_is_the_synth_dataset_shots():
     assert p.shots[len(leds)] == Shot("backlight", 0, ANALYZERS_CDEG[0])
     assert len({s.key for s in p.shots}) == len(p.shots)
     assert make_plan("mid").shots == (Shot("diffuse", None, None),)
-    with pytest.raises(InputError, match="synth-targets"):
-        make_plan("white-sheet")
+    with pytest.raises(InputError, match="unknown plan"):
+        make_plan("white-paper")
 
 
 def test_journal_survives_a_torn_last_line(tmp_path):

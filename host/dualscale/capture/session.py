@@ -37,6 +37,26 @@ supplementary Sec. 3, the rig's sequence of lights, analyser angles and exposure
 
 ``DATASET/capture.json`` records the rig identity and firmware version, each camera's spec,
 serial, sensor and settings, the calibration id, the date and the plan.
+
+A step keeps its light on for its settle and brackets: the bracket plan keeps that within the
+rig's ``LED_MAX_ON_MS`` (read from the device; less a full servo turn), and a batch the firmware
+refuses for a light's duty budget (``LED_DUTY`` at step k) runs as steps before k, then the rest
+in a sequence of their own (:meth:`CaptureSession._run_batch`).
+
+**Calibration targets** (the plans of :data:`dualscale.capture.plan.TARGET_PLANS`): ``out`` is
+a capture set (``captures.json``, :mod:`dualscale.formats.captures`) that several plans fill.
+A plan's journal, frames and record live in ``out/parts/<plan>/``; it runs setup by setup
+(``operator(setup)`` first: the operator, or the virtual one, puts the target in place; then
+metering, from the last metered exposure of the same light, and capture), with each shot
+triggering only its own cameras.  Instead of step 6 the brackets themselves are the output, as
+``dualscale calibrate`` does its own HDR merge and white-level handling: the part (the record's
+``captureset``: rig, camera records with sensitivities and declared white level, one group per
+shot and camera -- target, light, patch, analyser (the micro camera's; relative P0/P90, absolute
+on the polarisation sweep), exposures, frame files --, dark frames at the metering exposure and
+at each camera's shortest and longest exposure, the holder's ``markers`` and ``chart`` corners
+and layout) is recorded, then :func:`write_capture_set` rewrites ``captures.json`` and
+``images/`` from every finished part through :class:`~dualscale.formats.captures.CaptureWriter`.
+The dot grid's camera is recorded as ``micro_dots`` (``dualscale synth-targets``' name).
 """
 
 from __future__ import annotations
@@ -52,6 +72,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from dualscale.calib.chart import ChartLayout
 from dualscale.calib.hdr import WhiteLevel, merge_debevec, plan_brackets
 from dualscale.calib.radiometric import dark_at, fit_dark
 from dualscale.errors import CameraError, CameraTimeout, FormatError, InputError, RigError
@@ -61,19 +82,21 @@ from dualscale.formats.exr import read_exr, write_exr
 from dualscale.geometry.cameras import Camera as GeometryCamera, micro_camera, mid_camera, polar_camera
 from dualscale.geometry.dome import DomeGeometry
 from dualscale.protocol import regmap as rm
-from dualscale.rig.client import ACTIVE, DEFAULT_WATCHDOG_MS, RigClient
+from dualscale.rig.client import ACTIVE, DEFAULT_WATCHDOG_MS, RigClient, SequenceRejected
 from dualscale.rig.events import Event
 from dualscale.rig.sequence import Step, schedule, servo_travel_us, split_words
 
 from .camera import Camera, Frame, TriggerInfo, TriggerMode, frame_metadata
 from .journal import JOURNAL, Journal
-from .plan import Plan, Shot
+from .plan import TARGET_PLANS, Plan, Setup, Shot
 
 FORMAT = "dualscale-capture"
 VERSION = 1
 METER_LOW, METER_HIGH = 0.05, 0.8  # metering and bracket targets, fractions of the white level
 METER_STEP = 8.0                   # metering: 8x shorter or longer (calib.hdr.meter's rule)
 MATCH_TOLERANCE_US = 50            # a frame's device time within this of its TRIGGER event
+PARTS = "parts"                    # a capture set's folder of calibration-target parts (module doc)
+RGB = ("R", "G", "B")
 
 
 @dataclass
@@ -211,19 +234,25 @@ class CaptureSession:
 
     def __init__(self, rig: RigClient, cameras: dict[str, Camera], plan: Plan, out: str | Path,
                  opts: CaptureOptions | None = None, resume: bool = False,
-                 progress: Callable[[int, int, str], None] | None = None) -> None:
+                 progress: Callable[[int, int, str], None] | None = None,
+                 operator: Callable[[Setup], None] | None = None, holder: dict[str, Any] | None = None) -> None:
         missing = [r for r in plan.roles if r not in cameras]
         if missing:
             raise InputError(f"plan {plan.name!r} needs the {', '.join(missing)} camera(s): add --camera "
                              f"{missing[0]}=SPEC (or a sim:{missing[0]} spec)")
         self.rig, self.plan, self.out = rig, plan, Path(out)
+        self.work = self.out / PARTS / plan.name if plan.targets else self.out
         self.cameras = {r: cameras[r] for r in plan.roles}
         self.opts = opts or CaptureOptions()
         self.progress = progress
+        self.operator = operator
+        self.holder = _holder_record(holder or {})
         self.geometry = {r: geometry_for(r, c) for r, c in self.cameras.items()}
         self.white = {r: WhiteLevel.uniform(c.sensor().white_level) for r, c in self.cameras.items()}
         self.summary = CaptureSummary()
         self._retake_count: dict[str, int] = {}
+        if plan.targets:
+            self._check_targets()
         self._open_journal(resume)
 
     # ------------------------------------------------------------------ bookkeeping
@@ -235,34 +264,34 @@ class CaptureSession:
                 "firmware": list(ident.firmware) if ident else None}
 
     def _open_journal(self, resume: bool) -> None:
-        path = self.out / JOURNAL
+        path = self.work / JOURNAL
         exists = path.exists()
         if exists and not resume:
-            raise InputError(f"{self.out} holds a capture ({JOURNAL}): continue it with --resume, or choose "
+            raise InputError(f"{self.work} holds a capture ({JOURNAL}): continue it with --resume, or choose "
                              "another folder")
         self.journal = Journal(path)
         ident = self._identity()
         starts = self.journal.of("start")
         if starts:
             if starts[0]["identity_sha"] != _sha(ident):
-                raise InputError(f"{self.out}: --resume with another plan, cameras, options or firmware than the "
+                raise InputError(f"{self.work}: --resume with another plan, cameras, options or firmware than the "
                                  f"capture there ({starts[0]['identity']['plan']['name']}); use another folder")
         else:
             self.journal.append("start", identity=ident, identity_sha=_sha(ident),
                                 date=datetime.now(timezone.utc).isoformat(timespec="seconds"))
 
     def _frame_path(self, role: str, name: str) -> Path:
-        return self.out / "frames" / role / f"{name}.exr"
+        return self.work / "frames" / role / f"{name}.exr"
 
     def _write_frame(self, role: str, name: str, frame: Frame) -> str:
         path = self._frame_path(role, name)
         img = frame.image if frame.image.ndim == 3 else np.repeat(frame.image[..., None], 3, -1)
         write_exr(path, img, attributes={"dualscale:units": "dn_normalized",
                                          "dualscale:exposure_s": repr(frame.exposure_s)})
-        return str(path.relative_to(self.out))
+        return str(path.relative_to(self.work))
 
     def _has_files(self, files: list[str]) -> bool:
-        return all((self.out / f).is_file() for f in files)
+        return all((self.work / f).is_file() for f in files)
 
     def _retake(self, key: str, reason: str) -> None:
         self.summary.retakes += 1
@@ -307,18 +336,18 @@ class CaptureSession:
         us = int(round(exposure_s * 1e6))
         for e in self.journal.of("dark"):
             if e["role"] == role and e["exposure_us"] == us and self._has_files([e["file"]]):
-                return read_exr(self.out / e["file"])
+                return read_exr(self.work / e["file"])
         if self.rig.lights_on():
             self.rig.all_off()
         frame = self._software_frame(role, us / 1e6, f"dark_{us}us")
         f = self._write_frame(role, f"dark_{us}us", frame)
         self.journal.append("dark", role=role, exposure_us=us, file=f, meta=_jsonable(frame.metadata))
-        return read_exr(self.out / f)
+        return read_exr(self.work / f)
 
     def _steps(self, shots: list[Shot], plans: dict[str, ShotPlan]) -> list[Step]:
         steps, angle = [], self.rig.read_input(rm.IR.POLARIZER_NOW, 1)[0]
-        mask = _trigger_mask(self.plan.roles)
         for s in shots:
+            mask = _trigger_mask(self.plan.roles_of(s))
             p = plans[s.key]
             settle, pol = self.opts.settle_us, None
             if s.analyzer_cdeg is not None and s.analyzer_cdeg != angle:
@@ -342,6 +371,29 @@ class CaptureSession:
         dead = max(float(c.settings().get("readout_s", 0.0) or 0.0) for c in self.cameras.values())
         return max(rm.TRIGGER_MIN_LOW_US, int(math.ceil(dead * 1e6)))
 
+    def _run_batch(self, shots: list[Shot], plans: dict[str, ShotPlan]) -> tuple[list[Shot], list[Shot], tuple]:
+        """Run ``shots`` as one sequence, or as many of them as the firmware's duty rule lets one
+        sequence hold: ``(shots run, shots left for the next sequence, _run_sequence's result)``.
+        The firmware refuses a sequence whose light would exceed its duty budget at step k
+        (``LED_DUTY``, PROTOCOL.md §5; long exposures of one light close together, e.g. the
+        chart's patches under one LED at P0 then P90): the steps before k run now, the rest in a
+        sequence of their own (the budget starts empty at each START).  A step that alone keeps
+        its light on too long (``LED_ON_TIME``) is a ``RigError`` naming the shot and the limit."""
+        rest: list[Shot] = []
+        while True:
+            try:
+                return shots, rest, self._run_sequence(shots, plans)
+            except SequenceRejected as e:
+                if e.error == rm.Error.LED_DUTY and 0 < e.step < len(shots):
+                    shots, rest = shots[:e.step], shots[e.step:] + rest
+                    continue
+                if e.error in (rm.Error.LED_ON_TIME, rm.Error.LED_DUTY) and e.step < len(shots):
+                    shot = shots[e.step]
+                    raise RigError(f"shot {shot.key}: {e}: its light would be on {sum(plans[shot.key].exposures_s()):.3g} s "
+                                   f"in one step; the rig allows {self.rig.read_holding(rm.HR.LED_MAX_ON_MS, 1)[0]} ms "
+                                   "(LED_MAX_ON_MS): lower --max-exposure or raise the limit") from e
+                raise
+
     def _run_sequence(self, shots: list[Shot], plans: dict[str, ShotPlan]) -> tuple[list[Step], list[Event], dict[str, list[Frame]], str | None]:
         """Run ``shots`` as one device-master sequence; ``(steps, events, frames by role, error)``."""
         self._ready()
@@ -350,12 +402,17 @@ class CaptureSession:
         self.rig.write_registers(rm.HR.FRAME_GAP_US, split_words(gap, 2))
         sched = schedule(steps, gap)
         duration_s = sched[-1].end / 1e6
-        n_frames = sum(s.brackets for s in steps)
-        longest = max(e for s in steps for e in s.bracket_exposures()) / 1e6
+        armed = []
         for role, cam in self.cameras.items():
+            mine = [st for sh, st in zip(shots, steps) if role in self.plan.roles_of(sh)]
+            if not mine:
+                continue
+            n_frames = sum(st.brackets for st in mine)
+            longest = max(e for st in mine for e in st.bracket_exposures()) / 1e6
             cam.prepare(TriggerInfo(TriggerMode.GATE, frames=n_frames, exposure_s=longest, deadtime_s=gap / 1e6,
                                     timeout_s=duration_s + self.opts.timeout_margin_s))
             cam.arm()
+            armed.append(role)
         error = None
         events: list[Event] = []
         try:
@@ -366,32 +423,39 @@ class CaptureSession:
             self.summary.events_dropped += res.dropped
             if res.state != rm.State.DONE:
                 error = f"sequence ended in state {res.state.name} ({res.error.name})"
+        except SequenceRejected:
+            for role in armed:  # refused at START: no trigger came, no frame will
+                self.cameras[role].disarm()
+            raise
         except RigError as e:
             error = str(e)
             if not isinstance(e, CameraError):
                 events = []
-        frames = {role: self._collect(cam) for role, cam in self.cameras.items()}
+        frames = {role: self._collect(self.cameras[role]) if role in armed else [] for role in self.cameras}
         self.summary.sequences += 1
         self.summary.sequence_device_s += duration_s
         return steps, events, frames, error
 
     # ------------------------------------------------------------------ matching
-    def _match(self, steps: list[Step], events: list[Event], frames: list[Frame]) -> tuple[dict[int, list[Frame]], dict[int, str]]:
-        """``(step -> frames in bracket order, step -> reason it must be taken again)``."""
-        trig = [e for e in events if e.kind == rm.Event.TRIGGER and e.step != rm.STEP_NONE]
-        by_step: dict[int, list[Event | None]] = {k: [None] * s.brackets for k, s in enumerate(steps)}
+    def _match(self, steps: list[Step], events: list[Event], frames: list[Frame],
+               only: list[int] | None = None) -> tuple[dict[int, list[Frame]], dict[int, str]]:
+        """``(step -> frames in bracket order, step -> reason it must be taken again)`` for one
+        camera's ``frames``; ``only``: the steps that trigger this camera (default all)."""
+        take = set(range(len(steps)) if only is None else only)
+        trig = [e for e in events if e.kind == rm.Event.TRIGGER and e.step != rm.STEP_NONE and e.step in take]
+        by_step: dict[int, list[Event | None]] = {k: [None] * s.brackets for k, s in enumerate(steps) if k in take}
         for e in trig:
             if e.step < len(steps) and e.arg < steps[e.step].brackets:
                 by_step[e.step][e.arg] = e
         bad: dict[int, str] = {}
-        got: dict[int, list[Frame | None]] = {k: [None] * s.brackets for k, s in enumerate(steps)}
+        got: dict[int, list[Frame | None]] = {k: [None] * s.brackets for k, s in enumerate(steps) if k in take}
         timed = bool(frames) and all("device_t_us" in f.metadata for f in frames)
         if timed:
             index = {e.ts_us: e for e in trig}
             for f in frames:
                 t = int(f.metadata["device_t_us"])
                 e = index.get(t) or next((x for x in trig if abs(x.ts_us - t) <= MATCH_TOLERANCE_US), None)
-                if e is None or e.step >= len(steps) or e.arg >= steps[e.step].brackets:
+                if e is None or e.step not in got or e.arg >= steps[e.step].brackets:
                     continue  # a frame with no event: its step (if any) lacks a frame below
                 if got[e.step][e.arg] is not None:
                     bad[e.step] = "two frames for one trigger"
@@ -402,10 +466,10 @@ class CaptureSession:
                 got[e.step][e.arg] = f
         else:
             reason = f"{len(frames)} frames for {len(trig)} trigger events, and the camera gives no device time"
-            return {}, {k: reason for k in range(len(steps))}
+            return {}, {k: reason for k in sorted(take)}
         out: dict[int, list[Frame]] = {}
         for k, s in enumerate(steps):
-            if k in bad:
+            if k in bad or k not in take:
                 continue
             if any(e is None for e in by_step[k]):
                 bad[k] = "trigger event missing"
@@ -421,36 +485,50 @@ class CaptureSession:
         return out, bad
 
     # ------------------------------------------------------------------ stages
-    def _meter(self) -> dict[str, ShotPlan]:
-        """Bracket plans of every shot (journal ``meter``), metering what is missing."""
-        plans = {e["key"]: ShotPlan(e["exposure_us"], e["brackets"], e["ev_step"]) for e in self.journal.of("meter")}
-        pending = {s.key: s for s in self.plan.shots if s.key not in plans}
+    def _metered(self) -> dict[str, ShotPlan]:
+        """The bracket plans the journal holds (``meter`` entries)."""
+        return {e["key"]: ShotPlan(e["exposure_us"], e["brackets"], e["ev_step"]) for e in self.journal.of("meter")}
+
+    def _meter_hints(self) -> dict[tuple, float]:
+        """Where to start metering a shot [s]: the exposure at which the last shot of the same light,
+        analyser and cameras was metered (a target plan's shots repeat them from patch to patch)."""
+        shots = {s.key: s for s in self.plan.shots}
+        out: dict[tuple, float] = {}
+        for e in self.journal.of("meter"):
+            s = shots.get(e["key"])
+            if s is not None and e.get("metered_at_us"):
+                out[_light_sig(s, self.plan)] = e["metered_at_us"] / 1e6
+        return out
+
+    def _meter(self, shots: list[Shot] | None = None) -> dict[str, ShotPlan]:
+        """Bracket plans of ``shots`` (default: the plan's) and of every shot metered before
+        (journal ``meter``), metering what is missing."""
+        plans = self._metered()
+        pending = {s.key: s for s in (self.plan.shots if shots is None else shots) if s.key not in plans}
         if not pending:
             return plans
         t0 = time.monotonic()
         darks = {r: self._dark(r, self.opts.meter_exposure_s) for r in self.plan.roles}
         bias = {r: float(np.median(d)) for r, d in darks.items()}
-        t_of = {k: self.opts.meter_exposure_s for k in pending}
+        hints = self._meter_hints()
+        t_of = {k: hints.get(_light_sig(s, self.plan), self.opts.meter_exposure_s) for k, s in pending.items()}
         for _round in range(self.opts.meter_rounds):
             if not pending:
                 break
             shots = list(pending.values())
             meter_plans = {s.key: ShotPlan(max(1, int(round(t_of[s.key] * 1e6))), 1, 0) for s in shots}
-            for i in range(0, len(shots), self.opts.batch_steps):
-                batch = shots[i:i + self.opts.batch_steps]
-                steps, events, frames, err = self._run_sequence(batch, meter_plans)
-                matched: dict[str, dict[int, list[Frame]]] = {}
-                bad_all: dict[int, str] = {}
-                for role in self.plan.roles:
-                    m, bad = self._match(steps, events, frames[role])
-                    matched[role] = m
-                    bad_all.update(bad)
+            queue = list(shots)
+            while queue:
+                batch, queue = queue[:self.opts.batch_steps], queue[self.opts.batch_steps:]
+                batch, rest, (steps, events, frames, err) = self._run_batch(batch, meter_plans)
+                queue = rest + queue
+                matched, bad_all = self._match_all(batch, steps, events, frames)
                 for k, s in enumerate(batch):
-                    if k in bad_all or any(k not in matched[r] for r in self.plan.roles):
+                    if k in bad_all or any(k not in matched[r] for r in self.plan.roles_of(s)):
                         why = bad_all.get(k, "frame missing")
                         self._retake(s.key, "metering: " + (f"{why} ({err})" if err else why))
                         continue
-                    decision = self._decide(s, t_of[s.key], {r: matched[r][k][0] for r in self.plan.roles}, bias)
+                    decision = self._decide(s, t_of[s.key], {r: matched[r][k][0] for r in self.plan.roles_of(s)}, bias)
                     if isinstance(decision, float):
                         t_of[s.key] = decision
                         continue
@@ -477,7 +555,7 @@ class CaptureSession:
                 return t / METER_STEP
             sig = np.clip(img - bias[role], 0, None)
             peak = float(sig.max())
-            if peak < METER_LOW * white and t * METER_STEP <= self.opts.max_exposure_s:
+            if peak < METER_LOW * white and t * METER_STEP <= self._longest_s():
                 return t * METER_STEP
             step = float(2 ** self.opts.ev_step)
             high = METER_HIGH * self.white[role].level[0]
@@ -487,48 +565,85 @@ class CaptureSession:
             except ValueError as e:
                 raise CameraError(f"shot {shot.key}: cannot plan brackets from the metering frame: {e}") from e
             lo_t, hi_t = min(lo_t, times[0]), max(hi_t, times[-1])
-        hi_t = min(hi_t, self.opts.max_exposure_s)
+        hi_t = min(hi_t, self._longest_s())
         lo_t = min(lo_t, hi_t)
         t0_us = max(1, int(lo_t * 1e6))
         step = 2 ** self.opts.ev_step
-        n = 1
-        while n < self.opts.max_brackets and (t0_us * step ** n) / 1e6 <= hi_t * 1.0001:
+        n, on_us = 1, t0_us + self._gap_us()
+        budget = self._on_budget_us()
+        while n < self.opts.max_brackets and (t0_us * step ** n) / 1e6 <= hi_t * 1.0001 \
+                and on_us + t0_us * step ** n + self._gap_us() <= budget:
+            on_us += t0_us * step ** n + self._gap_us()
             n += 1
         return ShotPlan(t0_us, n, self.opts.ev_step if n > 1 else 0)
 
-    def _capture(self, plans: dict[str, ShotPlan]) -> None:
-        done = {e["key"] for e in self.journal.of("shot") if self._has_files([f for v in e["files"].values() for f in v])}
-        self.summary.resumed_shots = len(done)
-        pending = [s for s in self.plan.shots if s.key not in done]
+    def _on_budget_us(self) -> int:
+        """How long one step may keep its light on for its brackets [µs]: the rig's
+        ``LED_MAX_ON_MS`` (the firmware refuses a longer step: ``LED_ON_TIME``) less the longest
+        settle a step can have (a full servo turn)."""
+        if getattr(self, "_budget_us", None) is None:
+            cap_us = self.rig.read_holding(rm.HR.LED_MAX_ON_MS, 1)[0] * 1000
+            settle = max(self.opts.settle_us, servo_travel_us(rm.POL_MIN_CDEG, rm.POL_MAX_CDEG)
+                         + self.opts.servo_margin_us)
+            self._budget_us = cap_us - settle
+        return self._budget_us
+
+    def _longest_s(self) -> float:
+        """The longest exposure a bracket may have [s]: ``max_exposure_s``, and one bracket (with
+        the frame gap) within :meth:`_on_budget_us`."""
+        return min(self.opts.max_exposure_s, (self._on_budget_us() - self._gap_us()) / 1e6)
+
+    def _match_all(self, batch: list[Shot], steps: list[Step], events: list[Event],
+                   frames: dict[str, list[Frame]]) -> tuple[dict[str, dict[int, list[Frame]]], dict[int, str]]:
+        """:meth:`_match` for every camera over the steps that trigger it: ``(role -> step ->
+        frames, step -> reason it must be taken again)``."""
+        matched: dict[str, dict[int, list[Frame]]] = {}
+        bad_all: dict[int, str] = {}
+        for role in self.plan.roles:
+            only = [k for k, s in enumerate(batch) if role in self.plan.roles_of(s)]
+            if not only:
+                matched[role] = {}
+                continue
+            m, bad = self._match(steps, events, frames[role], only)
+            matched[role] = m
+            bad_all.update(bad)
+        return matched, bad_all
+
+    def _done(self) -> set[str]:
+        """The shots the journal holds with all their frames on disk."""
+        return {e["key"] for e in self.journal.of("shot") if self._has_files([f for v in e["files"].values() for f in v])}
+
+    def _capture(self, plans: dict[str, ShotPlan], shots: list[Shot] | None = None) -> None:
+        """Take ``shots`` (default: the plan's) that the journal does not hold yet."""
+        shots = list(self.plan.shots if shots is None else shots)
+        done = self._done()
+        self.summary.resumed_shots += sum(s.key in done for s in shots)
+        pending = [s for s in shots if s.key not in done]
         total = len(self.plan.shots)
-        self.summary.floor_s = sum(t.end - t.start for t in schedule(self._steps(list(self.plan.shots), plans),
-                                                                     self._gap_us())) / 1e6
+        self.summary.floor_s += sum(t.end - t.start for t in schedule(self._steps(shots, plans), self._gap_us())) / 1e6
         t0 = time.monotonic()
         while pending:
             batch, pending = pending[:self.opts.batch_steps], pending[self.opts.batch_steps:]
-            steps, events, frames, err = self._run_sequence(batch, plans)
+            batch, rest, (steps, events, frames, err) = self._run_batch(batch, plans)
+            pending = rest + pending
             self.summary.capture_device_s += schedule(steps, self._gap_us())[-1].end / 1e6
-            matched: dict[str, dict[int, list[Frame]]] = {}
-            bad_all: dict[int, str] = {}
-            for role in self.plan.roles:
-                m, bad = self._match(steps, events, frames[role])
-                matched[role] = m
-                bad_all.update(bad)
+            matched, bad_all = self._match_all(batch, steps, events, frames)
             again = []
             for k, s in enumerate(batch):
-                if k in bad_all or any(k not in matched[r] for r in self.plan.roles):
+                roles = self.plan.roles_of(s)
+                if k in bad_all or any(k not in matched[r] for r in roles):
                     why = bad_all.get(k, "frame missing")
                     self._retake(s.key, f"{why} ({err})" if err else why)
                     again.append(s)
                     continue
                 files: dict[str, list[str]] = {}
-                for role in self.plan.roles:
+                for role in roles:
                     files[role] = [self._write_frame(role, f"{s.key}_b{b}", f) for b, f in enumerate(matched[role][k])]
                 ev = [e for e in events if e.step == k and e.kind in (rm.Event.STEP_START, rm.Event.TRIGGER)]
                 self.journal.append("shot", key=s.key, files=files,
-                                    exposures_s=[f.exposure_s for f in matched[self.plan.roles[0]][k]],
+                                    exposures_s=[f.exposure_s for f in matched[roles[0]][k]],
                                     events=[{"kind": e.kind.name, "arg": e.arg, "seq": e.seq, "ts_us": e.ts_us} for e in ev],
-                                    meta={r: _jsonable(matched[r][k][0].metadata) for r in self.plan.roles})
+                                    meta={r: _jsonable(matched[r][k][0].metadata) for r in roles})
                 done.add(s.key)
                 if self.progress:
                     self.progress(len(done), total, s.key)
@@ -563,7 +678,7 @@ class CaptureSession:
                 times = plans[s.key].exposures_s()
                 for role in self.plan.roles:
                     geo = self.geometry[role]
-                    imgs = [read_exr(self.out / f) for f in e["files"][role]]
+                    imgs = [read_exr(self.work / f) for f in e["files"][role]]
                     bias, rate = darks[role]
                     wl = self.white[role]
                     hdr = merge_debevec(imgs, times, dark=[dark_at(bias, rate, t) for t in times], white_level=wl,
@@ -583,7 +698,7 @@ class CaptureSession:
         self.summary.clipped_pixels = clipped
         return self.out / "manifest.json"
 
-    def _record(self) -> None:
+    def _record(self, part: dict[str, Any] | None = None) -> None:
         ident = self.rig.identity
         rec = {"format": FORMAT, "version": VERSION,
                "date": self.journal.of("start")[0]["date"],
@@ -594,18 +709,110 @@ class CaptureSession:
                "cameras": {r: {**frame_metadata(c), "role": r} for r, c in self.cameras.items()},
                "calibration": self.opts.calibration_id, "plan": self.plan.to_json(),
                "options": asdict(self.opts), "summary": asdict(self.summary)}
-        write_json(self.out / "capture.json", _jsonable(rec))
+        if part is not None:
+            rec["captureset"] = part
+        write_json(self.work / "capture.json", _jsonable(rec))
+
+    # ------------------------------------------------------------------ calibration targets
+    def _rig_record(self) -> dict[str, str]:
+        ident = self.rig.identity
+        return {"id": self.opts.rig_id or (ident.text if ident else "unknown"),
+                "layout": DomeGeometry.from_regmap().signature()}
+
+    def _camera_records(self) -> dict[str, dict[str, Any]]:
+        """Each role's capture-set camera record (module doc, "Calibration targets")."""
+        out = {}
+        for role, cam in self.cameras.items():
+            geo = asdict(self.geometry[role])
+            geo.pop("name")
+            out[self.plan.camera_name(role)] = {"role": role, "geometry": geo,
+                                                "sensitivities": colour_space(cam).removeprefix("camera_raw:"),
+                                                "white_level": float(cam.sensor().white_level)}
+        return _jsonable(out)
+
+    def _check_targets(self) -> None:
+        """Before anything is taken: the holder's geometry that ``calibrate`` needs from this plan
+        (the mid camera's white markers; the chart's corners in the polar cameras), and cameras and
+        rig that agree with the parts already in the capture set."""
+        chart_whole = {r for s in self.plan.shots if s.target == "chart" for r in self.plan.roles_of(s)}
+        if self.plan.name in ("white-sheet", "chart") and "mid" in self.plan.roles and "mid" not in self.holder["markers"]:
+            raise InputError(f"plan {self.plan.name!r}: the mid camera's white-marker boxes are not given: --holder FILE "
+                             "with {\"markers\": {\"mid\": [[row0, row1, col0, col1], ...]}} (pixels inside each white "
+                             "marker of the holder; the simulated cameras give theirs)")
+        for r in sorted(chart_whole):
+            if r != "mid" and r not in self.holder["chart_corners"]:
+                raise InputError(f"plan 'chart': the {r} camera's chart corners are not given: --holder FILE with "
+                                 f"{{\"chart_corners\": {{\"{r}\": [[x, y], ...4]}}}} (the centred chart's swatch-area "
+                                 "corners TL, TR, BR, BL in pixels; the simulated cameras give theirs)")
+        own = {"rig": self._rig_record(), "cameras": self._camera_records()}
+        others = [p for p in read_parts(self.out) if p["plan"] != self.plan.name]
+        _check_parts(others + [{"plan": self.plan.name, **own}], self.out)
+
+    def _part(self, plans: dict[str, ShotPlan]) -> dict[str, Any]:
+        """This plan's part of the capture set (module doc), its dark frames taken if missing."""
+        shots = {e["key"]: e for e in self.journal.of("shot")}
+        for role in self.plan.roles:
+            ts = sorted({t for s in self.plan.shots if role in self.plan.roles_of(s) for t in plans[s.key].exposures_s()})
+            for t in sorted({ts[0], ts[-1]}):
+                self._dark(role, t)
+        prefix = Path(PARTS) / self.plan.name
+        groups = []
+        for s in self.plan.shots:
+            e = shots[s.key]
+            for role in self.plan.roles_of(s):
+                an = s.analyzer_cdeg if role == "micro" and s.target != "dot_grid" else None
+                groups.append({"target": s.target, "camera": self.plan.camera_name(role), "light_kind": s.kind,
+                               "light_id": s.index,
+                               "patch": s.patch, "analyzer_deg": None if an is None else an / 100.0,
+                               "analyzer_relative": an is not None and s.target != "polarization",
+                               "exposures_s": [float(t) for t in e["exposures_s"]],
+                               "files": [str(prefix / f) for f in e["files"][role]]})
+        darks: dict[str, list[list[Any]]] = {}
+        for e in self.journal.of("dark"):
+            if e["role"] in self.cameras:
+                darks.setdefault(self.plan.camera_name(e["role"]), []).append([e["exposure_us"] / 1e6,
+                                                                              str(prefix / e["file"])])
+        part: dict[str, Any] = {"rig": self._rig_record(), "cameras": self._camera_records(), "groups": groups,
+                                "darks": darks}
+        roles = set(self.plan.roles)
+        if self.plan.name in ("white-sheet", "chart"):
+            part["markers"] = {c: v for c, v in self.holder["markers"].items() if c in roles}
+        if self.plan.name == "chart":
+            lay = ChartLayout()
+            part["chart"] = {"layout": {"rows": lay.rows, "cols": lay.cols, "pitch_mm": lay.pitch_mm,
+                                        "patch_mm": lay.patch_mm},
+                             "corners": {c: v for c, v in self.holder["chart_corners"].items() if c in roles}}
+        return part
 
     def run(self) -> CaptureSummary:
         """Meter, capture, merge (module doc); returns the summary.  Safe to call again on the same
-        folder with ``resume=True`` after any interruption."""
+        folder with ``resume=True`` after any interruption.  A calibration-target plan runs setup by
+        setup (:meth:`dualscale.capture.plan.Plan.setups`): ``operator(setup)`` is called before a
+        setup with shots still to take, then those are metered and taken; at the end the plan's part
+        is recorded and the capture set rewritten (:func:`write_capture_set`)."""
         t0 = time.monotonic()
         self._ready()
-        plans = self._meter()
-        self._capture(plans)
-        shots = {e["key"] for e in self.journal.of("shot")}
-        self.summary.shots = len(shots)
+        setups = self.plan.setups()
+        if self.plan.targets and self.operator is None:
+            raise InputError(f"plan {self.plan.name!r} needs an operator at the holder: {setups[0][0].prompt()}")
+        plans = self._metered()
+        for setup, shots in setups:
+            if setup is not None and not {s.key for s in shots} <= self._done():
+                self.operator(setup)  # type: ignore[misc]
+            plans = self._meter(shots)
+            self._capture(plans, shots)
+        shots_done = {e["key"] for e in self.journal.of("shot")}
+        self.summary.shots = len(shots_done)
         self.summary.frames = sum(len(v) for e in self.journal.of("shot") for v in e["files"].values())
+        if self.plan.targets:
+            part = self._part(plans)
+            self.summary.dataset = str(self.out / "captures.json")
+            self.summary.total_wall_s = time.monotonic() - t0
+            self._record(part)
+            path = write_capture_set(self.out)
+            if not self.journal.of("written"):
+                self.journal.append("written", captures=str(path.relative_to(self.out)))
+            return self.summary
         path = self._merge(plans)
         self.summary.dataset = str(path)
         self.summary.total_wall_s = time.monotonic() - t0
@@ -613,6 +820,120 @@ class CaptureSession:
         if not self.journal.of("merged"):
             self.journal.append("merged", manifest="manifest.json")
         return self.summary
+
+
+def _light_sig(shot: Shot, plan: Plan) -> tuple:
+    """What makes two shots meter alike: light, analyser and cameras (not the target's place)."""
+    return (shot.kind, shot.index, shot.analyzer_cdeg, plan.roles_of(shot))
+
+
+def _holder_record(holder: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """``{"markers": {camera: [[row0, row1, col0, col1], ...]}, "chart_corners": {camera: [[x, y] x 4]}}``
+    checked (``InputError`` naming the entry)."""
+    unknown = sorted(set(holder) - {"markers", "chart_corners"})
+    if unknown:
+        raise InputError(f"holder: unknown key(s) {unknown}: markers, chart_corners")
+    out: dict[str, dict[str, Any]] = {"markers": {}, "chart_corners": {}}
+    for cam, boxes in (holder.get("markers") or {}).items():
+        try:
+            b = [[int(x) for x in box] for box in boxes]
+        except (TypeError, ValueError):
+            b = []
+        if not b or any(len(x) != 4 or x[0] >= x[1] or x[2] >= x[3] or min(x) < 0 for x in b):
+            raise InputError(f"holder: markers.{cam} must be boxes [row0, row1, col0, col1] (row0 < row1, col0 < col1)")
+        out["markers"][str(cam)] = b
+    for cam, pts in (holder.get("chart_corners") or {}).items():
+        try:
+            c = np.asarray(pts, dtype=np.float64)
+        except (TypeError, ValueError):
+            c = np.zeros(0)
+        if c.shape != (4, 2) or not np.all(np.isfinite(c)):
+            raise InputError(f"holder: chart_corners.{cam} must be 4 [x, y] pixel corners (TL, TR, BR, BL)")
+        out["chart_corners"][str(cam)] = c.tolist()
+    return out
+
+
+def read_parts(root: str | Path) -> list[dict[str, Any]]:
+    """The finished calibration-target parts of the capture set at ``root``, in
+    :data:`~dualscale.capture.plan.TARGET_PLANS` order: each ``{"plan", "date", **captureset}``
+    from ``root/parts/<plan>/capture.json`` (a part is finished when its record holds a
+    ``captureset``; an interrupted one is left out until ``--resume`` finishes it)."""
+    root = Path(root)
+    out = []
+    for name in TARGET_PLANS:
+        path = root / PARTS / name / "capture.json"
+        if not path.is_file():
+            continue
+        rec = read_capture_record(path.parent)
+        part = rec.get("captureset")
+        if isinstance(part, dict):
+            out.append({"plan": name, "date": rec.get("date"), **part})
+    return out
+
+
+def _check_parts(parts: list[dict[str, Any]], root: Path) -> None:
+    """``InputError`` unless the parts come from one rig and agree on every camera they share."""
+    seen_rig: tuple[str, dict] | None = None
+    cams: dict[str, tuple[str, dict]] = {}
+    for p in parts:
+        if seen_rig is not None and p["rig"] != seen_rig[1]:
+            raise InputError(f"{root}: the {p['plan']} part is from rig {p['rig']}, the {seen_rig[0]} part from "
+                             f"{seen_rig[1]}: one capture set holds one rig's targets (--rig-id, or another folder)")
+        seen_rig = seen_rig or (p["plan"], p["rig"])
+        for name, rec in p["cameras"].items():
+            want = {k: rec[k] for k in ("geometry", "sensitivities", "white_level")}
+            if name in cams and cams[name][1] != want:
+                raise InputError(f"{root}: camera {name!r} of the {p['plan']} part differs from the one of the "
+                                 f"{cams[name][0]} part ({want} vs {cams[name][1]}): capture the targets of one "
+                                 "capture set with the same cameras, or use another folder")
+            cams.setdefault(name, (p["plan"], want))
+
+
+def write_capture_set(root: str | Path) -> Path:
+    """Write ``root/captures.json`` and ``root/images/`` (:class:`dualscale.formats.captures.CaptureWriter`,
+    their only writer) from every finished part under ``root/parts/`` (:func:`read_parts`): each
+    part's groups with their brackets, one dark group per camera with the dark frames of every
+    part, the markers and the chart record; images no group lists any more are removed.  Returns
+    the manifest's path; ``InputError`` when the parts disagree (:func:`_check_parts`)."""
+    from dualscale.formats.captures import CaptureWriter
+
+    root = Path(root)
+    parts = read_parts(root)
+    if not parts:
+        raise InputError(f"{root}: no finished calibration-target capture under {PARTS}/")
+    _check_parts(parts, root)
+    w = CaptureWriter(root, rig=dict(parts[0]["rig"]))
+    cams: dict[str, GeometryCamera] = {}
+    for p in parts:
+        for name, rec in p["cameras"].items():
+            if name not in cams:
+                cams[name] = GeometryCamera.from_json(name, rec["geometry"], f"{root / PARTS / p['plan']}")
+                w.add_camera(cams[name], rec["sensitivities"], white_level=rec["white_level"])
+    darks: dict[str, list[tuple[float, str]]] = {}
+    for p in parts:
+        for name, pairs in p["darks"].items():
+            darks.setdefault(name, []).extend((float(t), str(f)) for t, f in pairs)
+    for name in cams:
+        pairs = sorted(darks.get(name, []))
+        if pairs:
+            w.add("dark", cams[name], "off", None, [t for t, _ in pairs], [read_exr(root / f, RGB) for _, f in pairs])
+    for p in parts:
+        w.markers.update(p.get("markers", {}))
+        if "chart" in p:
+            w.chart["layout"] = p["chart"]["layout"]
+            w.chart.setdefault("corners", {}).update(p["chart"]["corners"])
+        for g in p["groups"]:
+            w.add(g["target"], cams[g["camera"]], g["light_kind"], g["light_id"], g["exposures_s"],
+                  [read_exr(root / f, RGB) for f in g["files"]], patch=g["patch"], analyzer_deg=g["analyzer_deg"],
+                  analyzer_relative=g["analyzer_relative"])
+    w.extra["capture"] = {"parts": {p["plan"]: {"record": f"{PARTS}/{p['plan']}/capture.json", "date": p["date"]}
+                                    for p in parts}}
+    path = w.close()
+    keep = {f for g in w.groups for f in g.files}
+    for f in (root / "images").glob("*.exr"):
+        if f"images/{f.name}" not in keep:
+            f.unlink()
+    return path
 
 
 def _light_mismatch(step: Step, frames: list[Frame]) -> str | None:

@@ -4,6 +4,15 @@
 ``--port sim`` starts the POSIX firmware simulator with its hardware side channel for the
 duration of the command, and every ``sim:`` camera spec without ``hw=`` is connected to it: the
 whole virtual rig, through the real firmware core.
+
+The calibration-target plans (``white-sheet``, ``chart``, ``dot-grid``, ``polarization``) write
+their part into the capture set ``-o CAL`` (``CAL/captures.json``, what ``dualscale calibrate``
+and ``evaluate-device`` read); several plans go into one folder.  Each change of target is an
+operator's job: the command prints the instruction and waits for Enter on stdin
+(``--target-ready``: it does not wait); with simulated cameras the virtual operator does it
+(:meth:`dualscale.sim.camera.SimCamera.place`).  The holder's geometry that ``calibrate`` needs
+(the mid camera's white-marker boxes, the polar cameras' chart corners) comes from ``--holder
+FILE`` or, for simulated cameras, from the cameras themselves.
 """
 
 from __future__ import annotations
@@ -11,8 +20,10 @@ from __future__ import annotations
 import argparse
 import contextlib
 import tempfile
+import json
+import sys
 from pathlib import Path
-from typing import Iterator
+from typing import Any, Callable, Iterator, TextIO
 
 from dualscale.errors import InputError
 
@@ -99,24 +110,90 @@ def capture_options(a: argparse.Namespace, port: str):
                           trigger=a.trigger, rig_id=a.rig_id, calibration_id=a.calibration_id, watchdog_ms=wd)
 
 
+def read_holder(path: str | None) -> dict[str, Any]:
+    """``--holder FILE``: ``{"markers": {camera: [[row0, row1, col0, col1], ...]}, "chart_corners":
+    {camera: [[x, y] x 4]}}`` (``{}`` without a file); ``InputError`` naming the file."""
+    if path is None:
+        return {}
+    try:
+        doc = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as e:
+        raise InputError(f"--holder {path}: not a readable JSON file ({e})") from e
+    if not isinstance(doc, dict):
+        raise InputError(f"--holder {path}: a JSON object with markers and/or chart_corners")
+    return doc
+
+
+def holder_of(cams: dict[str, Any], given: dict[str, Any]) -> dict[str, Any]:
+    """The holder's geometry: what the cameras report (the simulated ones, ``holder()``), then
+    ``given`` (``--holder``) over it."""
+    out: dict[str, dict] = {"markers": {}, "chart_corners": {}}
+    for cam in cams.values():
+        own = getattr(cam, "holder", None)
+        if callable(own):
+            for k, v in own().items():
+                out.setdefault(k, {}).update(v)
+    for k, v in given.items():
+        if not isinstance(v, dict):
+            raise InputError(f"--holder: {k} must map camera names to their values")
+        out.setdefault(k, {}).update(v)
+    return out
+
+
+def make_operator(cams: dict[str, Any], target_ready: bool, out: TextIO | None = None,
+                  answers: TextIO | None = None) -> Callable[[Any], None]:
+    """The operator of the target plans' setups (:class:`dualscale.capture.plan.Setup`), for the
+    cameras ``cams`` (role -> camera): a simulated camera (one with ``place()``) gets the target
+    from the virtual operator (the chart's patch moves under the micro camera only); when any
+    camera is not simulated, the instruction goes to ``out`` (stderr) and a line is read from
+    ``answers`` (stdin: Enter) unless ``target_ready``.  ``InputError`` when stdin ends before the
+    operator confirmed."""
+    real = [r for r, c in cams.items() if not callable(getattr(c, "place", None))]
+
+    def operator(setup) -> None:
+        o = out or sys.stderr
+        for role, c in cams.items():
+            if callable(getattr(c, "place", None)):  # the others are not triggered while the chart is moved
+                c.place(setup.target, setup.patch if role == "micro" else None)
+        if not real:
+            print(f"virtual operator: {setup.prompt()}", file=o, flush=True)
+            return
+        print(f"operator: {setup.prompt()}" + ("" if target_ready else "; then press Enter"), file=o, flush=True)
+        if not target_ready and not (answers or sys.stdin).readline():
+            raise InputError(f"the target was not confirmed (stdin ended) for: {setup.prompt()}; rerun with --resume "
+                             "and answer the prompt, or give --target-ready when the targets are placed without one")
+
+    return operator
+
+
 def cmd_capture(a: argparse.Namespace) -> int:
-    from dualscale.capture.plan import make_plan
+    from dualscale.capture.plan import TARGET_PLANS, make_plan
     from dualscale.capture.session import CaptureSession
     from dualscale.progress import tracker
 
     apply_threads(a)
-    plan = make_plan(a.plan, a.lights)
+    targets = a.plan in TARGET_PLANS
+    plan = make_plan(a.plan, a.lights)  # checks the plan and --lights before anything starts
+    given = read_holder(a.holder)
     opts = capture_options(a, a.port)
-    with output_folder(a, "capture", [f"plan:{a.plan}", f"lights:{a.lights}", *a.camera]):
-        with rig_and_cameras(a.port, a.camera, plan.roles, a.parity, a.stopbits, a.sim_speed) as (rig, cams), \
-                tracker(want_progress(a), len(plan.shots), f"capture {plan.name}", "shot") as bar:
-            seen = [0]
+    ident = ["calibration targets"] if targets else [f"plan:{a.plan}", f"lights:{a.lights}", *a.camera]
+    with output_folder(a, "capture", ident):
+        with rig_and_cameras(a.port, a.camera, () if targets else plan.roles, a.parity, a.stopbits,
+                             a.sim_speed) as (rig, cams):
+            operator = holder = None
+            if targets:
+                plan = make_plan(a.plan, a.lights, tuple(cams))
+                used = {r: cams[r] for r in plan.roles if r in cams}
+                operator, holder = make_operator(used, a.target_ready), holder_of(used, given)
+            with tracker(want_progress(a), len(plan.shots), f"capture {plan.name}", "shot") as bar:
+                seen = [0]
 
-            def progress(done: int, total: int, key: str) -> None:
-                bar.update(done - seen[0], what=key)
-                seen[0] = done
+                def progress(done: int, total: int, key: str) -> None:
+                    bar.update(done - seen[0], what=key)
+                    seen[0] = done
 
-            summary = CaptureSession(rig, cams, plan, a.output, opts, resume=a.resume, progress=progress).run()
+                summary = CaptureSession(rig, cams, plan, a.output, opts, resume=a.resume, progress=progress,
+                                         operator=operator, holder=holder).run()
     for line in summary.lines():
         print(line)
     return 0
@@ -151,10 +228,20 @@ def register(sub) -> None:
     from dualscale.capture.plan import PLANS
 
     p = sub.add_parser("capture", help="capture a plan on the rig with its cameras (resumable)")
-    p.add_argument("plan", choices=sorted(PLANS), help="micro: the photometric dataset; mid: the guidance image")
-    add_output(p, "dataset folder (manifest.json, frames/, journal.jsonl, capture.json)")
+    p.add_argument("plan", choices=list(PLANS), help="micro: the photometric dataset; mid: the guidance image; "
+                                                     "white-sheet, chart, dot-grid, polarization: a calibration "
+                                                     "target into the capture set -o (calibrate, evaluate-device)")
+    add_output(p, "dataset folder (manifest.json, frames/, journal.jsonl, capture.json); for a target plan the "
+                  "capture set (captures.json, images/, parts/PLAN/)")
     p.add_argument("--port", required=True, help="the rig's serial port, or 'sim' for the simulated rig")
     p.add_argument("--resume", action="store_true", help="continue an interrupted capture in the same folder")
+    p.add_argument("--holder", metavar="FILE", default=None,
+                   help="target plans: JSON with the holder as the cameras see it: {\"markers\": {\"mid\": [[row0, "
+                        "row1, col0, col1], ...]}, \"chart_corners\": {\"polar0\": [[x, y] x 4]}} (simulated cameras "
+                        "give their own)")
+    p.add_argument("--target-ready", action="store_true",
+                   help="target plans: do not wait for Enter after each instruction to the operator (the targets are "
+                        "placed without one)")
     add_capture_options(p)
     add_work_options(p)
     p.set_defaults(fn=cmd_capture)

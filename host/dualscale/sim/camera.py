@@ -39,6 +39,14 @@ Spec: ``sim:CAMERA?hw=SOCKET&OPTION=VALUE&...`` with CAMERA one of ``rm.CAMERA_N
 * the sample: ``material=NAME`` (a :data:`dualscale.sim.materials.MATERIALS` name, default
   ``twill``, generated at ``size`` texels of ``texel_um`` with ``seed``, as ``dualscale synth``)
   or ``maps=PATH`` (any maps folder, :func:`dualscale.formats.maps.load_maps`);
+* or a calibration target: ``target=white_sheet|chart|dot_grid|polarization`` (:class:`TargetScene`:
+  ``dualscale synth-targets``' radiance, :mod:`dualscale.sim.targets`, with ``seed`` as the
+  defects' seed), ``patch=K`` (``target=chart``, micro camera: ColorChecker patch K, 0..23, fills
+  the field; without it the chart is centred), ``analyzer_offset=DEG`` (the analyser's
+  misalignment, seen on the polarisation target); the micro camera's default ``texel_um`` is then
+  ``921.6 / size`` (the rig's 0.92 mm micro field at any binning).  :meth:`SimCamera.place` (the
+  virtual operator of ``dualscale capture``'s target plans) changes the target while the camera
+  is open;
 * ``size`` [px]: the image (micro: the map grid, one pixel per texel, as ``synth --dataset``;
   default 512, or the maps' width; mid/polar: the image size, default 256, as ``synth --mid``);
 * ``texel_um`` [µm]: the texel (= micro pixel) size (micro default 1.8; mid/polar default
@@ -84,8 +92,8 @@ from dualscale.capture.camera import (Deadline, Frame, SensorInfo, TriggerInfo, 
 from dualscale.errors import CameraDisconnected, CameraError, CameraTimeout, InputError
 from dualscale.protocol import regmap as rm
 
-OPTIONS = ("hw", "material", "maps", "size", "texel_um", "field_mm", "seed", "shadows", "noise", "white_level",
-           "readout_ms", "master", "drop", "fault_seed")
+OPTIONS = ("hw", "material", "maps", "target", "patch", "analyzer_offset", "size", "texel_um", "field_mm", "seed",
+           "shadows", "noise", "white_level", "readout_ms", "master", "drop", "fault_seed")
 """The spec options this backend knows (module docstring); any other is an ``InputError``."""
 
 DEFAULT_MATERIAL = "twill"
@@ -99,6 +107,8 @@ SYNC_S = 2.0
 drops a client that stalls this long)."""
 SOURCE_KIND = {int(rm.Source.LED): "led", int(rm.Source.BACKLIGHT): "backlight", int(rm.Source.DIFFUSE): "diffuse"}
 """Side-channel light ``kind`` (``rm.Source``) -> the light kind of :mod:`dualscale.sim.targets`."""
+TARGETS = ("white_sheet", "chart", "dot_grid", "polarization")
+"""The calibration targets a simulated camera can look at (``target=``; :mod:`dualscale.sim.targets`)."""
 RADIANCE_CACHE = 16
 """How many (lights, analyser) states keep their raw signal (a step's brackets reuse it)."""
 
@@ -150,6 +160,9 @@ class SimOptions:
     hw: str
     material: str | None = DEFAULT_MATERIAL
     maps: str | None = None
+    target: str | None = None
+    patch: int | None = None
+    analyzer_offset: float = 0.0
     size: int | None = None
     texel_um: float | None = None
     field_mm: float = 100.0
@@ -178,11 +191,24 @@ class SimOptions:
             raise InputError(f"camera {spec!r}: option hw=SOCKET (the simulator's --hw-socket) is required")
         if "material" in opts and "maps" in opts:
             raise InputError(f"camera {spec!r}: give material=NAME or maps=PATH, not both")
+        target = opts.get("target")
+        if target is not None and ("material" in opts or "maps" in opts):
+            raise InputError(f"camera {spec!r}: give a sample (material=NAME or maps=PATH) or a calibration "
+                             f"target (target=...), not both")
+        if "patch" in opts and target is None:
+            raise InputError(f"camera {spec!r}: patch= places a ColorChecker patch: it needs target=chart")
+        patch = _opt_int(opts, "patch", spec, -1) if "patch" in opts else None
+        check_target(name, target, patch, spec)
         shadows = _opt_bool(opts, "shadows", spec, False)
         if shadows and name != "micro":
             raise InputError(f"camera {spec!r}: shadows=1 works on the map grid only (the micro camera)")
-        return cls(camera=name, hw=opts["hw"], material=None if "maps" in opts else opts.get("material", DEFAULT_MATERIAL),
-                   maps=opts.get("maps"), size=_opt_int(opts, "size", spec, 0, low=8) or None,
+        if shadows and target is not None:
+            raise InputError(f"camera {spec!r}: shadows=1 needs a sample with relief, not target={target}")
+        return cls(camera=name, hw=opts["hw"],
+                   material=None if ("maps" in opts or target) else opts.get("material", DEFAULT_MATERIAL),
+                   maps=opts.get("maps"), target=target, patch=patch,
+                   analyzer_offset=_opt_num(opts, "analyzer_offset", spec, 0.0, low=-90.0, high=90.0, low_open=False),
+                   size=_opt_int(opts, "size", spec, 0, low=8) or None,
                    texel_um=_opt_num(opts, "texel_um", spec, None), field_mm=_opt_num(opts, "field_mm", spec, 100.0),
                    seed=_opt_int(opts, "seed", spec, 0), shadows=shadows, noise=_opt_bool(opts, "noise", spec, True),
                    white_level=_opt_num(opts, "white_level", spec, 1.0, high=1.0),
@@ -190,6 +216,33 @@ class SimOptions:
                    master=_opt_bool(opts, "master", spec, False),
                    drop=_opt_num(opts, "drop", spec, 0.0, high=1.0, low_open=False),
                    fault_seed=_opt_int(opts, "fault_seed", spec, 0))
+
+
+def replace_target(o: SimOptions, target: str = "chart", patch: int | None = None) -> SimOptions:
+    """``o`` looking at calibration target ``target`` instead of its sample."""
+    from dataclasses import replace
+
+    return replace(o, target=target, patch=patch, material=None, maps=None, shadows=False)
+
+
+def check_target(camera: str, target: str | None, patch: int | None, spec: str) -> None:
+    """``InputError`` naming ``spec`` unless camera ``camera`` can look at calibration target
+    ``target`` (:data:`TARGETS`; ``None``: a sample) with ColorChecker ``patch`` (0..23, the
+    patch centred under the micro camera; ``None``: the chart centred)."""
+    if target is None:
+        return
+    if target not in TARGETS:
+        raise InputError(f"camera {spec!r}: target={target!r}: one of {', '.join(TARGETS)}")
+    if target in ("dot_grid", "polarization") and camera != "micro":
+        raise InputError(f"camera {spec!r}: the {target} target is imaged by the micro camera only")
+    if patch is not None:
+        if target != "chart":
+            raise InputError(f"camera {spec!r}: patch= places a ColorChecker patch: it needs target=chart")
+        if camera != "micro":
+            raise InputError(f"camera {spec!r}: patch= moves the chart under the micro camera; the {camera} camera "
+                             f"images the whole chart (leave patch out)")
+        if not 0 <= patch < 24:
+            raise InputError(f"camera {spec!r}: patch={patch}: a ColorChecker patch is 0..23")
 
 
 # ---- the scene: sample, camera geometry, sensor --------------------------------------------------
@@ -307,6 +360,176 @@ class Scene:
         return np.asarray(self.exposer(raw, exposure_s), dtype=np.float32)
 
 
+class TargetScene:
+    """A calibration target on the virtual rig's holder, as :func:`dualscale.sim.targets.write_session`
+    renders it (``dualscale synth-targets``), seen by one camera; the same interface as :class:`Scene`.
+
+    The radiance is :mod:`dualscale.sim.targets`' own, with its :class:`~dualscale.sim.targets.SynthConfig`
+    (this camera's white level) and :class:`~dualscale.sim.targets.Defects` (seed ``seed``): the white
+    sheet and the ColorChecker through :func:`~dualscale.sim.targets.true_radiance` (the chart centred;
+    with a ``patch`` the micro camera sees that patch filling its field, target ``patch``); the dot
+    grid (:func:`~dualscale.sim.targets.dot_albedo` of :func:`~dualscale.sim.targets.dot_grid_truth`,
+    dots of reflectance ``DOT_R`` on ``DOT_BG_R``) and the glossy dark polarisation target (reflectance
+    0.05, ``pol_roughness``) composed as ``_dot_grid`` and ``_polarization`` compose them.  Summed over
+    the lights that are on, each times its intensity register / ``INTENSITY_MAX``.  What differs from
+    a sample scene, as in ``write_session``:
+
+    * the analyser: only the micro camera's (the servo-turned one) is rendered, at the servo angle
+      relative to each LED's polariser, except on the polarisation target, where the angle is
+      absolute (the image's +x) plus ``analyzer_offset`` [deg] (the analyser's misalignment, what
+      ``evaluate-device`` measures); the dot grid is rendered without it (as ``_dot_grid``); the
+      mid and polar cameras see the targets without an analyser;
+    * the sensor (:class:`~dualscale.sim.targets.Exposer`): :func:`~dualscale.sim.targets.rig_exposer`
+      for the white sheet and the chart, seed 99 without vignetting for the dot grid, seed 77 for the
+      polarisation target (``write_session``'s sensors, hence its dark patterns);
+    * no exposure jitter: ``Defects.diffuse_jitter`` models a DSLR's shutter, not a gate-triggered
+      exposure, so the mid camera's diffuse captures are not scaled by it;
+    * the dot grid and the polarisation target are black to a back light (opaque); the LED gains and
+      collimation ramps apply to the dot grid under an LED (``true_radiance``'s rule), not to the
+      polarisation target (``_polarization`` has none).
+
+    :meth:`place` is the virtual operator: it puts another target on the holder (or moves the chart
+    so that ``patch`` fills the micro field)."""
+
+    def __init__(self, o: SimOptions, spec: str, camera=None, exposer=None):
+        from dualscale.calib.chart import ChartLayout
+        from dualscale.geometry.cameras import micro_camera, mid_camera, polar_camera
+        from dualscale.geometry.dome import DomeGeometry
+        from dualscale.sim.targets import MICRO_FIELD_MM, Defects, SynthConfig
+
+        self.options, self.spec = o, spec
+        if camera is None:
+            if o.camera == "micro":
+                size = o.size or 512
+                camera = micro_camera(size, o.texel_um or MICRO_FIELD_MM * 1000.0 / size)
+            elif o.camera == "mid":
+                camera = mid_camera(o.size or 256, field_mm=o.field_mm)
+            else:
+                camera = polar_camera(int(o.camera[-1]), o.size or 256, field_mm=o.field_mm)
+        self.camera = camera
+        self.texel_um = camera.pixel_mm[0] * 1000.0
+        self.dome = DomeGeometry.from_regmap()
+        self.layout = ChartLayout()
+        self.cfg = SynthConfig(white_level=o.white_level)
+        self.defects = Defects(analyzer_offset_deg=o.analyzer_offset, seed=o.seed)
+        self._exposers: dict[str, Any] = {} if exposer is None else {"rig": exposer}
+        self._cache: OrderedDict[tuple, np.ndarray] = OrderedDict()
+        self._dots: np.ndarray | None = None
+        self.renders = 0
+        self.render_s = 0.0
+        self.target, self.patch = "", None
+        self.place(o.target or "white_sheet", o.patch)
+
+    @property
+    def source(self) -> str:
+        """``target:NAME`` (``target:chart/patchNN`` with a patch under the micro camera)."""
+        return f"target:{self.target}" + ("" if self.patch is None else f"/patch{self.patch:02d}")
+
+    def identity(self) -> str:
+        """The target and sensor geometry the serial is made from."""
+        o = self.options
+        return (f"target:{o.target}|patch={o.patch}|seed={o.seed}|size={self.camera.width}|texel_um={self.texel_um:g}"
+                f"|field_mm={o.field_mm:g}")
+
+    def place(self, target: str, patch: int | None = None) -> None:
+        """Put ``target`` (:data:`TARGETS`) on the holder; ``patch`` (0..23, ``target`` ``chart``,
+        micro camera): move the chart so that this patch fills the micro camera's field."""
+        check_target(self.camera.name, target, patch, self.spec)
+        if (target, patch) != (self.target, self.patch):
+            self.target, self.patch = target, patch
+            self._cache.clear()
+
+    @property
+    def exposer(self):
+        """The sensor of the current target (class doc)."""
+        from dataclasses import replace
+
+        from dualscale.sim.targets import Exposer, rig_exposer
+
+        kind = self.target if self.target in ("dot_grid", "polarization") else "rig"
+        ex = self._exposers.get(kind)
+        if ex is None:
+            noise = self.options.noise
+            ex = (Exposer(self.camera, self.cfg, replace(self.defects, vignetting=0.0), 99, noise=noise)
+                  if kind == "dot_grid" else Exposer(self.camera, self.cfg, self.defects, 77, noise=noise)
+                  if kind == "polarization" else rig_exposer(self.camera, self.cfg, self.defects, noise=noise))
+            self._exposers[kind] = ex
+        return ex
+
+    def _one(self, kind: str, light_id: int | None, cdeg: int | None) -> np.ndarray:
+        """The radiance of the current target under one light at full intensity (class doc)."""
+        from dualscale.calib import colourref as cr
+        from dualscale.sim.render import Analyzer
+        from dualscale.sim.targets import (DOT_BG_R, DOT_R, collimation_ramp, dot_albedo, dot_grid_truth,
+                                           geometry_factors, led_gains, true_radiance)
+
+        cam, cfg, d = self.camera, self.cfg, self.defects
+        micro = cam.name == "micro"
+        if self.target in ("white_sheet", "chart"):
+            an = Analyzer(cdeg / 100.0, relative=True) if micro and cdeg is not None else None
+            name = "patch" if self.patch is not None else self.target
+            return true_radiance(name, cam, kind, light_id, cfg, d, self.dome, self.layout, patch=self.patch, analyzer=an)
+        if kind == "backlight":  # opaque targets
+            return np.zeros((cam.height, cam.width, 3))
+        sens, ill = cfg.sens(cam.name), cfg.illum(kind)
+        white = cr.camera_raw([cr.flat_spectrum(1.0, 1.0)], sens, ill)[0]
+        if self.target == "dot_grid":
+            if self._dots is None:
+                _, sig = dot_grid_truth(cam.width, self.texel_um, d)
+                self._dots = dot_albedo(cam.width, self.texel_um, sig)
+            w = self._dots[..., None]
+            cols = cr.camera_raw([cr.flat_spectrum(DOT_BG_R, DOT_BG_R), cr.flat_spectrum(DOT_R, DOT_R)], sens, ill)
+            g_d, g_s = geometry_factors(cam, kind, light_id, None, cfg.roughness, self.dome)
+            rad = (cols[0] * (1 - w) + cols[1] * w) * g_d[..., None] + white * g_s[..., None]
+            if kind == "led":
+                rad = rad * led_gains(self.dome.n_leds, d)[light_id] * collimation_ramp(cam, light_id, d)[..., None]
+            return rad
+        an = None if cdeg is None else Analyzer(cdeg / 100.0 + d.analyzer_offset_deg)
+        col = cr.camera_raw([cr.flat_spectrum(0.05, 0.05)], sens, ill)[0]
+        g_d, g_s = geometry_factors(cam, kind, light_id, an, cfg.pol_roughness, self.dome)
+        return col * g_d[..., None] + white * g_s[..., None]
+
+    def raw(self, lights: Lights, polarizer_cdeg: int | None) -> np.ndarray:
+        """The raw signal ``(H, W, 3)`` of the target for ``lights`` ((rm.Source kind, index, intensity
+        register value), ...) with the analyser at ``polarizer_cdeg`` [centidegrees] (class doc)."""
+        cdeg = polarizer_cdeg if self.camera.name == "micro" and self.target != "dot_grid" else None
+        key = (lights, cdeg)
+        hit = self._cache.get(key)
+        if hit is not None:
+            self._cache.move_to_end(key)
+            return hit
+        t0 = time.perf_counter()
+        out = np.zeros((self.camera.height, self.camera.width, 3))
+        for kind, index, intensity in lights:
+            name = SOURCE_KIND.get(kind)
+            if name is None or intensity <= 0:
+                continue
+            out = out + self._one(name, index if name != "diffuse" else None, cdeg) * (intensity / rm.INTENSITY_MAX)
+        self.renders += 1
+        self.render_s += time.perf_counter() - t0
+        self._cache[key] = out
+        while len(self._cache) > RADIANCE_CACHE:
+            self._cache.popitem(last=False)
+        return out
+
+    def expose(self, raw: np.ndarray, exposure_s: float) -> np.ndarray:
+        """One exposure of ``raw`` for ``exposure_s`` [s]: float32 normalised DN ``(H, W, 3)``."""
+        return np.asarray(self.exposer(raw, exposure_s), dtype=np.float32)
+
+    def holder(self) -> dict[str, Any]:
+        """What the rig's operator reads off this camera's view of the holder, as ``write_session``
+        records it: ``markers`` (the mid camera: pixel boxes ``[row0, row1, col0, col1]`` inside the
+        holder's white markers, :func:`~dualscale.sim.targets.marker_boxes`) and ``chart_corners``
+        (the polar cameras: the centred chart's swatch-area corners TL, TR, BR, BL as image ``(x, y)``,
+        :func:`~dualscale.sim.targets.chart_corners`).  Empty for the micro camera."""
+        from dualscale.sim.targets import chart_corners, marker_boxes
+
+        if self.camera.name == "mid":
+            return {"markers": {"mid": marker_boxes(self.camera)}}
+        if self.camera.name.startswith("polar"):
+            return {"chart_corners": {self.camera.name: chart_corners(self.camera, self.layout).tolist()}}
+        return {}
+
 # ---- the camera ----------------------------------------------------------------------------------
 
 @dataclass
@@ -336,7 +559,7 @@ class SimCamera:
         self.name = o.camera
         self.bit = rm.TRIGGER_NAMES.index(o.camera)
         self.camera_index = rm.CAMERA_NAMES.index(o.camera)
-        self.scene = Scene(o, self.spec)
+        self.scene: Scene | TargetScene = TargetScene(o, self.spec) if o.target else Scene(o, self.spec)
         digest = hashlib.sha1(self.scene.identity().encode()).hexdigest()[:8].upper()
         self.serial = f"SIM-{o.camera}-{digest}"
         self.readout_s = o.readout_ms / 1000.0
@@ -554,6 +777,36 @@ class SimCamera:
                     self._frames.append(Frame(image=image, index=job.index, timestamp_s=job.t_us / 1e6,
                                               exposure_s=job.exposure_s, metadata=meta))
                 self._cond.notify_all()
+
+    # -- the virtual operator ------------------------------------------------------------------
+    def place(self, target: str, patch: int | None = None) -> None:
+        """The virtual rig's operator at the holder: put calibration target ``target``
+        (:data:`TARGETS`) in front of this camera, or move the chart so that ColorChecker ``patch``
+        (0..23) fills the micro camera's field (:meth:`TargetScene.place`); a camera that looked at
+        a sample now looks at the target, through the same geometry and sensor.  Waits for the
+        frames still being rendered; ``CameraError`` while armed, ``InputError`` for a target this
+        camera cannot image."""
+        deadline = Deadline(30.0)
+        with self._cond:
+            while self._pending and not deadline.expired():
+                self._cond.wait(deadline.remaining())
+            if self._armed or self._pending:
+                raise CameraError(f"camera {self.spec!r}: the target cannot be moved during an acquisition")
+            if isinstance(self.scene, TargetScene):
+                self.scene.place(target, patch)
+            else:
+                check_target(self.options.camera, target, patch, self.spec)
+                self.scene = TargetScene(replace_target(self.options, target, patch), self.spec,
+                                         camera=self.scene.camera, exposer=self.scene.exposer)
+
+    def holder(self) -> dict[str, Any]:
+        """The holder as seen by this camera, for the capture set (:meth:`TargetScene.holder`:
+        the mid camera's white-marker boxes, a polar camera's chart corners)."""
+        with self._cond:
+            scene = self.scene
+        if not isinstance(scene, TargetScene):
+            scene = TargetScene(replace_target(self.options), self.spec, camera=scene.camera)
+        return scene.holder()
 
     # -- the contract --------------------------------------------------------------------------
     def geometry(self):
