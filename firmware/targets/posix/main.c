@@ -286,6 +286,8 @@ typedef struct {
     uint16_t first_seq;   /* SEQ of the oldest pending event (or the next one) when last seen */
     uint64_t ack_v;       /* device time of the host's last ack, see SIM_FIFO_HIGH */
     uint64_t ack_real;    /* real time of the host's last ack */
+    uint64_t host_v;      /* device time of the host's last bytes (speed 0 watchdog rule) */
+    uint64_t host_real;   /* real time of the host's last bytes */
 } sim_loop_t;
 
 static sim_loop_t L;
@@ -317,10 +319,36 @@ static uint64_t congestion_cap(uint64_t real)
     return L.ack_v + (real > L.ack_real ? real - L.ack_real : 0u);
 }
 
+/* The cap never holds back the host's own frame: while a request is arriving, device time may
+ * always reach its t3.5 (the frame's end), so the reply -- and with it the host's next ack, the
+ * only thing that lifts the cap -- is never delayed by the cap. Without this, a clock that had
+ * jumped past the cap (speed 0 jumps freely while few events are pending) kept every reply
+ * waiting until real time caught up, the host timed out, never acked, and the link died. */
+static uint64_t effective_cap(uint64_t real)
+{
+    uint64_t cap = congestion_cap(real);
+    /* Speed 0 and the host watchdog: jumps from deadline to deadline would carry device time
+     * past any WATCHDOG_MS between two frames of a host that polls without pause, and trip it.
+     * So, with the watchdog on, device time runs at most half its period past the host's last
+     * bytes, then at 1x real time: a host that keeps talking never trips it, a host that stops
+     * (killed) trips it after about the period of real time, as on a real-time rig. */
+    uint32_t wd_ms = core.hr[DS_HR_WATCHDOG_MS];
+    if (L.clk.speed == 0.0 && wd_ms != 0u) {
+        uint64_t lim = L.host_v + (uint64_t)wd_ms * 500u + (real > L.host_real ? real - L.host_real : 0u);
+        if (lim < cap) {
+            cap = lim;
+        }
+    }
+    if (L.rx_pending && cap != UINT64_MAX && L.rx_v + L.t35 > cap) {
+        cap = L.rx_v + L.t35;
+    }
+    return cap;
+}
+
 static uint64_t device_now(uint64_t real)
 {
     uint64_t v = sim_clock_at(&L.clk, real);
-    uint64_t cap = congestion_cap(real);
+    uint64_t cap = effective_cap(real);
     if (v > cap) {
         /* held back: rebase, so the clock goes on from here (at its own rate) once the host
          * has caught up, instead of leaping over the time it was held */
@@ -354,7 +382,7 @@ static void run_due(uint64_t v)
         if (d == DS_NO_DEADLINE || d > v) {
             break;
         }
-        if (d > congestion_cap(real)) {
+        if (d > effective_cap(real)) {
             return;
         }
         uint64_t t = d < L.last ? L.last : d;
@@ -601,9 +629,15 @@ int main(int argc, char **argv)
         uint64_t d = ds_core_next_deadline(&core);
         uint64_t wait_us = 1000000u;   /* nothing due: wake up once a second anyway */
         int may_jump = 0;
-        uint64_t cap = congestion_cap(real);
+        uint64_t cap = effective_cap(real);
+        uint64_t target = d;           /* where a speed-0 jump goes: the deadline, or the cap */
         if (d != DS_NO_DEADLINE) {
-            if (d > cap) {
+            if (d > cap && L.clk.speed == 0.0 && !hold_active(real) && cap > device_now(real)) {
+                /* as fast as possible, but only as far as the cap allows */
+                wait_us = 0;
+                may_jump = 1;
+                target = cap;
+            } else if (d > cap) {
                 /* held back by the FIFO: the limit moves at 1x real time, or sooner with an ack */
                 uint64_t w = d - cap;
                 wait_us = w < wait_us ? w : wait_us;
@@ -642,8 +676,8 @@ int main(int argc, char **argv)
             if (may_jump) {
                 real = sim_real_us();
                 uint64_t v = device_now(real);
-                if (d > v) {
-                    sim_clock_jump(&L.clk, real, d);
+                if (target > v) {
+                    sim_clock_jump(&L.clk, real, target);
                 }
             }
             continue;
@@ -663,6 +697,8 @@ int main(int argc, char **argv)
                 L.rx_pending = 1;
                 L.rx_v = v;
                 L.rx_real = real;
+                L.host_v = v;
+                L.host_real = real;
             } else if (r < 0 && errno != EAGAIN && errno != EINTR && errno != EIO) {
                 perror("dualscale-sim: read pty");
                 break;
