@@ -97,8 +97,8 @@ test-slow: deps
 # stopped.  To stay within 10 minutes on 2 cores the demo captures every 4th LED (the
 # calibration covers the same LEDs), a micro field of 128 px of 7.2 um (the rig's 0.92 mm field
 # binned 4x) and a guidance image of 512 px over 12.5 mm (24 um per pixel, the pitch of the
-# rig's 4072 px mid-range camera), with the simulator's clock at 10x real time; docs/DIGITIZE.md
-# measures it.
+# rig's 4072 px mid-range camera), with the simulator as fast as it goes (speed 0);
+# docs/DIGITIZE.md measures it.
 DEMO ?= $(BUILD)/demo
 DEMO_SIZE ?= 128
 DEMO_TEXEL_UM ?= 7.2
@@ -106,7 +106,7 @@ DEMO_LED_STEP ?= 4
 DEMO_MID_SIZE ?= 512
 DEMO_MID_FIELD_MM ?= 12.5
 DEMO_QUALITY ?= standard
-DEMO_SIM_SPEED ?= 10
+DEMO_SIM_SPEED ?= 0
 # one thread: on a shared 2-core machine a second torch thread per process costs far more than it gives
 DEMO_THREADS ?= 1
 DS := $(VENV)/bin/dualscale
