@@ -387,7 +387,7 @@ class CaptureSession:
                 if e.error == rm.Error.LED_DUTY and 0 < e.step < len(shots):
                     shots, rest = shots[:e.step], shots[e.step:] + rest
                     continue
-                if e.error in (rm.Error.LED_ON_TIME, rm.Error.LED_DUTY) and e.step < len(shots):
+                if e.error == rm.Error.LED_ON_TIME and e.step < len(shots):
                     shot = shots[e.step]
                     raise RigError(f"shot {shot.key}: {e}: its light would be on {sum(plans[shot.key].exposures_s()):.3g} s "
                                    f"in one step; the rig allows {self.rig.read_holding(rm.HR.LED_MAX_ON_MS, 1)[0]} ms "
