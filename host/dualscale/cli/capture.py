@@ -207,7 +207,8 @@ def add_capture_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--trigger", choices=("device", "camera"), default="device",
                    help="device: the rig times every exposure (gate triggers, HDR brackets); camera: camera-master")
     p.add_argument("--lights", default="ALL", metavar="ALL|MODn|ROWa+b|FILE",
-                   help="the LEDs of the micro plan (default ALL)")
+                   help="the LEDs of the micro plan and of the white-sheet, chart and polarization plans "
+                        "(default ALL; synth-targets' --led-step N is MODN)")
     p.add_argument("--intensity", type=int, default=65535, help="LED drive level, 1..65535 (default full)")
     p.add_argument("--max-exposure", type=float, default=4.0, metavar="S",
                    help="longest exposure a bracket may have [s] (default 4)")
