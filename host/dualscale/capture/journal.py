@@ -9,7 +9,8 @@ line.
 
 Entry kinds (``"kind"``): ``start`` (the plan, cameras, rig), ``dark`` (a dark frame),
 ``meter`` (a shot's metered bracket plan), ``shot`` (a shot's frames, matched to their device
-events), ``retake`` (a frame refused, with the reason), ``merged`` (the dataset was written).
+events), ``retake`` (a frame refused, with the reason), ``merged`` (a sample plan's dataset was
+written), ``written`` (a calibration-target plan's part of the capture set was written).
 """
 
 from __future__ import annotations
