@@ -247,7 +247,53 @@ def check_target(camera: str, target: str | None, patch: int | None, spec: str) 
 
 # ---- the scene: sample, camera geometry, sensor --------------------------------------------------
 
-class Scene:
+class _LightSum:
+    """What both scenes share: the raw camera signal of a light state as the sum of each light's
+    signal at full intensity times its drive level (the renderer and the sensor's raw signal are
+    linear in the light), cached per (lights, analyser) state, and one exposure of it.
+    Subclasses give ``camera``, ``exposer``, ``_analyser(polarizer_cdeg)`` and
+    ``_one(kind, index, cdeg)`` (``(H, W, 3)`` float64 raw signal of one light at full intensity)."""
+
+    _cache: OrderedDict
+    renders: int
+    render_s: float
+
+    def _analyser(self, polarizer_cdeg: int | None) -> int | None:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _one(self, kind: str, index: int | None, cdeg: int | None) -> np.ndarray:  # pragma: no cover
+        raise NotImplementedError
+
+    def raw(self, lights: Lights, polarizer_cdeg: int | None) -> np.ndarray:
+        """The raw signal ``(H, W, 3)`` for ``lights`` ((rm.Source kind, index, intensity register
+        value), ...) with the analyser at ``polarizer_cdeg`` [centidegrees] (ignored where the
+        camera or target has none)."""
+        cdeg = self._analyser(polarizer_cdeg)
+        key = (lights, cdeg)
+        hit = self._cache.get(key)
+        if hit is not None:
+            self._cache.move_to_end(key)
+            return hit
+        t0 = time.perf_counter()
+        out = np.zeros((self.camera.height, self.camera.width, 3))
+        for kind, index, intensity in lights:
+            name = SOURCE_KIND.get(kind)
+            if name is None or intensity <= 0:
+                continue
+            out = out + self._one(name, index if name != "diffuse" else None, cdeg) * (intensity / rm.INTENSITY_MAX)
+        self.renders += 1
+        self.render_s += time.perf_counter() - t0
+        self._cache[key] = out
+        while len(self._cache) > RADIANCE_CACHE:
+            self._cache.popitem(last=False)
+        return out
+
+    def expose(self, raw: np.ndarray, exposure_s: float) -> np.ndarray:
+        """One exposure of ``raw`` for ``exposure_s`` [s]: float32 normalised DN ``(H, W, 3)``."""
+        return np.asarray(self.exposer(raw, exposure_s), dtype=np.float32)
+
+
+class Scene(_LightSum):
     """What the camera looks at and how it records it: the sample's maps on the dome, the camera's
     geometry (:mod:`dualscale.geometry.cameras`) and its sensor (:func:`~dualscale.sim.targets.rig_exposer`).
 
@@ -317,50 +363,28 @@ class Scene:
         o = self.options
         return f"{self.source}|seed={o.seed}|size={self.camera.width}|texel_um={self.texel_um:g}|field_mm={o.field_mm:g}"
 
-    def raw(self, lights: Lights, polarizer_cdeg: int | None) -> np.ndarray:
-        """The raw signal ``(H, W, 3)`` (:func:`dualscale.sim.targets.raw_signal`, summed over the
-        lights that are on) for ``lights`` ((rm.Source kind, index, intensity register value), ...)
-        with the analyser at ``polarizer_cdeg`` [centidegrees] (ignored by a camera without one)."""
+    def _analyser(self, polarizer_cdeg: int | None) -> int | None:
+        return polarizer_cdeg if self.camera.has_analyzer else None
+
+    def _one(self, kind: str, index: int | None, cdeg: int | None) -> np.ndarray:
+        """One light at full intensity, rendered (:func:`dualscale.sim.render.render`) and made
+        the camera's raw signal (:func:`dualscale.sim.targets.raw_signal`)."""
         import torch
 
         from dualscale.sim.render import Analyzer, LightRealism, LightState, render
         from dualscale.sim.targets import raw_signal
 
-        cdeg = polarizer_cdeg if self.camera.has_analyzer else None
-        key = (lights, cdeg)
-        hit = self._cache.get(key)
-        if hit is not None:
-            self._cache.move_to_end(key)
-            return hit
-        t0 = time.perf_counter()
         an = None if cdeg is None else Analyzer(cdeg / 100.0, relative=True)
-        out = np.zeros((self.camera.height, self.camera.width, 3))
-        for kind, index, intensity in lights:
-            name = SOURCE_KIND.get(kind)
-            if name is None or intensity <= 0:
-                continue
-            level = intensity / rm.INTENSITY_MAX
-            state = (LightState.led(index, level) if name == "led" else
-                     LightState.backlight(index, level) if name == "backlight" else LightState.diffuse_group(level))
-            rad = render(self.maps, self.camera, state, self.dome, an, texel_mm=self.texel_mm, geometry=self.geometry,
-                         realism=LightRealism(shadows=self.geometry is not None))
-            with torch.no_grad():
-                rad_np = rad.detach().double().cpu().numpy()
-            out = out + raw_signal(rad_np, self.camera, name, index if name != "diffuse" else None,
-                                   self.cfg, self.defects)
-        self.renders += 1
-        self.render_s += time.perf_counter() - t0
-        self._cache[key] = out
-        while len(self._cache) > RADIANCE_CACHE:
-            self._cache.popitem(last=False)
-        return out
-
-    def expose(self, raw: np.ndarray, exposure_s: float) -> np.ndarray:
-        """One exposure of ``raw`` for ``exposure_s`` [s]: float32 normalised DN ``(H, W, 3)``."""
-        return np.asarray(self.exposer(raw, exposure_s), dtype=np.float32)
+        state = (LightState.led(index) if kind == "led" else
+                 LightState.backlight(index) if kind == "backlight" else LightState.diffuse_group())
+        rad = render(self.maps, self.camera, state, self.dome, an, texel_mm=self.texel_mm, geometry=self.geometry,
+                     realism=LightRealism(shadows=self.geometry is not None))
+        with torch.no_grad():
+            rad_np = rad.detach().double().cpu().numpy()
+        return raw_signal(rad_np, self.camera, kind, index, self.cfg, self.defects)
 
 
-class TargetScene:
+class TargetScene(_LightSum):
     """A calibration target on the virtual rig's holder, as :func:`dualscale.sim.targets.write_session`
     renders it (``dualscale synth-targets``), seen by one camera; the same interface as :class:`Scene`.
 
@@ -489,32 +513,8 @@ class TargetScene:
         g_d, g_s = geometry_factors(cam, kind, light_id, an, cfg.pol_roughness, self.dome)
         return col * g_d[..., None] + white * g_s[..., None]
 
-    def raw(self, lights: Lights, polarizer_cdeg: int | None) -> np.ndarray:
-        """The raw signal ``(H, W, 3)`` of the target for ``lights`` ((rm.Source kind, index, intensity
-        register value), ...) with the analyser at ``polarizer_cdeg`` [centidegrees] (class doc)."""
-        cdeg = polarizer_cdeg if self.camera.name == "micro" and self.target != "dot_grid" else None
-        key = (lights, cdeg)
-        hit = self._cache.get(key)
-        if hit is not None:
-            self._cache.move_to_end(key)
-            return hit
-        t0 = time.perf_counter()
-        out = np.zeros((self.camera.height, self.camera.width, 3))
-        for kind, index, intensity in lights:
-            name = SOURCE_KIND.get(kind)
-            if name is None or intensity <= 0:
-                continue
-            out = out + self._one(name, index if name != "diffuse" else None, cdeg) * (intensity / rm.INTENSITY_MAX)
-        self.renders += 1
-        self.render_s += time.perf_counter() - t0
-        self._cache[key] = out
-        while len(self._cache) > RADIANCE_CACHE:
-            self._cache.popitem(last=False)
-        return out
-
-    def expose(self, raw: np.ndarray, exposure_s: float) -> np.ndarray:
-        """One exposure of ``raw`` for ``exposure_s`` [s]: float32 normalised DN ``(H, W, 3)``."""
-        return np.asarray(self.exposer(raw, exposure_s), dtype=np.float32)
+    def _analyser(self, polarizer_cdeg: int | None) -> int | None:
+        return polarizer_cdeg if self.camera.name == "micro" and self.target != "dot_grid" else None
 
     def holder(self) -> dict[str, Any]:
         """What the rig's operator reads off this camera's view of the holder, as ``write_session``
