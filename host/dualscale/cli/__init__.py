@@ -16,11 +16,11 @@ import sys
 import time
 
 from dualscale.errors import EXIT_CODES, DualscaleError
-from dualscale.rig.client import RigClient
-from dualscale.rig.launcher import SimError, SimulatedRig
 
 
 def cmd_sim(a: argparse.Namespace) -> int:
+    from dualscale.rig.launcher import SimError, SimulatedRig
+
     stop = {"now": False}
 
     def handler(_signum, _frame):
@@ -47,6 +47,7 @@ def cmd_sim(a: argparse.Namespace) -> int:
 
 
 def cmd_console(a: argparse.Namespace) -> int:
+    from dualscale.rig.client import RigClient
     from dualscale.rig.console import Console, run_script
 
     with RigClient(a.port, address=a.address, parity=a.parity, stopbits=a.stopbits) as rig:

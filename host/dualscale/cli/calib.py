@@ -5,8 +5,6 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import numpy as np
-
 from dualscale.formats.atomic import write_json
 
 from .common import add_output, add_work_options, apply_threads, output_folder, want_progress
@@ -51,6 +49,8 @@ def cmd_calibrate(a: argparse.Namespace) -> int:
 
 def _evaluate(s) -> tuple[dict, dict]:
     """Every measurement of the device evaluation on a calibrated session: results, summary."""
+    import numpy as np
+
     from dualscale.calib import evaluate as ev
 
     cs = s.cs

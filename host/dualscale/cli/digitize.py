@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from .choices import QUALITIES, STAGES
 from .common import add_output, add_work_options, apply_threads, output_folder, want_progress
 
 
@@ -73,8 +74,6 @@ def cmd_digitize(a: argparse.Namespace) -> int:
 
 def register(sub) -> None:
     """Add ``digitize`` to an argparse subparsers object."""
-    from dualscale.pipeline import QUALITIES, STAGES
-
     from .export import FORMATS_HELP
 
     d = sub.add_parser("digitize", help="the whole job: calibrate, fit, fly-outs, propagate, export, report "

@@ -6,6 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
+from .choices import FIT_PRESETS
 from .common import add_output, add_work_options, apply_threads, output_folder, want_progress
 
 _SWITCH = {"auto": None, "on": True, "off": False}
@@ -75,12 +76,10 @@ def cmd_flyouts(args: argparse.Namespace) -> int:
 
 def register(subparsers) -> None:
     """Add ``fit``, ``study`` (``study lights``) and ``flyouts`` to an argparse subparsers object."""
-    from dualscale.fit.presets import PRESETS
-
     f = subparsers.add_parser("fit", help="fit SVBSDF maps to a micro photometric dataset")
     f.add_argument("dataset", help="dataset directory (manifest.json), or a `synth` output with micro/")
     add_output(f, "output directory for the maps")
-    f.add_argument("--preset", choices=sorted(PRESETS), default="standard")
+    f.add_argument("--preset", choices=sorted(FIT_PRESETS), default="standard")
     for comp in ("transmittance", "anisotropy", "tint"):
         f.add_argument(f"--{comp}", choices=sorted(_SWITCH), default="auto",
                        help=f"force the {comp} component on/off (default: decided from the data)")
@@ -110,7 +109,7 @@ def register(subparsers) -> None:
     sl = ss.add_parser("lights", help="fit with each light subset (supplementary Sec. 6) and evaluate it")
     sl.add_argument("dataset")
     add_output(sl, "output directory (study.json, study.png, one maps folder per subset)")
-    sl.add_argument("--preset", choices=sorted(PRESETS), default="standard")
+    sl.add_argument("--preset", choices=sorted(FIT_PRESETS), default="standard")
     sl.add_argument("--subset", action="append", metavar="NAME=IDS",
                     help="extra subset: LED ids and ranges, e.g. 'mine=0,3,10-20'")
     sl.add_argument("--only", nargs="*", default=None, help="run only these subsets")

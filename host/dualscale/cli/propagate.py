@@ -9,6 +9,7 @@ from pathlib import Path
 
 from dualscale.errors import InputError
 
+from .choices import PERCEPTUAL, PROPAGATE_PRESETS
 from .common import add_output, add_work_options, apply_threads, output_folder, want_progress
 
 
@@ -119,9 +120,6 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def register(subparsers) -> None:
     """Add ``propagate`` (train / export / run) to an ``argparse`` subparsers object."""
-    from dualscale.propagate.losses import PERCEPTUAL
-    from dualscale.propagate.train import PRESETS
-
     p = subparsers.add_parser("propagate", help="mesoscale propagation: U-Net from micro capture to guidance image")
     sub = p.add_subparsers(dest="propagate_cmd", required=True)
 
@@ -130,7 +128,7 @@ def register(subparsers) -> None:
                    help="folder with micro/ and maps/ (as 'dualscale synth --dataset' writes), or a micro dataset")
     add_output(t, "model file to write (checkpoints go to OUTPUT.ckpt)")
     t.add_argument("--maps", action="append", help="maps folder for each DATASET, in order (repeat)")
-    t.add_argument("--preset", choices=sorted(PRESETS), default="fast")
+    t.add_argument("--preset", choices=sorted(PROPAGATE_PRESETS), default="fast")
     t.add_argument("--iterations", type=int, help="override the preset's iteration count")
     t.add_argument("--batch", type=int, help="override the preset's batch size")
     t.add_argument("--lr", type=float, help="override the preset's learning rate")

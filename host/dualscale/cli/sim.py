@@ -8,15 +8,17 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-
-import numpy as np
-import torch
+from typing import TYPE_CHECKING
 
 from dualscale.errors import FormatError, InputError
 from dualscale.progress import tracker
 from dualscale.protocol import regmap
 
+from .choices import MATERIALS
 from .common import add_output, add_work_options, apply_threads, output_folder, want_progress
+
+if TYPE_CHECKING:
+    import torch
 
 
 def _analyzers(text: str | None) -> list[float | None]:
@@ -43,6 +45,9 @@ def _capture_set(maps, cam, out: Path, lights: list[tuple[str, int | None]], ana
     :func:`dualscale.sim.targets.capture_material`), which the calibration of the same virtual rig
     (``synth-targets`` + ``calibrate``) turns back into radiance.  ``progress`` as in
     :mod:`dualscale.progress` (one unit per image)."""
+    import numpy as np
+    import torch
+
     from dualscale.formats.dataset import DatasetWriter
     from dualscale.geometry.dome import DomeGeometry
     from dualscale.sim.render import Analyzer, LightRealism, LightState, render
@@ -162,6 +167,8 @@ def _render_lights(args: argparse.Namespace) -> list[tuple[str, int | None]]:
 
 
 def cmd_render(args: argparse.Namespace) -> int:
+    import torch
+
     from dualscale.geometry.cameras import micro_camera, mid_camera, polar_camera
     from dualscale.formats.maps import load_maps
 
@@ -189,8 +196,6 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 def register(subparsers) -> None:
     """Add ``synth`` and ``render`` to an ``argparse`` subparsers object."""
-    from dualscale.sim.materials import MATERIALS
-
     p = subparsers.add_parser("synth", help="write ground-truth maps (and optionally captures) of a synthetic material")
     p.add_argument("material", choices=sorted(MATERIALS))
     add_output(p, "output directory (maps/, micro/, mid/)")
