@@ -226,7 +226,7 @@ def add_capture_options(p: argparse.ArgumentParser) -> None:
 
 def register(sub) -> None:
     """Add ``capture`` to an argparse subparsers object."""
-    from dualscale.capture.plan import PLANS
+    from .choices import CAPTURE_PLANS as PLANS
 
     p = sub.add_parser("capture", help="capture a plan on the rig with its cameras (resumable)")
     p.add_argument("plan", choices=list(PLANS), help="micro: the photometric dataset; mid: the guidance image; "
