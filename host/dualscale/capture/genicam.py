@@ -6,7 +6,8 @@ cameras.  This backend drives them through Aravis's GObject-introspection bindin
 camera contract of :mod:`dualscale.capture.camera`:
 
 * **spec** ``genicam:SERIAL`` opens the camera whose serial number (or Aravis device id) is
-  ``SERIAL``; ``genicam:`` opens the first camera found.  Options follow a ``?``:
+  ``SERIAL`` (found by discovery, ~1 s a round); ``genicam:192.168.1.20`` the camera at that IPv4
+  address, asked directly; ``genicam:`` the first camera found.  Options follow a ``?``:
   ``genicam:SERIAL?pixel_format=Mono16&gain=2&edge=1`` (``edge=1`` enables the ``edge`` trigger
   mode, see below).
 * **sensor**: ``Width`` x ``Height`` (the current region), bit depth from ``PixelFormat``
@@ -23,18 +24,33 @@ camera contract of :mod:`dualscale.capture.camera`:
   the device registers (docs/CAPTURE.md).
 * **exposure** in us (``ExposureTime``/``ExposureTimeAbs``, through Aravis), range-checked
   against the device's bounds (``InputError`` outside); the frames report the exposure read back.
-* **frames**: a GigE Vision stream with a buffer pool sized to the armed frames; images are
+* **frames**: a GigE Vision stream with a buffer pool sized to the armed frames and a receive
+  socket sized before the first packet (:func:`size_stream_socket`); images are
   ``DN / (2^bits - 1)`` as float32 ``(H, W)``; ``timestamp_s`` is the buffer's device timestamp
-  (ns -> s).  Frames that arrive incomplete, or with no free buffer, are *dropped* and counted
-  (:meth:`GenICamCamera.stats`), never delivered half-filled.
-* **faults**: ``collect`` past its deadline raises :class:`~dualscale.errors.CameraTimeout` with
-  the frames that arrived; a camera whose control channel stops answering raises
-  :class:`~dualscale.errors.CameraDisconnected` (from a failed register access, or Aravis's
-  ``control-lost`` heartbeat signal); no call waits past its deadline.
+  (ns -> s); the metadata adds the GVSP ``frame_id``, the host's arrival time and, for software
+  triggers, the host time the trigger was sent (``trigger_host_s``).
+* **frame accounting**: a frame's ``index`` is the trigger it answers (software trigger: the
+  order of :meth:`GenICamCamera.trigger` calls; edge: the GVSP block-id distance from the first
+  frame).  A frame that arrives damaged (packets lost; Aravis 0.8 asks Aravis's emulator for no
+  resends) is counted lost and leaves a gap in the indices; it is never delivered half-filled,
+  and the frames after it keep their own indices.  Frames no trigger asked for are counted, not
+  delivered.  Counters in :meth:`GenICamCamera.stats`.
+* **faults**: ``collect`` raises :class:`~dualscale.errors.CameraTimeout` with the frames that
+  arrived when some are missing (past its deadline, or at once when they are known lost); a
+  software trigger the camera never answers ends the acquisition (:meth:`GenICamCamera.trigger`);
+  a camera whose control channel stops answering raises
+  :class:`~dualscale.errors.CameraDisconnected` (from a failed register access, ~2.5 s of GVCP
+  retries, or Aravis's ``control-lost`` heartbeat signal; from ``trigger``/``collect`` it carries
+  the frames that arrived in ``.frames``), and closing it does not wait.
 """
 
 from __future__ import annotations
 
+import copy
+import ctypes
+import ipaddress
+import os
+import socket
 import threading
 import time
 from typing import Any
@@ -50,16 +66,30 @@ from dualscale.errors import CameraDisconnected, CameraError, CameraTimeout, Inp
 DEFAULT_PIXEL_UM = 3.45
 #: Bits per pixel of the pixel formats this backend decodes (GenICam PFNC names).
 PIXEL_BITS = {"Mono8": 8, "Mono10": 10, "Mono12": 12, "Mono14": 14, "Mono16": 16}
-#: Receive-socket buffer requested for the GVSP stream [bytes] (the kernel caps it at
-#: net.core.rmem_max); Linux's 208 KiB default drops packets of a 512x512 frame on loopback.
+#: Smallest receive-socket buffer given to a GVSP stream [bytes]; it grows to
+#: :data:`SOCKET_BUFFER_FRAMES` frames of payload, up to :data:`SOCKET_BUFFER_MAX_BYTES`.  It is
+#: set on the stream's socket *before* AcquisitionStart (:func:`size_stream_socket`): Aravis 0.8
+#: sizes it only when the first packet of the first frame arrives, and a frame larger than
+#: Linux's 208 KiB default, sent in one burst, loses its tail packets before that (the lost
+#: first frame of issue 14; docs/CAPTURE.md).
 SOCKET_BUFFER_BYTES = 8 << 20
+#: Frames of payload the stream socket holds (the kernel counts each UDP packet's full
+#: allocation, ~1.7x its payload for 1400-byte packets on loopback).
+SOCKET_BUFFER_FRAMES = 4
+#: Largest receive-socket buffer requested [bytes].
+SOCKET_BUFFER_MAX_BYTES = 256 << 20
+_SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)  # Linux; needs CAP_NET_ADMIN
 #: Pause after AcquisitionStart before the first trigger [s] (see :meth:`GenICamCamera.arm`).
 ARM_SETTLE_S = 0.05
 #: How long an incomplete GVSP frame is kept open for late or resent packets [us].
 FRAME_RETENTION_US = 1_000_000
 #: Longest wait for the previous software-triggered frame before the next trigger [s], beyond
-#: the exposure (a trigger sent while the camera is busy is ignored under GenICam's overlap rules).
-READOUT_WAIT_S = 1.0
+#: the exposure (a trigger sent while the camera is busy is ignored under GenICam's overlap
+#: rules).  Longer than :data:`FRAME_RETENTION_US`, so that a frame that arrived damaged is
+#: reported (as lost) within it rather than taken for a trigger the camera never answered.
+READOUT_WAIT_S = 2.0
+#: GVSP block ids (16 bit) run 1..65535 and wrap to 1.
+_GVSP_IDS = 65535
 
 _ARAVIS = None
 
@@ -74,7 +104,7 @@ def aravis():
             from gi.repository import Aravis
         except (ImportError, ValueError) as e:
             raise ToolError(f"genicam: Aravis 0.8 GObject introspection unavailable ({e}); install Debian "
-                            "gir1.2-aravis-0.8 and PyGObject (pip install 'PyGObject<3.51')") from e
+                            "gir1.2-aravis-0.8 and PyGObject>=3.50,<3.51 (`make deps` installs both)") from e
         _ARAVIS = Aravis
     return _ARAVIS
 
@@ -83,6 +113,64 @@ def _gerror(e: Exception) -> bool:
     """Whether ``e`` is a GLib error raised through the binding (``GLib.Error``/``GLib.GError``)."""
     from gi.repository import GLib
     return isinstance(e, GLib.Error)
+
+
+def _socket_fd(port: int) -> int | None:
+    """The file descriptor of this process's UDP socket bound to ``port`` (Linux ``/proc``),
+    or None where it cannot be found."""
+    inodes = set()
+    for table in ("/proc/net/udp", "/proc/net/udp6"):
+        try:
+            with open(table) as f:
+                rows = list(f)[1:]
+        except OSError:
+            continue
+        for row in rows:
+            cols = row.split()
+            if len(cols) > 9 and int(cols[1].rsplit(":", 1)[1], 16) == port:
+                inodes.add(cols[9])
+    if not inodes:
+        return None
+    try:
+        fds = os.listdir("/proc/self/fd")
+    except OSError:
+        return None
+    for fd in fds:
+        try:
+            link = os.readlink(f"/proc/self/fd/{fd}")
+        except OSError:
+            continue
+        if link.startswith("socket:[") and link[8:-1] in inodes:
+            return int(fd)
+    return None
+
+
+def size_stream_socket(port: int, nbytes: int) -> int | None:
+    """Set the receive buffer of the UDP socket on ``port`` (an Aravis GVSP stream of this
+    process) to ``nbytes`` before any packet arrives: ``SO_RCVBUFFORCE`` where the process may
+    (CAP_NET_ADMIN), else ``SO_RCVBUF``, which the kernel caps at ``net.core.rmem_max``.
+    Returns the buffer the kernel granted [bytes] (``SO_RCVBUF`` read back), None where the
+    socket cannot be found (not Linux)."""
+    fd = _socket_fd(port)
+    if fd is None:
+        return None
+    sk = socket.socket(fileno=os.dup(fd))  # a duplicate: closing it leaves Aravis's socket open
+    try:
+        try:
+            sk.setsockopt(socket.SOL_SOCKET, _SO_RCVBUFFORCE, nbytes)
+        except OSError:  # EPERM without CAP_NET_ADMIN
+            sk.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, nbytes)
+        return int(sk.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF))
+    finally:
+        sk.close()
+
+
+def _keep_forever(obj) -> None:
+    """Leak one reference to ``obj``: it is never freed, not even at interpreter exit (where a
+    module-level list would be cleared, tearing the objects down then).  For the Aravis device
+    of a camera that stopped answering (:meth:`GenICamCamera._release`): a few KiB and two
+    sockets per dead camera."""
+    ctypes.pythonapi.Py_IncRef(ctypes.py_object(obj))
 
 
 def list_devices() -> list[dict[str, str]]:
@@ -114,8 +202,9 @@ class GenICamCamera:
             raise
         self._dev = self._cam.get_device()
         self._lost = threading.Event()
-        try:
-            self._dev.connect("control-lost", lambda *_: self._lost.set())
+        self._lost_handler = None
+        try:  # Aravis's heartbeat thread emits it
+            self._lost_handler = self._dev.connect("control-lost", lambda *_: self._lost.set())
         except TypeError:  # not a GigE Vision device: no heartbeat signal
             pass
         if self._cam.is_gv_device():
@@ -125,9 +214,8 @@ class GenICamCamera:
         self._info: TriggerInfo | None = None
         self._exposure_s = 0.0
         self._armed = False
-        self._frames: list[Frame] = []
-        self._triggered = 0
-        self._incomplete = self._lost_triggers = 0
+        self._free_run = False
+        self._reset_acquisition()
         self._last_stats: dict[str, int] = {}
         if pixel_format is not None:
             self.set_pixel_format(pixel_format)
@@ -156,6 +244,14 @@ class GenICamCamera:
 
     # -- discovery and register access ----------------------------------------------------------
     def _find(self, serial: str, timeout_s: float) -> str:
+        """The Aravis device id to open: an IPv4 address as it is (Aravis asks that address
+        directly, no discovery), else the discovered device whose serial or id is ``serial``
+        (each discovery round waits ~1 s for answers)."""
+        try:
+            ipaddress.IPv4Address(serial)
+            return serial
+        except ValueError:
+            pass
         deadline = Deadline(timeout_s)
         while True:
             devices = list_devices()
@@ -177,6 +273,7 @@ class GenICamCamera:
             if not _gerror(e):
                 raise
             msg = f"{self.spec}: {what or getattr(fn, '__name__', 'register access')}: {e}"
+            fn = args = None  # the traceback must not keep the camera alive (see _release)
             if self._lost.is_set() or "timeout" in str(e).lower() or "lost" in str(e).lower():
                 self._lost.set()  # no further register access waits on a dead control channel
                 raise CameraDisconnected(msg) from e
@@ -252,6 +349,7 @@ class GenICamCamera:
         if not (lo <= gain <= hi):
             raise InputError(f"{self.spec}: Gain {gain} outside the device range [{lo}, {hi}]")
         self._call(self._cam.set_gain, float(gain), what=f"write Gain={gain}")
+        self._meta = None  # the frames' metadata is read again
         return float(self._call(self._cam.get_gain, what="read Gain"))
 
     def set_pixel_format(self, name: str) -> None:
@@ -304,11 +402,14 @@ class GenICamCamera:
                          buffers: int | None = None) -> TriggerInfo:
         """Like :meth:`prepare` with ``TriggerMode=Off``: the camera streams at its
         ``AcquisitionFrameRate`` (no :meth:`trigger`); for the bench and for checks of the stream
-        alone (``buffers``: the pool size, default ``frames``).  Returns the :class:`TriggerInfo` recorded in the frames' metadata."""
+        alone (``buffers``: the pool size, default ``frames``).  :meth:`collect` then returns the
+        first ``frames`` frames that arrive whole, numbered in arrival order; the frames the
+        camera sent that did not arrive are counted (``stats()["id_gaps"]``), not numbered.
+        Returns the :class:`TriggerInfo` recorded in the frames' metadata."""
         info = TriggerInfo(TriggerMode.INTERNAL, frames=frames, exposure_s=exposure_s, timeout_s=timeout_s)
         self.prepare(info)
         if buffers is not None and buffers != frames:
-            self._stream = None
+            self._release("_stream")
             self._open_stream(int(buffers))
         self._set_enum("TriggerMode", "Off")
         self._free_run = True
@@ -319,20 +420,37 @@ class GenICamCamera:
         stream = self._call(self._cam.create_stream, None, None, what="create stream")
         if stream is None:
             raise CameraDisconnected(f"{self.spec}: cannot open a stream")
+        payload = int(self._call(self._cam.get_payload, what="read PayloadSize"))
+        self._socket_bytes = None
         if self._cam.is_gv_device():
+            want = min(max(SOCKET_BUFFER_BYTES, SOCKET_BUFFER_FRAMES * payload), SOCKET_BUFFER_MAX_BYTES)
+            self._socket_bytes = size_stream_socket(int(stream.get_port()), want)
             stream.set_property("socket-buffer", A.GvStreamSocketBuffer.FIXED)
-            stream.set_property("socket-buffer-size", SOCKET_BUFFER_BYTES)
+            # sized above: size 0 tells Aravis to leave the socket alone (it would set it only at
+            # the first frame's first packet, and only up to net.core.rmem_max); where the socket
+            # was not found, Aravis's late sizing is the fallback
+            stream.set_property("socket-buffer-size", 0 if self._socket_bytes else want)
             # a loaded host may read a frame's packets late: keep an open frame 1 s (Aravis: 100 ms)
             # before declaring it incomplete, and ask for resends after 40 ms without a packet
             stream.set_property("frame-retention", FRAME_RETENTION_US)
             stream.set_property("packet-timeout", 40_000)
-        payload = int(self._call(self._cam.get_payload, what="read PayloadSize"))
         for _ in range(n_buffers):
             stream.push_buffer(A.Buffer.new_allocate(payload))
         self._stream = stream
-        self._last_id = None
-        self._id_gaps = 0
-        self._incomplete = self._lost_triggers = 0
+        self._reset_acquisition()
+
+    def _reset_acquisition(self) -> None:
+        """Forget the frames and the trigger accounting of the last acquisition."""
+        self._frames: list[Frame] = []
+        self._sent: list[float] = []      # wall-clock time of each software trigger, by ordinal
+        self._resolved = 0                # software triggers answered by a buffer, whole or not
+        self._missing: list[int] = []     # frame indices that arrived damaged or not at all
+        self._edge_next = 0               # edge trigger: the next index expected
+        self._first_id: int | None = None
+        self._last_id: int | None = None
+        self._id_gaps = self._incomplete = self._unanswered = self._unsolicited = 0
+        self._broken: str | None = None
+        self._meta: dict[str, Any] | None = None
 
     def arm(self) -> None:
         """Start the acquisition (``AcquisitionStart``); after :meth:`disarm` it re-arms the same
@@ -345,51 +463,120 @@ class GenICamCamera:
             return
         if self._stream is None:  # re-arming after disarm(): the same prepared acquisition
             self._open_stream(self._info.frames)
-        self._frames, self._triggered, self._incomplete, self._lost_triggers = [], 0, 0, 0
+        self._reset_acquisition()
+        self._meta = frame_metadata(self, self._info)  # read once, not per frame
         self._call(self._cam.start_acquisition, what="AcquisitionStart")
         self._armed = True
-        # the emulator (and cameras whose AcquisitionStatus we cannot read) drop a trigger that
-        # arrives before their acquisition thread runs: settle one short interval first
+        # a camera may ignore a trigger that arrives before its acquisition runs, and not every
+        # camera has AcquisitionStatus to ask: settle one short interval first (Aravis's emulator
+        # would not need it: it keeps a software trigger until its next frame tick)
         time.sleep(ARM_SETTLE_S)
 
+    def _software(self) -> bool:
+        return self._info is not None and self._info.mode is TriggerMode.INTERNAL and not self._free_run
+
     def trigger(self) -> None:
-        """One software trigger (``TriggerSoftware``).  Waits first (up to exposure +
-        :data:`READOUT_WAIT_S`) for the previous triggered frame, since a trigger the camera
-        receives while busy is ignored; a previous frame that does not come is counted dropped."""
-        if self._info is None or self._info.mode is not TriggerMode.INTERNAL or getattr(self, "_free_run", False):
+        """One software trigger (``TriggerSoftware``); the frame it starts gets the next index.
+
+        Triggers are one at a time: this first waits (up to the exposure +
+        :data:`READOUT_WAIT_S`) for the previous trigger's frame, since a camera ignores a
+        trigger that arrives while it is busy (GenICam overlap rules).  Whatever answers a
+        trigger -- a whole frame, or a damaged one, counted lost -- belongs to it, so a lost frame
+        leaves a gap in the indices and never shifts the later frames onto the wrong trigger.
+        A previous trigger with no answer at all raises :class:`~dualscale.errors.CameraTimeout`
+        (with the frames so far) and ends the acquisition: a late frame could no longer be told
+        from the next trigger's, so ``disarm()`` and ``arm()`` again.  ``InputError`` outside an
+        armed software-trigger acquisition or past its frames."""
+        if self._info is None or not self._software():
             raise InputError(f"{self.spec}: trigger() needs an armed internal (software) trigger")
         if not self._armed:
             raise InputError(f"{self.spec}: trigger() before arm()")
-        pending = lambda: self._triggered > len(self._frames) + self._incomplete + self._lost_triggers  # noqa: E731
-        if pending():
+        self._raise_if_broken()
+        if len(self._sent) >= self._info.frames:
+            raise InputError(f"{self.spec}: trigger() past the {self._info.frames} armed frame(s)")
+        try:
+            self._trigger()
+        except CameraDisconnected as e:
+            raise self._with_frames(e)
+
+    def _with_frames(self, e: CameraDisconnected) -> CameraDisconnected:
+        """``e`` carrying the frames that arrived (``e.frames``, as :class:`CameraTimeout` does)."""
+        e.frames = sorted(self._frames, key=lambda f: f.index)  # type: ignore[attr-defined]
+        return e
+
+    def _trigger(self) -> None:
+        if self._resolved < len(self._sent):
             wait = Deadline(self._exposure_s + READOUT_WAIT_S)
-            while pending() and not wait.expired():
+            while self._resolved < len(self._sent) and not wait.expired():
                 self._pop(wait.remaining())
-            if pending():
-                self._lost_triggers += 1
+            if self._resolved < len(self._sent):
+                k = self._resolved
+                self._unanswered += 1
+                self._missing.append(k)
+                self._broken = (f"{self.spec}: software trigger {k} got no frame, whole or damaged, within "
+                                f"{self._exposure_s + READOUT_WAIT_S:g} s (the camera did not answer it); "
+                                f"{len(self._frames)} frame(s) kept; disarm and arm again")
+                self._raise_if_broken()
         self._call(self._cam.software_trigger, what="TriggerSoftware")
-        self._triggered += 1
+        self._sent.append(time.time())
+
+    def _raise_if_broken(self) -> None:
+        if self._broken is not None:
+            raise CameraTimeout(self._broken, frames=list(self._frames))
 
     def _pop(self, wait_s: float) -> bool:
-        """Pop one buffer within ``wait_s``: a complete one becomes a Frame; an incomplete one is
-        counted dropped and its buffer requeued.  False when nothing came."""
+        """Pop one buffer within ``wait_s`` and account for it (:meth:`_index_for`): a whole one
+        becomes a Frame, a damaged one is counted lost; its buffer is requeued.  False when
+        nothing came."""
         if self._lost.is_set():
             raise CameraDisconnected(f"{self.spec}: control channel lost (heartbeat)")
         buf = self._stream.timeout_pop_buffer(max(1, int(min(wait_s, 0.1) * 1e6)))
         if buf is None:
             return False
         try:
-            if buf.get_status() != self._A.BufferStatus.SUCCESS:
-                self._incomplete += 1
-                return True
+            whole = buf.get_status() == self._A.BufferStatus.SUCCESS
             fid = int(buf.get_frame_id())
-            if self._last_id is not None:  # GVSP block ids run 1..65535 and wrap
-                self._id_gaps += (fid - self._last_id - 1) % 65535
-            self._last_id = fid
-            self._frames.append(self._to_frame(buf, len(self._frames)))
+            index = self._index_for(fid, whole)
+            if not whole:
+                self._incomplete += 1
+                if index is not None:
+                    self._missing.append(index)
+            elif index is None:
+                self._unsolicited += 1
+            else:
+                self._frames.append(self._to_frame(buf, index))
             return True
         finally:
             self._stream.push_buffer(buf)
+
+    def _index_for(self, fid: int, whole: bool) -> int | None:
+        """The index of the buffer with GVSP block id ``fid`` (``whole``: not damaged); None for a
+        frame no trigger asked for, and for a damaged one in free run.
+
+        * software trigger: the oldest trigger not yet answered (one is outstanding at a time);
+        * edge trigger: the block-id distance from the acquisition's first frame (a camera
+          numbers every exposure, so frames lost whole still advance the index);
+        * free run: the whole frames in arrival order.
+        Block ids that skip ahead are counted (``id_gaps``) in every mode; a damaged frame
+        reported after later ones (Aravis holds it for the frame retention) is not a gap."""
+        if fid:
+            ahead = (fid - self._last_id) % _GVSP_IDS if self._last_id is not None else 1
+            if 0 < ahead < _GVSP_IDS // 2:
+                self._id_gaps += ahead - 1
+                self._last_id = fid
+            if self._first_id is None:
+                self._first_id = fid
+        if self._software():
+            if self._resolved >= len(self._sent):
+                return None
+            self._resolved += 1
+            return self._resolved - 1
+        if self._info is not None and self._info.mode is TriggerMode.EDGE and fid and self._first_id is not None:
+            index = (fid - self._first_id) % _GVSP_IDS
+            self._missing.extend(range(self._edge_next, index))  # numbered by the camera, never arrived
+            self._edge_next = max(self._edge_next, index + 1)
+            return index
+        return len(self._frames) if whole else None
 
     def _to_frame(self, buf, index: int) -> Frame:
         w, h = buf.get_image_width(), buf.get_image_height()
@@ -399,9 +586,13 @@ class GenICamCamera:
         image = (raw.astype(np.float32) / np.float32(2 ** bits - 1))
         np.clip(image, 0.0, 1.0, out=image)
         ts = buf.get_timestamp() or buf.get_system_timestamp()
-        meta = frame_metadata(self, self._info)
+        if self._meta is None:
+            self._meta = frame_metadata(self, self._info)
+        meta = copy.deepcopy(self._meta)
         meta.update({"frame_id": int(buf.get_frame_id()), "system_timestamp_s": buf.get_system_timestamp() * 1e-9,
                      "pixel_format": pf})
+        if self._software() and index < len(self._sent):
+            meta["trigger_host_s"] = self._sent[index]
         return Frame(image=image, index=index, timestamp_s=ts * 1e-9, exposure_s=self._exposure_s, metadata=meta)
 
     def _pf_name(self, code: int) -> str:
@@ -416,30 +607,50 @@ class GenICamCamera:
                               f"(this backend decodes {sorted(PIXEL_BITS)})")
         return cached[code]
 
+    def _complete(self, n: int) -> bool:
+        """Whether every one of the ``n`` armed frames has arrived or is known lost."""
+        if self._software():
+            return self._resolved >= n
+        if self._free_run:
+            return len(self._frames) >= n
+        return len(self._frames) + len(set(i for i in self._missing if i < n)) >= n
+
     def collect(self, timeout_s: float | None = None) -> list[Frame]:
-        """The armed frames, in order; ``CameraTimeout`` (with the frames that came) after
-        ``timeout_s`` (default ``info.total_timeout()``), ``CameraDisconnected`` when the
-        control channel is lost."""
+        """The armed frames, in index order.  ``CameraTimeout`` (with the frames that came, each
+        with its own index) when some are missing: not there after ``timeout_s`` (default
+        ``info.total_timeout()``), or known lost (arrived damaged, or never answered, see
+        :meth:`trigger`) -- then at once, without waiting out the timeout.
+        ``CameraDisconnected`` when the control channel is lost."""
         if self._info is None or not self._armed:
             raise InputError(f"{self.spec}: collect() before arm()")
+        self._raise_if_broken()
         n = self._info.frames
         deadline = Deadline(self._info.total_timeout() if timeout_s is None else timeout_s)
-        while len(self._frames) < n and not deadline.expired():
-            self._pop(deadline.remaining())
-        if len(self._frames) < n:
-            stats = self.stats()
-            raise CameraTimeout(f"{self.spec}: {len(self._frames)} of {n} frames before the timeout "
-                                f"(dropped {stats['dropped']})", frames=list(self._frames))
-        return list(self._frames[:n])
+        try:
+            while not self._complete(n) and not deadline.expired():
+                self._pop(deadline.remaining())
+        except CameraDisconnected as e:
+            raise self._with_frames(e)
+        frames = sorted((f for f in self._frames if f.index < n), key=lambda f: f.index)
+        if len(frames) < n:
+            st = self.stats()
+            lost = sorted(set(i for i in self._missing if i < n))
+            why = (f"frame(s) {lost} lost (damaged in transfer: {st['failures']}, no answer: "
+                   f"{st['lost_triggers']})" if lost else "the rest not there before the timeout")
+            raise CameraTimeout(f"{self.spec}: {len(frames)} of {n} frames; {why}; dropped {st['dropped']}",
+                                frames=frames)
+        return frames[:n]
 
     def stats(self) -> dict[str, int]:
-        """Counters of the current (or last) stream: Aravis's ``completed_buffers``,
-        ``failures`` (incomplete frames), ``missing_frames`` and ``underrun_packets`` (packets that
-        found no free buffer -- Aravis counts them in packets, not frames); ``id_gaps`` (frames
-        the camera numbered between two delivered ones but never delivered: exact, from the GVSP
-        block ids), ``lost_triggers`` (software triggers whose frame never came) and
+        """Counters of the current (or last) stream, in frames unless named otherwise: Aravis's
+        ``completed_buffers``, ``failures`` (frames that arrived damaged), ``missing_frames`` and
+        ``underrun_packets`` (packets that found no free buffer -- Aravis counts them in packets);
+        ``id_gaps`` (frames the camera numbered between two that arrived but that never arrived
+        at all: exact, from the GVSP block ids), ``lost_triggers`` (software triggers no frame
+        answered), ``unsolicited`` (frames no trigger asked for: counted, not delivered),
         ``dropped`` = max(``id_gaps``, ``failures`` + ``missing_frames``) + ``lost_triggers``,
-        in frames."""
+        and ``socket_buffer_bytes`` (the stream socket's receive buffer the kernel granted,
+        0 where it was left to Aravis)."""
         if self._stream is not None:
             s = self._stream
             self._last_stats = {k: int(s.get_info_uint64_by_name(f"n_{k}"))
@@ -448,9 +659,11 @@ class GenICamCamera:
         st = dict(self._last_stats or {"completed_buffers": 0, "failures": 0, "missing_frames": 0,
                                        "underrun_packets": 0})
         st["failures"] = max(st["failures"], self._incomplete)
-        st["id_gaps"] = getattr(self, "_id_gaps", 0)
-        st["lost_triggers"] = self._lost_triggers
+        st["id_gaps"] = self._id_gaps
+        st["lost_triggers"] = self._unanswered
+        st["unsolicited"] = self._unsolicited
         st["dropped"] = max(st["id_gaps"], st["failures"] + st["missing_frames"]) + st["lost_triggers"]
+        st["socket_buffer_bytes"] = int(getattr(self, "_socket_bytes", None) or 0)
         return st
 
     def disarm(self) -> None:
@@ -464,13 +677,40 @@ class GenICamCamera:
             except Exception as e:
                 if not _gerror(e):
                     raise
-            self._armed = False
-        self._stream = None
+        self._armed = False
+        self._release("_stream")
+
+    def _release(self, *attrs: str) -> None:
+        """Set the attributes ``attrs`` (Aravis objects) to None and drop the objects.
+
+        For a camera that stopped answering, Aravis's teardown (stop the stream channel, leave
+        control) waits out its GVCP timeouts, ~10 s, which no caller should wait for: the stream
+        and camera objects are dropped in a background thread (the binding releases the GIL).
+        Its *device* is never torn down in this process (:func:`_keep_forever`): Aravis 0.8's
+        heartbeat thread emits ``control-lost`` holding a reference to it, and when that
+        reference is the last one, the device's teardown runs in the heartbeat thread, joins
+        that same thread and aborts the process (GLib-ERROR "Resource deadlock avoided" in
+        ``pthread_join``, a SIGTRAP: 1 test run in 40 under load)."""
+        doomed = [getattr(self, a, None) for a in attrs]
+        for a in attrs:
+            setattr(self, a, None)
+        if self._lost.is_set() and any(o is not None for o in doomed):
+            # (indices, not a loop variable: a name left holding an object would make this frame,
+            # not the thread, drop its last reference)
+            for i in [i for i, o in enumerate(doomed) if isinstance(o, self._A.Device)]:
+                _keep_forever(doomed[i])
+                doomed[i] = None
+            threading.Thread(target=doomed.clear, name=f"{self.spec} release", daemon=True).start()
+        else:
+            doomed.clear()
 
     def close(self) -> None:
-        """Disarm and release the device."""
+        """Disarm and release the device (at once, also for a camera that stopped answering)."""
         self.disarm()
-        self._cam = self._dev = None  # type: ignore[assignment]
+        if self._dev is not None and self._lost_handler is not None:
+            self._dev.disconnect(self._lost_handler)  # no Python callback from a device being torn down
+            self._lost_handler = None
+        self._release("_cam", "_dev")
 
 
 def _factory(rest: str) -> GenICamCamera:
