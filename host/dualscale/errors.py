@@ -71,20 +71,22 @@ class RigError(DualscaleError, RuntimeError):
 
 
 class CameraError(RigError):
-    """A camera (of the rig, or a backend of :mod:`dualscale.capture`) did not do what was asked."""
+    """A camera (of the rig, or a backend of :mod:`dualscale.capture`) did not do what was asked.
+    ``frames``: the frames of the acquisition that did arrive before it failed (kept, never
+    silently dropped; empty when none or not applicable)."""
 
-
-class CameraTimeout(CameraError):
-    """Fewer frames arrived than the camera was armed for, before the timeout.  ``frames``: the
-    ones that did arrive (kept, never silently dropped)."""
-
-    def __init__(self, message: str, frames: list | None = None):
+    def __init__(self, message: str = "", frames: list | None = None):
         super().__init__(message)
         self.frames = list(frames or [])
 
 
+class CameraTimeout(CameraError):
+    """Fewer frames arrived than the camera was armed for, before the timeout (``frames``: the
+    ones that did arrive)."""
+
+
 class CameraDisconnected(CameraError):
-    """The camera stopped answering or went away."""
+    """The camera stopped answering or went away (``frames``: those that arrived before)."""
 
 
 class ToolError(DualscaleError, RuntimeError):

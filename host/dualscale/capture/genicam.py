@@ -501,7 +501,7 @@ class GenICamCamera:
 
     def _with_frames(self, e: CameraDisconnected) -> CameraDisconnected:
         """``e`` carrying the frames that arrived (``e.frames``, as :class:`CameraTimeout` does)."""
-        e.frames = sorted(self._frames, key=lambda f: f.index)  # type: ignore[attr-defined]
+        e.frames = sorted(self._frames, key=lambda f: f.index)
         return e
 
     def _trigger(self) -> None:

@@ -935,7 +935,7 @@ class SimCamera:
                                     f"were lost", frames=frames)
             else:
                 raise CameraTimeout(f"{msg} within {wait:.3g} s", frames=frames)
-            err.frames = frames  # type: ignore[attr-defined]  # never drop what arrived
+            err.frames = frames  # never drop what arrived
             raise err
         return frames
 
