@@ -519,6 +519,46 @@ def capture_stage(run: Path, rc: RigCapture, progress: Callable[[int, int, str],
     return run_stage(run, CAPTURE_STAGE, inputs, params, versions(), fn)
 
 
+def _check_rig_calibration(rc: RigCapture, calibration: Path) -> None:
+    """Before capturing: the calibration must be of this rig (its id and dome layout) and cover
+    every LED of the micro plan, or the capture would be refused by calibrate afterwards.  Records
+    the calibration's id (file name and content hash) as the capture's ``calibration_id`` unless
+    one was given."""
+    from dataclasses import replace
+
+    from dualscale.capture.plan import make_plan
+    from dualscale.capture.session import CaptureOptions
+    from dualscale.errors import CalibrationError
+    from dualscale.formats.calibration import read_calibration
+    from dualscale.geometry.dome import DomeGeometry
+
+    opts = rc.options or CaptureOptions()
+    ident = rc.rig.identity
+    rig_id = opts.rig_id or (ident.text if ident is not None else None)
+    cal = read_calibration(calibration, rig_id=rig_id, layout=DomeGeometry.from_regmap().signature())
+    leds = {s.index for s in make_plan("micro", rc.lights).shots if s.kind == "led"}
+    have = _calibrated_leds(cal)
+    if have is not None and not leds <= have:
+        missing = sorted(leds - have)
+        raise CalibrationError(f"{calibration}: no white-sheet capture for LED(s) {missing[:8]}"
+                               f"{' ...' if len(missing) > 8 else ''} of --lights {rc.lights}: capture those lights "
+                               "with the calibration, or choose --lights the calibration covers")
+    if opts.calibration_id is None:
+        rc.options = replace(opts, calibration_id=f"{calibration.name}#sha256:{file_sha256(calibration)[:12]}")
+
+
+def _calibrated_leds(cal: dict[str, Any]) -> set[int] | None:
+    """The LED ids the calibration's micro camera has an ``r_c`` for, or None if it does not say."""
+    rc = (cal.get("r_c") or {}).get("micro")
+    if not isinstance(rc, dict):
+        return None
+    out = set()
+    for key in rc:
+        if str(key).startswith("led") and str(key)[3:].isdigit():
+            out.add(int(str(key)[3:]))
+    return out or None
+
+
 def digitize(opts: DigitizeOptions, on_stage: Callable[[StageResult], None] | None = None,
              on_start: Callable[[], None] | None = None, rig: RigCapture | None = None) -> RunResult:
     """Run ``dualscale digitize`` (see the module docstring); ``on_start`` is called once the
@@ -538,6 +578,7 @@ def digitize(opts: DigitizeOptions, on_stage: Callable[[StageResult], None] | No
                              "--calibration CAL (dualscale calibrate)")
         if opts.calibration is not None and not opts.calibration.is_file():
             raise FileNotFoundError(f"calibration file not found: {opts.calibration}")
+        _check_rig_calibration(rig, opts.calibration)
         opts.run.mkdir(parents=True, exist_ok=True)
         captured = capture_stage(opts.run, rig)
         if on_stage is not None:

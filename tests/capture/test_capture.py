@@ -190,3 +190,44 @@ def test_a_corrupting_link_loses_and_doubles_nothing(tmp_path):
     shots = [json.loads(ln)["key"] for ln in (tmp_path / "noisy" / "journal.jsonl").read_text().splitlines()
              if json.loads(ln)["kind"] == "shot"]
     assert len(shots) == len(set(shots)) == 10
+
+
+def test_overwrite_starts_a_capture_over(tmp_path):
+    out = tmp_path / "cap"
+    cam = MICRO + "&noise=0"
+    assert _capture(out, camera=cam) == 0
+    (out / "frames" / "micro" / "stale.exr").write_bytes(b"x")
+    assert _capture(out, "--overwrite", camera=cam) == 0
+    assert not (out / "frames" / "micro" / "stale.exr").exists()
+    journal = [json.loads(ln) for ln in (out / "journal.jsonl").read_text().splitlines()]
+    assert sum(e["kind"] == "start" for e in journal) == 1 and sum(e["kind"] == "shot" for e in journal) == 10
+    rec = json.loads((out / "capture.json").read_text())
+    assert rec["summary"]["dataset"] == "manifest.json"  # relative: the folder may move
+
+
+def test_digitize_from_the_rig_checks_the_calibration_before_capturing(tmp_path, capsys):
+    """Another rig's calibration, or one without the plan's LEDs, is refused before any shot."""
+    from dualscale.cli import main
+    from tests.units.test_calibrate import _minimal_calibration
+
+    cal = _minimal_calibration(tmp_path / "c.calib.json", rig={"id": "rig-B", "layout": "x"})
+    run = tmp_path / "run"
+    assert main(["digitize", "--rig", "sim", "--camera", MICRO, "--lights", "MOD32", "--rig-id", "virtual-dome-0",
+                 "--sim-speed", "10", "-o", str(run), "--calibration", str(cal), "--no-progress"]) == 2
+    assert "rig-B" in capsys.readouterr().err
+    assert not (run / "capture").exists() and not (run / "work" / "capture").exists()
+    # this rig, but LEDs 0, 8, 40 only: MOD32 needs 32, 64, 96 too
+    from dualscale.geometry.dome import DomeGeometry
+
+    cal = _minimal_calibration(tmp_path / "d.calib.json",
+                               rig={"id": "virtual-dome-0", "layout": DomeGeometry.from_regmap().signature()})
+    assert main(["digitize", "--rig", "sim", "--camera", MICRO, "--lights", "MOD32", "--rig-id", "virtual-dome-0",
+                 "--sim-speed", "10", "-o", str(run), "--calibration", str(cal), "--no-progress"]) == 2
+    assert "LED(s) [32, 64, 96]" in capsys.readouterr().err
+    assert not (run / "capture").exists() and not (run / "work" / "capture").exists()
+
+
+def test_a_spec_typo_names_the_spec_the_user_gave(capsys, tmp_path):
+    assert _capture(tmp_path / "cap", camera="sim:mirco?material=leather") == 2
+    err = capsys.readouterr().err
+    assert "sim:mirco?material=leather" in err and "hw.sock" not in err  # not the socket added for --port sim

@@ -64,6 +64,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import os
 import time
 from dataclasses import asdict, dataclass, field
 from datetime import datetime, timezone
@@ -168,9 +169,11 @@ class CaptureSummary:
     dataset: str = ""
 
     def lines(self) -> list[str]:
-        out = [f"captured {self.shots} shots ({self.frames} frames; {self.resumed_shots} from an earlier run) "
-               f"in {self.total_wall_s:.1f} s (metering {self.meter_wall_s:.1f} s, capture {self.capture_wall_s:.1f} s "
-               f"for a physical floor of {self.floor_s:.1f} s)"]
+        out = [f"captured {self.shots} shot{'s' if self.shots != 1 else ''} ({self.frames} frames; "
+               f"{self.resumed_shots} from an earlier run) "
+               f"in {self.total_wall_s:.1f} s (metering {self.meter_wall_s:.1f} s, capture {self.capture_wall_s:.1f} s); "
+               f"the capture sequences ran {self.capture_device_s:.1f} s on the device clock, for a physical floor "
+               f"of {self.floor_s:.1f} s (a simulator faster than real time runs its clock ahead of the wall)"]
         if self.retakes:
             out.append(f"taken again: {self.retakes} ({', '.join(f'{k}: {v}' for k, v in self.retake_reasons.items())})")
         if self.events_dropped or self.link_reconnects:
@@ -709,6 +712,8 @@ class CaptureSession:
                "cameras": {r: {**frame_metadata(c), "role": r} for r, c in self.cameras.items()},
                "calibration": self.opts.calibration_id, "plan": self.plan.to_json(),
                "options": asdict(self.opts), "summary": asdict(self.summary)}
+        if self.summary.dataset:  # relative: the folder may move (digitize renames its work folder)
+            rec["summary"]["dataset"] = os.path.relpath(self.summary.dataset, self.work)
         if part is not None:
             rec["captureset"] = part
         write_json(self.work / "capture.json", _jsonable(rec))

@@ -220,7 +220,8 @@ def main(argv: list[str] | None = None) -> int:
         code = exit_code(e)
         if code == EXIT_CODES["interrupted"]:
             msg = _one_line(e) if str(e) else "interrupted"
-            print(f"dualscale {cmd}: {msg}; run the same command again to resume", file=sys.stderr)
+            how = getattr(args, "resume_hint", "run the same command again to resume")
+            print(f"dualscale {cmd}: {msg}; {how}", file=sys.stderr)
         elif code == EXIT_CODES["internal"] and not isinstance(e, DualscaleError):
             print(f"dualscale {cmd}: internal error: {type(e).__name__}: {_one_line(e)} "
                   "(rerun with DUALSCALE_DEBUG=1 for the traceback, and please report it)", file=sys.stderr)

@@ -25,7 +25,7 @@ import sys
 from pathlib import Path
 from typing import Any, Callable, Iterator, TextIO
 
-from dualscale.errors import InputError
+from dualscale.errors import DualscaleError, InputError
 
 from .common import add_output, add_work_options, apply_threads, output_folder, want_progress
 
@@ -73,12 +73,16 @@ def rig_and_cameras(port: str, cameras: list[str], roles: tuple[str, ...], parit
             port = sim.port
         opened: dict[str, object] = {}
         for role, spec in parse_camera_args(cameras):
+            typed = spec
             if spec.startswith("sim:"):
                 if hw is None and "hw=" not in spec:
                     raise InputError(f"--camera {spec}: a sim camera needs the simulated rig (--port sim) or hw=SOCKET")
                 if hw is not None:
                     spec = _with_option(spec, "hw", str(hw))
-            cam = open_camera(spec)
+            try:
+                cam = open_camera(spec)
+            except DualscaleError as e:  # name the spec the user gave, not the socket added here
+                raise type(e)(str(e).replace(spec, typed)) from e
             stack.callback(cam.close)
             if role is None:
                 g = getattr(cam, "geometry", None)
@@ -105,6 +109,10 @@ def capture_options(a: argparse.Namespace, port: str):
     from dualscale.rig.client import DEFAULT_WATCHDOG_MS
     from dualscale.rig.demo import demo_watchdog_ms
 
+    if not a.sim_speed >= 0:
+        raise InputError(f"--sim-speed {a.sim_speed:g}: 0 (as fast as possible) or a positive factor (1 = real time)")
+    if not 0.01 <= a.max_exposure <= 60.0:
+        raise InputError(f"--max-exposure {a.max_exposure:g} s: between the metering exposure 0.01 s and 60 s")
     wd = demo_watchdog_ms(a.sim_speed) if port == SIM_PORT else DEFAULT_WATCHDOG_MS
     return CaptureOptions(intensity=a.intensity, max_exposure_s=a.max_exposure, batch_steps=a.batch, retakes=a.retakes,
                           trigger=a.trigger, rig_id=a.rig_id, calibration_id=a.calibration_id, watchdog_ms=wd)
@@ -172,12 +180,15 @@ def cmd_capture(a: argparse.Namespace) -> int:
     from dualscale.progress import tracker
 
     apply_threads(a)
+    a.resume_hint = "continue it with the same command and --resume"
     targets = a.plan in TARGET_PLANS
     plan = make_plan(a.plan, a.lights)  # checks the plan and --lights before anything starts
     given = read_holder(a.holder)
     opts = capture_options(a, a.port)
     ident = ["calibration targets"] if targets else [f"plan:{a.plan}", f"lights:{a.lights}", *a.camera]
-    with output_folder(a, "capture", ident):
+    with output_folder(a, "capture", ident) as out:
+        if a.overwrite and not a.resume:
+            restart(out, a.plan)
         with rig_and_cameras(a.port, a.camera, () if targets else plan.roles, a.parity, a.stopbits,
                              a.sim_speed) as (rig, cams):
             operator = holder = None
@@ -197,6 +208,27 @@ def cmd_capture(a: argparse.Namespace) -> int:
     for line in summary.lines():
         print(line)
     return 0
+
+
+def restart(out: Path, plan: str) -> None:
+    """``--overwrite`` without ``--resume``: forget the capture of ``plan`` in ``out`` so that it
+    starts over (a sample plan: its journal, frames, dataset and record; a calibration-target
+    plan: its part only, the other parts are kept)."""
+    import shutil
+
+    from dualscale.capture.journal import JOURNAL
+    from dualscale.capture.plan import TARGET_PLANS
+    from dualscale.capture.session import PARTS
+
+    if plan in TARGET_PLANS:
+        if (out / PARTS / plan).is_dir():
+            shutil.rmtree(out / PARTS / plan)
+        return
+    for name in (JOURNAL, "capture.json", "manifest.json", "mask.exr"):
+        (out / name).unlink(missing_ok=True)
+    for name in ("frames", "images"):
+        if (out / name).is_dir():
+            shutil.rmtree(out / name)
 
 
 def add_capture_options(p: argparse.ArgumentParser) -> None:

@@ -82,7 +82,7 @@ def register(sub) -> None:
                                    "hold the maps and the MaterialX, glTF/GLB, U3M and EXR exports (docs/EXPORT.md), "
                                    "RUN/report/index.html the report. Rerunning the same command skips finished "
                                    "stages and resumes an interrupted one. Exit codes: 0 done, 2 bad input, "
-                                   "130 interrupted (see README).")
+                                   "3 the rig or a camera (--rig), 130 interrupted (see README).")
     d.add_argument("input", nargs="?", default=None,
                    help="photometric dataset folder (manifest.json), or a folder holding micro/; or use --rig")
     d.add_argument("--rig", default=None, metavar="PORT",

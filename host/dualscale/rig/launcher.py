@@ -169,7 +169,7 @@ class SimulatedRig:
             if self.hw_socket:
                 cmd += ["--hw-socket", str(self.hw_socket)]
             self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                         preexec_fn=_die_with_parent)
+                                         preexec_fn=_die_with_parent, start_new_session=True)
             line = self._read_line(self.proc.stdout, lambda s: s.startswith("/dev/"))
             self.port = line.strip()
         else:
