@@ -105,7 +105,14 @@ class UVCCamera(HostTriggeredCamera):
             self._cap.release()
         if isinstance(self._source, str) and "%" not in self._source and not os.path.exists(self._source):
             raise CameraDisconnected(f"camera {self.spec!r}: {self._source} does not exist (check the path)")
-        cap = cv2.VideoCapture(self._source, self._api)
+        # OpenCV logs its own attempts (V4L2 probes, "can't open camera by index") on stderr
+        # before our one-line error: quiet it while opening
+        level = cv2.utils.logging.getLogLevel()
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+        try:
+            cap = cv2.VideoCapture(self._source, self._api)
+        finally:
+            cv2.utils.logging.setLogLevel(level)
         if not cap.isOpened():
             cap.release()
             what = (f"no video device {self._source} (check /dev/video{self._source}, the cable and permissions)"
