@@ -42,7 +42,7 @@ def raw_dataset(out: Path, material: str = "leather", size: int = 16, led_step: 
     from dualscale.sim.materials.io import save_material
     from dualscale.sim.render import Analyzer, LightState, render
     from dualscale.sim.sensor import spectral_matrix
-    from dualscale.sim.targets import (SENSOR, Defects, Exposer, SynthConfig, collimation_ramp, dome_signature,
+    from dualscale.sim.targets import (SENSOR, Defects, Exposer, SynthConfig, collimation_ramp,
                                        led_gains, rig_cameras)
 
     cfg, defects = SynthConfig(led_step=led_step, micro_px=size), Defects()
@@ -57,7 +57,7 @@ def raw_dataset(out: Path, material: str = "leather", size: int = 16, led_step: 
     space = f"camera_raw:{cfg.sens('micro')}"
     with DatasetWriter(out / "micro", units="dn_normalized", colour_space=space,
                        dome={"source": dome.source, "polarizer": dome.polarizer, "radius_mm": dome.radius_mm},
-                       rig={"id": rig_id, "layout": dome_signature(dome)}, extra={"material": mat.meta}) as w:
+                       rig={"id": rig_id, "layout": dome.signature()}, extra={"material": mat.meta}) as w:
         for t in (0.01, 0.2):
             w.add(ex(np.zeros((size, size, 3)), t), cam, "off", None, None, 1.0, exposure_s=t)
         for k, lid in enumerate(range(0, dome.n_leds, led_step)):

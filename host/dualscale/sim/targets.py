@@ -315,7 +315,7 @@ def capture_material(radiance: np.ndarray, exposer: Exposer, kind: str, light_id
 
 def rig_record(cfg: SynthConfig = SynthConfig()) -> dict[str, str]:
     """The ``rig`` record of datasets captured by the virtual rig (checked against calibrations)."""
-    return {"id": cfg.rig_id, "layout": dome_signature(DomeGeometry.from_regmap())}
+    return {"id": cfg.rig_id, "layout": DomeGeometry.from_regmap().signature()}
 
 
 def bracket(exposer: Exposer, radiance: np.ndarray, dark_pixels_ignore: float = 0.0) -> tuple[list[float], list[np.ndarray]]:
@@ -420,7 +420,7 @@ def write_session(root: str | Path, cfg: SynthConfig = SynthConfig(), defects: D
 
 def _write_session(root: Path, cfg: SynthConfig, defects: Defects, parts: tuple[str, ...], dome: DomeGeometry,
                    layout: ChartLayout, cams: dict[str, Camera], bar: Tracker) -> Truth:
-    w = CaptureWriter(root, rig={"id": cfg.rig_id, "layout": dome_signature(dome)})
+    w = CaptureWriter(root, rig={"id": cfg.rig_id, "layout": dome.signature()})
     truth = Truth(analyzer_offset_deg=defects.analyzer_offset_deg)
     gains = led_gains(dome.n_leds, defects)
     seed = 0
@@ -494,11 +494,6 @@ def chart_corners(camera: Camera, layout: ChartLayout) -> np.ndarray:
     u = (d @ right) / depth * dist / camera.field_mm[0]
     v = (d @ up) / depth * dist / camera.field_mm[1]
     return np.stack([(u + 0.5) * camera.width - 0.5, (0.5 - v) * camera.height - 0.5], -1)
-
-
-def dome_signature(dome: DomeGeometry) -> str:
-    """Short identity of a dome layout (LED count, radius and source)."""
-    return f"{dome.n_leds}leds/r{dome.radius_mm:g}mm/{dome.source}"
 
 
 def _dot_grid(w: CaptureWriter, cfg: SynthConfig, defects: Defects, dome: DomeGeometry, truth: Truth) -> None:
