@@ -20,6 +20,18 @@ from dualscale.capture.camera import Camera, Frame, SensorInfo, TriggerInfo, Tri
 from dualscale.errors import CameraDisconnected, CameraError, CameraTimeout, InputError
 
 
+def acquire(cam: Camera, n: int, exposure_s: float, timeout_s: float = 10.0) -> list[Frame]:
+    """``n`` software-triggered frames of ``exposure_s`` (prepare, arm, trigger n times, collect,
+    disarm)."""
+    cam.prepare(TriggerInfo(TriggerMode.INTERNAL, frames=n, exposure_s=exposure_s, timeout_s=timeout_s))
+    cam.arm()
+    for _ in range(n):
+        cam.trigger()
+    frames = cam.collect()
+    cam.disarm()
+    return frames
+
+
 class CameraContract:
     exposure_scales = True
     exposure_s = 0.005
@@ -45,14 +57,7 @@ class CameraContract:
                 c.close()
 
     def _acquire(self, cam: Camera, n: int, exposure_s: float | None = None) -> list[Frame]:
-        info = TriggerInfo(TriggerMode.INTERNAL, frames=n, exposure_s=exposure_s or self.exposure_s, timeout_s=10)
-        cam.prepare(info)
-        cam.arm()
-        for _ in range(n):
-            cam.trigger()
-        frames = cam.collect()
-        cam.disarm()
-        return frames
+        return acquire(cam, n, exposure_s or self.exposure_s)
 
     # -- what a camera reports -------------------------------------------------------------------
     def test_reports_sensor_serial_and_settings(self, cam):

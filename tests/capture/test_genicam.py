@@ -28,7 +28,7 @@ import time
 import numpy as np
 import pytest
 
-from tests.capture.contract import CameraContract
+from tests.capture.contract import CameraContract, acquire
 
 FAKE = shutil.which("arv-fake-gv-camera-0.8")
 try:
@@ -149,13 +149,7 @@ class TestGenICamContract(CameraContract):
 
 
 def _acquire(cam, n, exposure_s=0.005):
-    cam.prepare(TriggerInfo(TriggerMode.INTERNAL, frames=n, exposure_s=exposure_s, timeout_s=5))
-    cam.arm()
-    for _ in range(n):
-        cam.trigger()
-    frames = cam.collect()
-    cam.disarm()
-    return frames
+    return acquire(cam, n, exposure_s, timeout_s=5)
 
 
 def test_open_by_serial_address_and_first_and_unknown(emulator):
