@@ -168,6 +168,15 @@ class Deadline:
         return time.monotonic() >= self.end
 
 
+def collect_deadline(spec: str, info: TriggerInfo | None, timeout_s: float | None) -> tuple[TriggerInfo, float, Deadline]:
+    """The start of every ``collect()``: ``(the prepared info, the wait [s], its Deadline)``; the
+    wait is ``timeout_s`` or, when None, ``info.total_timeout()``; ``InputError`` before ``prepare()``."""
+    if info is None:
+        raise InputError(f"camera {spec!r}: collect() before prepare()")
+    wait = info.total_timeout() if timeout_s is None else float(timeout_s)
+    return info, wait, Deadline(wait)
+
+
 def split_options(rest: str) -> tuple[str, dict[str, str]]:
     """``"0?pixel_um=3&x=1"`` -> ``("0", {"pixel_um": "3", "x": "1"})``; a ``?`` not followed by
     ``key=value`` pairs stays part of the target (a path may contain one)."""
@@ -251,11 +260,7 @@ class HostTriggeredCamera:
     def collect(self, timeout_s: float | None = None) -> list[Frame]:
         """The armed frames; fewer by ``timeout_s`` (default ``TriggerInfo.total_timeout()``, counted
         from this call) raises ``CameraTimeout`` carrying those that arrived."""
-        info = self._info
-        if info is None:
-            raise InputError(f"camera {self.spec!r}: collect() before prepare()")
-        wait = info.total_timeout() if timeout_s is None else float(timeout_s)
-        deadline = Deadline(wait)
+        info, wait, deadline = collect_deadline(self.spec, self._info, timeout_s)
         with self._cond:
             while len(self._frames) < info.frames and not deadline.expired():
                 self._cond.wait(deadline.remaining())

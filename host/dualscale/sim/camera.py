@@ -87,8 +87,8 @@ from typing import Any
 
 import numpy as np
 
-from dualscale.capture.camera import (Deadline, Frame, SensorInfo, TriggerInfo, TriggerMode, frame_metadata,
-                                      register_backend, split_options)
+from dualscale.capture.camera import (Deadline, Frame, SensorInfo, TriggerInfo, TriggerMode, collect_deadline,
+                                      frame_metadata, register_backend, split_options)
 from dualscale.errors import CameraDisconnected, CameraError, CameraTimeout, InputError
 from dualscale.protocol import regmap as rm
 
@@ -908,11 +908,7 @@ class SimCamera:
         a side channel that closed raises ``CameraDisconnected`` (its ``frames`` likewise)
         once the exposures taken before are rendered; a frame that could not be rendered raises
         ``CameraError`` (with ``frames``) at once."""
-        info = self._info
-        if info is None:
-            raise InputError(f"camera {self.spec!r}: collect() before prepare()")
-        wait = info.total_timeout() if timeout_s is None else float(timeout_s)
-        deadline = Deadline(wait)
+        info, wait, deadline = collect_deadline(self.spec, self._info, timeout_s)
         with self._cond:
             while len(self._frames) < info.frames and not deadline.expired() and self._failed is None:
                 if self._pending == 0 and (self._disconnected is not None or self._exposed >= info.frames):
