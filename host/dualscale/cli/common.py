@@ -16,8 +16,13 @@ folder).  Rerunning the same command on the same inputs into its own folder is n
 resumes or replaces its own outputs.  A command that fails on its input before writing anything
 leaves no folder behind.
 
-``--threads N`` sets torch's intra-op threads and OpenCV's; onnxruntime takes it from the
-command (``propagate run``); numpy's BLAS follows ``OMP_NUM_THREADS`` set before the start.
+``--threads N|auto`` (:mod:`dualscale.threads`) sets torch's intra-op threads, OpenCV's and,
+when the process has loaded it, numba's; onnxruntime takes the count from the command
+(``propagate run``, the pipeline's propagate stage); numpy's BLAS follows ``OMP_NUM_THREADS``
+set before the start.  ``auto`` is the usable cores (affinity, cgroup CPU quota) less the
+1-minute load average, at least 1: on busy shared cores a second torch thread made the fit
+5.6x slower (issue 15).  Without ``--threads`` the count is ``OMP_NUM_THREADS`` when set, else
+``auto``.
 ``--progress`` draws a bar on stderr for each long step; the default is on when stderr is a
 terminal.  Library functions never print: they get the choice as their ``progress`` argument
 (:mod:`dualscale.progress`).
@@ -174,29 +179,42 @@ def output_folder(args: argparse.Namespace, command: str, inputs: Sequence[objec
         raise
 
 
+THREADS_HELP = ("'auto' = the usable cores less the 1-minute load average, at least 1 (on busy cores extra "
+                "threads slow everything down); default: OMP_NUM_THREADS if set, else auto")
+
+
+def _threads_arg(text: str) -> int | str:
+    """argparse type of ``--threads``: a count >= 1 or ``"auto"``; anything else is a one-line
+    usage error (exit 2)."""
+    from dualscale.threads import parse
+
+    try:
+        return parse(text)
+    except InputError as e:
+        raise argparse.ArgumentTypeError(str(e).removeprefix("--threads ")) from None
+
+
 def add_work_options(parser: argparse.ArgumentParser, threads_help: str | None = None) -> None:
-    """Add ``--threads N`` and ``--progress/--no-progress`` to a long command."""
-    parser.add_argument("--threads", type=int, default=None, metavar="N",
-                        help=threads_help or "CPU threads for torch and OpenCV (default: theirs; on busy shared "
-                                             "cores use 1)")
+    """Add ``--threads N|auto`` and ``--progress/--no-progress`` to a long command
+    (``threads_help``: what the count drives, before the common words on ``auto``)."""
+    parser.add_argument("--threads", type=_threads_arg, default=None, metavar="N|auto",
+                        help=f"{threads_help or 'CPU threads for torch, OpenCV and numba'}; {THREADS_HELP}")
     parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
                         help="progress bar on stderr (default: on when stderr is a terminal)")
 
 
-def apply_threads(args: argparse.Namespace) -> int | None:
-    """Apply ``--threads``; returns it (``None`` = libraries' defaults).  Raises
-    :class:`~dualscale.errors.InputError` for a count below 1."""
-    n = getattr(args, "threads", None)
-    if n is None:
-        return None
-    if n < 1:
-        raise InputError(f"--threads must be at least 1, got {n}")
-    import cv2
-    import torch
+def apply_threads(args: argparse.Namespace) -> int:
+    """Choose the command's thread count from ``args.threads`` (``N``, ``"auto"`` or ``None``:
+    :func:`dualscale.threads.resolve`), set it in torch, OpenCV and (when loaded) numba
+    (:func:`dualscale.threads.set_threads`), and return it for the pools a command makes itself
+    (onnxruntime sessions).  Raises :class:`~dualscale.errors.InputError` for a count below 1."""
+    from dualscale.threads import resolve, set_threads
 
-    torch.set_num_threads(n)
-    cv2.setNumThreads(n)
-    return n
+    n = resolve(getattr(args, "threads", None))
+    import cv2
+    import torch  # noqa: F401 - loaded here so that set_threads reaches it
+
+    return set_threads(n)
 
 
 def want_progress(args: argparse.Namespace) -> bool:
