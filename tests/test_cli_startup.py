@@ -102,6 +102,7 @@ def test_choices_match_their_sources():
     assert set(choices.PROPAGATE_PRESETS) == set(train.PRESETS) and len(choices.PROPAGATE_PRESETS) == len(train.PRESETS)
     assert set(choices.PERCEPTUAL) == set(losses.PERCEPTUAL) and len(choices.PERCEPTUAL) == len(losses.PERCEPTUAL)
     assert set(choices.QUALITIES) == set(pipeline.QUALITIES) and len(choices.QUALITIES) == len(pipeline.QUALITIES)
+    assert choices.FIT_KERNELS == presets.KERNELS
     assert choices.STAGES == pipeline.STAGES
     assert choices.CAPTURE_PLANS == tuple(plan.PLANS)
 

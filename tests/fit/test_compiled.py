@@ -22,8 +22,8 @@ def test_compiled_fit_matches_eager(datasets):
     obs = load_observations(root).crop(0, 8, 0, 8)
     gt = load_maps(root / "maps")[0].crop(0, 8, 0, 8)
     p = PRESETS["standard"].scaled(0.4)
-    eager = fit_observations(obs, p, TWILL)
-    comp = fit_observations(obs, replace(p, compiled=True), TWILL)
+    eager = fit_observations(obs, replace(p, kernel="eager"), TWILL)
+    comp = fit_observations(obs, replace(p, kernel="compiled"), TWILL)
     for name, t in comp.maps.items():
         assert torch.isfinite(t).all(), name
     assert torch.allclose(comp.maps.albedo, eager.maps.albedo, atol=5e-3)
@@ -34,9 +34,13 @@ def test_compiled_fit_matches_eager(datasets):
 
 
 def test_compiled_preset_settings():
-    assert PRESETS["standard-compiled"] == replace(PRESETS["standard"], name="standard-compiled", compiled=True)
-    with pytest.raises(ValueError, match="compiled"):
-        Preset("x", "adam", (1, 1, 1), compiled=True)
+    assert PRESETS["standard-compiled"] == replace(PRESETS["standard"], name="standard-compiled", kernel="compiled")
+    assert PRESETS["standard-compiled"].compiled and not PRESETS["standard"].compiled
+    for k in ("compiled", "fused"):
+        with pytest.raises(ValueError, match=k):
+            Preset("x", "adam", (1, 1, 1), kernel=k)
+    with pytest.raises(ValueError, match="unknown kernel"):
+        Preset("x", "lm", (1, 1, 1), kernel="gpu")
 
 
 def test_failed_compile_falls_back_to_eager_with_a_warning(monkeypatch):

@@ -14,6 +14,9 @@ MATERIALS = ("plain", "twill", "satin", "denim", "rib_knit", "leather", "sheer",
 #: ``fit --preset``, ``study lights --preset`` -- the keys of :data:`dualscale.fit.presets.PRESETS`
 FIT_PRESETS = ("paper", "standard", "draft", "coarse-to-fine", "adam-fast", "standard-compiled")
 
+#: ``fit --kernel`` -- :data:`dualscale.fit.presets.KERNELS`
+FIT_KERNELS = ("fused", "eager", "compiled")
+
 #: ``propagate train --preset`` -- the keys of :data:`dualscale.propagate.train.PRESETS`
 PROPAGATE_PRESETS = ("paper", "balanced", "fast", "quick")
 

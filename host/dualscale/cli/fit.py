@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from .choices import FIT_PRESETS
+from .choices import FIT_KERNELS, FIT_PRESETS
 from .common import add_output, add_work_options, apply_threads, output_folder, want_progress
 
 _SWITCH = {"auto": None, "on": True, "off": False}
@@ -25,7 +25,9 @@ def cmd_fit(args: argparse.Namespace) -> int:
     if args.shadow_ratio is not None:
         preset = replace(preset, shadow_ratio=args.shadow_ratio)
     if args.compile:
-        preset = replace(preset, compiled=True)
+        preset = replace(preset, kernel="compiled")
+    if args.kernel is not None:
+        preset = replace(preset, kernel=args.kernel)
     overrides = {"transmittance": _SWITCH[args.transmittance], "anisotropy": _SWITCH[args.anisotropy],
                  "tint": _SWITCH[args.tint]}
     with output_folder(args, "fit", [args.dataset]):
@@ -89,9 +91,10 @@ def register(subparsers) -> None:
     f.add_argument("--shadow-ratio", type=float, default=None, metavar="R",
                    help="set aside an LED's captures where its diffuse capture is below R x the render (a cast "
                         "shadow); 0 = fit every capture (LM presets only; default: the preset's, 0.5 for standard)")
-    f.add_argument("--compile", action="store_true",
-                   help="render through torch.compile'd kernels (LM presets): about 2x faster once compiled; compiling "
-                        "takes ~13 s, so it pays off from about 128x128 maps (docs/FITTING.md)")
+    f.add_argument("--kernel", choices=FIT_KERNELS, default=None,
+                   help="LM presets: 'fused' (default: numba, analytic Jacobians), 'eager' (the reference: torch, "
+                        "forward differences) or 'compiled' (the reference through torch.compile) (docs/FITTING.md)")
+    f.add_argument("--compile", action="store_true", help="the same as --kernel compiled")
     f.add_argument("--holdout-every", type=int, default=8,
                    help="hold out every N-th LED for the re-render SSIM report (0 = fit all)")
     f.add_argument("--checkpoint-every", type=int, default=50, help="iterations between checkpoints")

@@ -10,8 +10,10 @@ residuals weighted as ``back_weight`` LED images.  Per pixel, the cost is
   residuals, so the weighted squared cost equals ``sum c |r|`` there (``c`` = 1 for LED
   residuals, ``back_weight`` for back-lit ones, as in the Adam loss).
 
-Each iteration builds every pixel's Jacobian by forward differences (one render per parameter
-channel, all pixels at once, in row chunks to bound memory), solves the damped weighted normal
+Each iteration builds every pixel's weighted normal equations: with ``kernel='fused'`` (the
+presets' default) in one numba pass per pixel with analytic derivatives, accumulated in place
+(:mod:`.fused`); with the eager reference by forward differences (one torch render per parameter
+channel, all pixels at once, in row chunks to bound memory).  It then solves the damped weighted normal
 equations ``(J^T W J + lambda diag(J^T W J)) d = -J^T W r`` per pixel, projects onto the bounds
 in force, and accepts the step per pixel only where the true cost (L1 or L2) drops (``lambda``
 shrinks 3x on success, grows 4x on failure), so the cost never rises.  A pixel whose solve fails
@@ -46,6 +48,8 @@ from torch import Tensor
 
 from dualscale.bsdf import DEFAULT_IOR, Components, map_from_ior
 
+from . import fused
+from .fused import SHADOW_ANCHOR_COS, SHADOW_FLOOR
 from .loop import Loop, StepData
 from .observations import Observations
 from .params import BOX, PARAM_CHANNELS, pack, project, to_maps, unpack
@@ -54,8 +58,6 @@ from .render import pixel_rows, render_back, render_leds, valid_rows
 
 FD_STEP = 3e-4
 ROW_PIXELS = 4096  # pixels per Jacobian chunk
-SHADOW_FLOOR = 1e-3  # renders below this (normalised radiance) are too dark to call a shadow
-SHADOW_ANCHOR_COS = math.cos(math.radians(15.0))  # LEDs this close to the camera's axis light what it sees
 LOSSES = ("l1", "l2")
 
 
@@ -186,9 +188,19 @@ def _lohi(names: tuple[str, ...], bounds: dict[str, tuple[float, float]], like: 
     return torch.tensor(lo, dtype=like.dtype), torch.tensor(hi, dtype=like.dtype)
 
 
+def _problem(d: StepData, comps: Components) -> fused.Problem:
+    """The fused kernel's layout of a block's data, built once per step and block."""
+    key = ("fused", comps)
+    if key not in d.cache:
+        d.cache[key] = fused.Problem(d.obs, d.images, d.back, comps)
+    return d.cache[key]
+
+
 def _residual(x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor], comps: Components,
               d: StepData) -> Tensor:
     """Unweighted residuals ``(h, w, K)`` of a pixel block: LED images, then the back-lit image."""
+    if d.kernel == "fused":
+        return _problem(d, comps).residuals(x, names, fixed)
     maps = to_maps(unpack(x, names), fixed)
     r = pixel_rows(render_leds(maps, comps, d.obs, compiled=d.compiled) - d.images)
     if d.back is not None:
@@ -201,8 +213,14 @@ def _row_weights(d: StepData, loss: Loss, like: Tensor) -> Tensor:
 
 
 def _block(d: StepData, y0: int, y1: int) -> StepData:
-    o = d.obs.crop(y0, y1, 0, d.obs.shape[1])
-    return StepData(o, d.images[:, y0:y1], None if d.back is None else d.back[y0:y1], d.compiled)
+    """Rows ``y0:y1`` of a step's data (cached, with their fused layouts, for the whole step)."""
+    if (y0, y1) == (0, d.obs.shape[0]):
+        return d
+    key = ("block", y0, y1)
+    if key not in d.cache:
+        o = d.obs.crop(y0, y1, 0, d.obs.shape[1])
+        d.cache[key] = StepData(o, d.images[:, y0:y1], None if d.back is None else d.back[y0:y1], d.kernel)
+    return d.cache[key]
 
 
 def _chunks(h: int, w: int) -> list[tuple[int, int]]:
@@ -219,6 +237,9 @@ def cost(x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor], comps: Com
     for y0, y1 in _chunks(*x.shape[:2]):
         fx = {k: v[y0:y1] for k, v in fixed.items()}
         db = _block(d, y0, y1)
+        if d.kernel == "fused":
+            out.append(_problem(db, comps).cost(x[y0:y1], names, fx, loss, None if keep is None else keep[y0:y1]))
+            continue
         r = _residual(x[y0:y1], names, fx, comps, db)
         cw = _row_weights(d, loss, r)
         kb = keep[y0:y1] if keep is not None else valid_rows(db.obs, db.back is not None, r.dtype)
@@ -230,7 +251,7 @@ def cost(x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor], comps: Com
 def _normal_equations(x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor], comps: Components, d: StepData,
                       loss: Loss, hi: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor | None]:
     """``(J^T W J (H, W, P, P), J^T W r (H, W, P), data cost (H, W), likelihood scale (H, W),
-    kept rows (H, W, K) or None)`` by forward differences, with the weights ``W`` and the kept
+    kept rows (H, W, K) or None)`` (fused kernel, or forward differences), with the weights ``W`` and the kept
     rows taken at the current residuals (IRLS for L1)."""
     jtj, jtr, c, k, kept = [], [], [], [], []
     p = x.shape[-1]
@@ -239,12 +260,24 @@ def _normal_equations(x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor
         fx = {k: v[y0:y1] for k, v in fixed.items()}
         db = _block(d, y0, y1)
         r0 = _residual(xb, names, fx, comps, db)
+        if d.kernel == "fused":
+            prob = _problem(db, comps)
+            keep, sw, cst, scl = prob.irls(r0, loss)
+            a, b = prob.normal_equations(xb, names, fx, r0, sw)
+            jtj.append(a)
+            jtr.append(b)
+            c.append(cst)
+            k.append(scl)
+            kept.append(keep)
+            continue
         cw = _row_weights(d, loss, r0)
         keep = loss.keep(r0, db)
         if keep is not None:
             cw = cw * keep
             kept.append(keep)
         sw = loss.sqrt_weights(r0, cw)  # (h, w, K)
+        c.append(loss.cost(r0, cw))
+        k.append(loss.scale(r0, valid_rows(db.obs, db.back is not None, r0.dtype)))
         cols = []
         for j in range(p):
             step = torch.where(xb[..., j] + FD_STEP > hi[j], -FD_STEP, FD_STEP)
@@ -254,8 +287,6 @@ def _normal_equations(x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor
         jac = torch.stack(cols, -1)  # weighted rows sqrt(W) J: (h, w, K, P)
         jtj.append(torch.einsum("hwkp,hwkq->hwpq", jac, jac))
         jtr.append(torch.einsum("hwkp,hwk->hwp", jac, r0 * sw))
-        c.append(loss.cost(r0, cw))
-        k.append(loss.scale(r0, valid_rows(db.obs, db.back is not None, r0.dtype)))
     return (torch.cat(jtj, 0), torch.cat(jtr, 0), torch.cat(c, 0), torch.cat(k, 0),
             torch.cat(kept, 0) if kept else None)
 

@@ -20,19 +20,25 @@ from .render import clamp_images
 
 @dataclass
 class StepData:
-    """Observations of one step with their images clamped at 2 (LED and back-lit); ``compiled``:
-    render them through the compiled BSDF kernel."""
+    """Observations of one step with their images clamped at 2 (LED and back-lit); ``kernel``:
+    how LM renders them (:data:`.presets.KERNELS`); ``cache`` holds the fused kernel's per-block
+    layouts (:class:`.fused.Problem`)."""
 
     obs: Observations
     images: Tensor
     back: Tensor | None
-    compiled: bool = False
+    kernel: str = "eager"
+    cache: dict = field(default_factory=dict)
+
+    @property
+    def compiled(self) -> bool:
+        return self.kernel == "compiled"
 
 
-def step_data(obs: Observations, step: str, compiled: bool = False) -> StepData:
+def step_data(obs: Observations, step: str, kernel: str = "eager") -> StepData:
     o = diffuse_images(obs) if STEP_DATA[step] == "diffuse" else obs
     back = None if o.backlight is None else clamp_images(o.backlight)
-    return StepData(o, clamp_images(o.images), back, compiled)
+    return StepData(o, clamp_images(o.images), back, kernel)
 
 
 def free_names(step: str, params: dict[str, Tensor]) -> tuple[str, ...]:
@@ -86,7 +92,7 @@ class Loop:
                 continue
             free = free_names(step, params)
             if free:
-                yield s, step, step_data(obs, step, self.preset.compiled), free, start_it if s == start_step else 0
+                yield s, step, step_data(obs, step, self.preset.kernel), free, start_it if s == start_step else 0
 
     def after_iteration(self, step: int, it: int, loss: float, state: Callable[[], dict]) -> None:
         """Call after iteration ``it`` of ``step`` finished; ``state()`` resumes at the next one."""

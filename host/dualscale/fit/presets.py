@@ -28,6 +28,8 @@ STEP_FITS: dict[str, tuple[str, ...]] = {
               "specular_tint"),
 }
 STEP_DATA = {"diffuse": "diffuse", "specular": "all", "joint": "all"}
+#: how LM computes residuals and Jacobians (:class:`Preset` ``kernel``)
+KERNELS = ("fused", "eager", "compiled")
 
 
 @dataclass(frozen=True)
@@ -52,9 +54,12 @@ class Preset:
     diffuse-only (P90) capture is below that fraction of its render: a cast shadow, which the
     local model cannot produce (:meth:`.lm.Loss.keep`); 0 fits every capture.
 
-    ``compiled`` (LM only): render through ``torch.compile``d BSDF kernels.  LM only renders
-    forward (no autograd), where the fused kernels pay off; compiling costs seconds to a minute
-    per distinct problem shape in a process (cached on disk by Inductor)."""
+    ``kernel`` (LM only) computes the residuals and normal equations: ``'fused'`` (the default
+    of the LM presets) is :mod:`.fused`, one numba pass per pixel with analytic derivatives;
+    ``'eager'`` is the reference, torch renders of whole blocks with forward-difference
+    Jacobians; ``'compiled'`` is the reference through ``torch.compile``d BSDF kernels
+    (compiling costs seconds to a minute per distinct problem shape in a process, cached on
+    disk by Inductor)."""
 
     name: str
     optimizer: str
@@ -72,14 +77,16 @@ class Preset:
     coarse_factor: int = 1
     coarse_iterations: tuple[int, int, int] = (0, 0, 0)
     ior_prior_sd: float = 0.0
-    compiled: bool = False
+    kernel: str = "eager"
     shadow_ratio: float = 0.0
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.shadow_ratio < 1.0 or (self.shadow_ratio > 0 and self.optimizer != "lm"):
             raise ValueError("shadow_ratio must be in [0, 1) and is implemented for the LM optimiser only")
-        if self.compiled and self.optimizer != "lm":
-            raise ValueError("a compiled renderer is implemented for the LM optimiser only")
+        if self.kernel not in KERNELS:
+            raise ValueError(f"unknown kernel {self.kernel!r}; choose from {KERNELS}")
+        if self.kernel != "eager" and self.optimizer != "lm":
+            raise ValueError(f"the {self.kernel} kernel is implemented for the LM optimiser only")
         if self.ior_prior_sd < 0 or (self.ior_prior_sd > 0 and self.optimizer != "lm"):
             raise ValueError("ior_prior_sd must be >= 0 and is implemented for the LM optimiser only")
         if self.loss not in ("l1", "l2"):
@@ -88,6 +95,11 @@ class Preset:
             raise ValueError("the Adam optimiser minimises the paper's L1 loss only")
         if self.coarse_factor > 1 and self.optimizer != "lm":
             raise ValueError("a coarse level is implemented for the LM optimiser only")
+
+    @property
+    def compiled(self) -> bool:
+        """Whether the eager reference runs through ``torch.compile`` (``kernel='compiled'``)."""
+        return self.kernel == "compiled"
 
     @property
     def total(self) -> int:
@@ -112,18 +124,19 @@ PRESETS: dict[str, Preset] = {
     "paper": Preset("paper", "adam", (700, 500, 600), lr=0.01, loss="l1"),
     # the joint step does the work: the first two only give it a start (docs/FITTING.md)
     "standard": Preset("standard", "lm", (3, 3, 15), grid_init=True, loss="l1", ior_prior_sd=IOR_PRIOR_SD,
-                       shadow_ratio=SHADOW_RATIO),
+                       shadow_ratio=SHADOW_RATIO, kernel="fused"),
     "draft": Preset("draft", "lm", (3, 3, 5), grid_init=True, led_stride=2, loss="l1", ior_prior_sd=IOR_PRIOR_SD,
-                    shadow_ratio=SHADOW_RATIO),
+                    shadow_ratio=SHADOW_RATIO, kernel="fused"),
     # measured slower than `standard` at equal accuracy (docs/FITTING.md); kept for comparison
     "coarse-to-fine": Preset("coarse-to-fine", "lm", (2, 2, 6), grid_init=True, loss="l1", coarse_factor=2,
-                             coarse_iterations=(5, 5, 10), ior_prior_sd=IOR_PRIOR_SD, shadow_ratio=SHADOW_RATIO),
+                             coarse_iterations=(5, 5, 10), ior_prior_sd=IOR_PRIOR_SD, shadow_ratio=SHADOW_RATIO,
+                             kernel="fused"),
     "adam-fast": Preset("adam-fast", "adam", (140, 100, 120), lr=0.03, light_batch=64),
 }
 
 
-# `standard` through compiled kernels: the same fit, faster once compiled (docs/FITTING.md)
-PRESETS["standard-compiled"] = replace(PRESETS["standard"], name="standard-compiled", compiled=True)
+# `standard` through the eager reference (forward differences), plain and torch.compile'd (docs/FITTING.md)
+PRESETS["standard-compiled"] = replace(PRESETS["standard"], name="standard-compiled", kernel="compiled")
 
 
 def get_preset(name: str) -> Preset:
