@@ -1,6 +1,7 @@
 """SVBSDF maps on disk: one float32 EXR per active map, PNG previews, and ``material.json``.
-The one reader (:func:`load_maps`) and writer (:func:`save_maps`) of maps, for ground truth
-(``synth``), fitted maps (``fit``), propagated maps (``propagate run``) and exports.
+The one reader (:func:`load_maps`) and writer (:class:`MapsWriter`, by rows; :func:`save_maps`,
+whole maps) of maps, for ground truth (``synth``), fitted maps (``fit``), propagated maps
+(``propagate run``, streamed by rows) and exports.
 
 ``material.json`` (version 2)::
 
@@ -20,6 +21,8 @@ with ``material.json``, non-finite values and normal maps whose vectors are not 
 
 from __future__ import annotations
 
+import contextlib
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -29,8 +32,8 @@ import torch
 from dualscale.bsdf import MAP_CHANNELS, MaterialMaps, validate_maps
 from dualscale.errors import FormatError, GeometryError
 
-from .atomic import remove_file, write_json
-from .exr import read_exr, write_exr, write_png_preview
+from .atomic import atomic_path, remove_file, write_json
+from .exr import read_exr, srgb_encode, write_exr, write_png_preview
 from .versioned import read_versioned_json
 
 FORMAT = "dualscale-maps"
@@ -61,7 +64,7 @@ def save_maps(root: str | Path, maps: MaterialMaps, meta: dict | None = None, pr
     ``material.json`` is removed before the first map is written, so a write that fails half-way
     (a full disk) never leaves new maps under an old, complete-looking record; maps and previews
     of an earlier set that this one lacks (e.g. ``transmittance`` of another material) are
-    removed, so no reader picks up a stale map.
+    removed, so no reader picks up a stale map.  :class:`MapsWriter` writes the same files by rows.
 
     ``texel_mm``: texel size in mm (``None``: taken from ``meta["texel_mm"]`` when present);
     ``attributes``: extra EXR header attributes (``dualscale:*`` strings) for every map, plus
@@ -69,30 +72,188 @@ def save_maps(root: str | Path, maps: MaterialMaps, meta: dict | None = None, pr
     """
     validate_maps(maps)
     root = Path(root)
-    if texel_mm is None and meta and meta.get("texel_mm"):
-        texel_mm = float(meta["texel_mm"])
-    if texel_mm is not None and not (np.isfinite(texel_mm) and texel_mm > 0):
-        raise ValueError(f"texel_mm must be a positive number of mm, got {texel_mm!r}")
+    texel_mm = _texel(texel_mm, meta)
     remove_file(root / "material.json")
     for name, t in maps.items():
         arr = t.detach().cpu().numpy()
-        write_exr(root / f"{name}.exr", arr, channel_names(name), {**(attributes or {}), "dualscale:map": name}
-                  if attributes else None)
+        write_exr(root / f"{name}.exr", arr, channel_names(name), _attributes(name, attributes))
         if previews:
             if name == "normal":
                 write_png_preview(root / f"{name}.png", 0.5 * arr + 0.5, srgb=False)
             else:
                 write_png_preview(root / f"{name}.png", arr, srgb=name in ("albedo", "transmittance"))
-    written = {n for n, _ in maps.items()}
+    h, w = maps.shape
+    return _finish(root, [n for n, _ in maps.items()], h, w, texel_mm, meta, previews)
+
+
+def _texel(texel_mm: float | None, meta: dict | None) -> float | None:
+    if texel_mm is None and meta and meta.get("texel_mm"):
+        texel_mm = float(meta["texel_mm"])
+    if texel_mm is not None and not (np.isfinite(texel_mm) and texel_mm > 0):
+        raise ValueError(f"texel_mm must be a positive number of mm, got {texel_mm!r}")
+    return texel_mm
+
+
+def _attributes(name: str, attributes: dict[str, str] | None) -> dict[str, str] | None:
+    """EXR header attributes of map ``name``: none, or ``attributes`` plus ``dualscale:map``."""
+    return {**attributes, "dualscale:map": name} if attributes else None
+
+
+def _finish(root: Path, names: list[str], h: int, w: int, texel_mm: float | None, meta: dict | None,
+            previews: bool) -> Path:
+    """After the maps: remove stale maps and previews of an earlier set, write ``material.json``."""
+    written = set(names)
     for name in MAP_CHANNELS:
         for suffix in (".exr", ".png"):
             if name not in written or (suffix == ".png" and not previews):
                 remove_file(root / f"{name}{suffix}")
-    h, w = maps.shape
-    doc = {"format": FORMAT, "version": VERSION, "maps": [n for n, _ in maps.items()], "height": h, "width": w,
+    doc = {"format": FORMAT, "version": VERSION, "maps": list(names), "height": h, "width": w,
            "texel_mm": texel_mm, "field_mm": None if texel_mm is None else [w * texel_mm, h * texel_mm],
            "conventions": CONVENTIONS, "meta": meta or {}}
     return write_json(root / "material.json", doc)
+
+
+def _preview_u8(name: str, rows: np.ndarray) -> np.ndarray:
+    """8-bit preview rows of map ``name`` (as :func:`dualscale.formats.exr.write_png_preview`:
+    sRGB curve for albedo and transmittance, normals as ``0.5 n + 0.5``, others clipped)."""
+    img = np.asarray(rows, np.float64)
+    if name == "normal":
+        img = np.clip(0.5 * img + 0.5, 0, 1)
+    elif name in ("albedo", "transmittance"):
+        img = srgb_encode(img)
+    else:
+        img = np.clip(np.nan_to_num(img), 0, 1)
+    return np.ascontiguousarray(np.round(img * 255).astype(np.uint8))
+
+
+def _close_quietly(out) -> None:
+    with contextlib.suppress(Exception):
+        out.close()
+
+
+class MapsWriter:
+    """The maps writer by rows: the files of :func:`save_maps` (same EXR header, previews, stale
+    maps removed, ``material.json`` last), written a strip of rows at a time, so that a tiled
+    propagation (``dualscale.propagate.infer``) never holds the maps whole and writes while it
+    computes.
+
+    Use it as a context manager::
+
+        with MapsWriter(root, ["albedo", "roughness"], H, W, meta, previews=False) as out:
+            out.write(0, {"albedo": a0, "roughness": r0})     # rows 0 .. n0 - 1, (n0, W, C) each
+            out.write(n0, {...})                               # the next rows, in order
+
+    Entering removes an earlier ``material.json`` (as :func:`save_maps` does before its first
+    map).  Every ``<name>.exr`` (float32, zip, OpenImageIO ``write_scanlines``) and preview goes
+    to a temporary file (:func:`dualscale.formats.atomic.atomic_path`); a clean exit after all
+    ``H`` rows closes them (a full disk shows here, ``OSError`` naming the file), renames them
+    into place and writes ``material.json`` last.  An exit on an error or an interrupt
+    (``KeyboardInterrupt``) closes and deletes the temporary files: no new file appears under a
+    final name.  Rows must come in order and every call gives every map, finite (``ValueError``
+    naming the map and the rows).  One thread writes (not thread-safe).
+    """
+
+    def __init__(self, root: str | Path, names: list[str], height: int, width: int, meta: dict | None = None,
+                 previews: bool = True, texel_mm: float | None = None,
+                 attributes: dict[str, str] | None = None) -> None:
+        self.root = Path(root)
+        self.path = self.root / "material.json"
+        bad = [n for n in names if n not in MAP_CHANNELS]
+        if bad or not names:
+            raise ValueError(f"maps must be a non-empty subset of {list(MAP_CHANNELS)}, got {names}")
+        if "albedo" not in names or "roughness" not in names:
+            raise ValueError(f"albedo and roughness maps are required, got {names}")
+        self.names, self.height, self.width = list(names), int(height), int(width)
+        self.meta, self.previews, self.attributes = meta, previews, attributes
+        self.texel_mm = _texel(texel_mm, meta)
+        self.rows = 0  # rows written so far
+        self._stack: contextlib.ExitStack | None = None
+        self._outs: list[tuple[Path, Any]] = []  # (final path, OpenImageIO ImageOutput)
+
+    def __enter__(self) -> "MapsWriter":
+        import OpenImageIO as oiio
+
+        self._stack = contextlib.ExitStack()
+        try:
+            remove_file(self.path)
+            for name in self.names:
+                spec = oiio.ImageSpec(self.width, self.height, MAP_CHANNELS[name], "float")
+                spec.channelnames = channel_names(name)
+                spec.attribute("compression", "zip")  # as formats.exr.write_exr
+                for k, v in (_attributes(name, self.attributes) or {}).items():
+                    spec.attribute(k, str(v))
+                self._open(self.root / f"{name}.exr", spec)
+                if self.previews:
+                    self._open(self.root / f"{name}.png",
+                               oiio.ImageSpec(self.width, self.height, MAP_CHANNELS[name], "uint8"))
+        except BaseException:
+            self._stack.__exit__(*sys.exc_info())
+            raise
+        return self
+
+    def _open(self, final: Path, spec) -> None:
+        import OpenImageIO as oiio
+
+        tmp = self._stack.enter_context(atomic_path(final))
+        out = oiio.ImageOutput.create(str(tmp))
+        if out is None or not out.open(str(tmp), spec):
+            raise OSError(f"cannot write {final}: {oiio.geterror()}")
+        self._stack.callback(_close_quietly, out)  # before the temporary file is deleted (an error) or renamed
+        self._outs.append((final, out))
+
+    def write(self, y0: int, rows: dict[str, np.ndarray]) -> None:
+        """Write rows ``y0 .. y0 + n - 1`` of every map: ``{name: (n, W, C) float}``."""
+        if self._stack is None:
+            raise RuntimeError("MapsWriter.write outside its with-block")
+        if y0 != self.rows:
+            raise ValueError(f"{self.root}: rows must come in order: got row {y0}, expected {self.rows}")
+        if set(rows) != set(self.names):
+            raise ValueError(f"{self.root}: rows for maps {sorted(rows)}, expected {sorted(self.names)}")
+        n = None
+        arrays = {}
+        for name in self.names:
+            a = np.asarray(rows[name], np.float32)
+            if a.ndim == 2:
+                a = a[..., None]
+            c = MAP_CHANNELS[name]
+            if a.ndim != 3 or a.shape[1:] != (self.width, c) or (n is not None and a.shape[0] != n):
+                raise ValueError(f"map {name!r} rows must have shape ({n or 'n'}, {self.width}, {c}), "
+                                 f"got {a.shape}")
+            n = a.shape[0]
+            if not np.isfinite(a).all():
+                raise ValueError(f"map {name!r} contains NaN or Inf (rows {y0}..{y0 + n - 1})")
+            arrays[name] = a
+        if y0 + n > self.height:
+            raise ValueError(f"{self.root}: rows {y0}..{y0 + n - 1} beyond the height {self.height}")
+        outs = iter(self._outs)
+        for name in self.names:
+            self._scanlines(next(outs), y0, arrays[name])
+            if self.previews:
+                self._scanlines(next(outs), y0, _preview_u8(name, arrays[name]))
+        self.rows = y0 + n
+
+    @staticmethod
+    def _scanlines(target: tuple[Path, Any], y0: int, a: np.ndarray) -> None:
+        final, out = target
+        if not out.write_scanlines(y0, y0 + a.shape[0], 0, np.ascontiguousarray(a)):
+            raise OSError(f"cannot write {final}: {out.geterror()}")
+
+    def __exit__(self, kind, value, tb) -> None:
+        stack, self._stack = self._stack, None
+        if kind is not None:
+            stack.__exit__(kind, value, tb)  # closes and deletes every temporary file
+            return
+        try:
+            if self.rows != self.height:
+                raise ValueError(f"{self.root}: {self.rows} of {self.height} rows written")
+            for final, out in self._outs:  # the last buffered bytes go out here: a full disk can show only now
+                if not out.close():
+                    raise OSError(f"cannot write {final}: {out.geterror() or 'closing the file failed'}")
+        except BaseException:
+            stack.__exit__(*sys.exc_info())
+            raise
+        stack.close()  # renames every file into place
+        _finish(self.root, self.names, self.height, self.width, self.texel_mm, self.meta, self.previews)
 
 
 def read_material_json(root: str | Path) -> dict[str, Any]:

@@ -1,13 +1,18 @@
-"""ONNX export (fp32 and fp16) and the parity check against PyTorch.
+"""ONNX export (fp32, fp16 and, on request, int8) and the parity check against PyTorch.
 
 The graph takes ``image`` ``(N, 3, H, W)`` linear RGB (``H``, ``W`` multiples of 16, dynamic)
 and returns ``maps`` ``(N, C, H, W)``, the maps concatenated in the order stored in the ONNX
-metadata (``dualscale:maps``, JSON).  The fp16 graph has float16 input and output.
+metadata (``dualscale:maps``, JSON).  The fp16 graph has float16 input and output.  The int8
+graph (:func:`quantize_int8`) is onnxruntime's dynamic quantisation of the fp32 graph
+(``onnxruntime.quantization.quantize_dynamic``: uint8 weights, activations quantised per run,
+``ConvInteger``); float32 input and output.  Its accuracy loss per map is measured in
+docs/PROPAGATION.md; it is never chosen by default.
 """
 
 from __future__ import annotations
 
 import copy
+import hashlib
 import json
 import warnings
 from pathlib import Path
@@ -57,16 +62,36 @@ def _export_onnx(model: PropagationUNet, path: Path, half: bool, meta: dict | No
     onnx.save(proto, str(path))
 
 
-def session(path: str | Path, threads: int | None = None):
-    """An onnxruntime CPU session (CUDA first when available)."""
+OPTIMIZATION_LEVELS = ("all", "extended", "basic", "none")
+
+
+def session(path: str | Path, threads: int | None = None, optimization: str = "all", profile: str | None = None):
+    """An onnxruntime CPU session (CUDA first when available).
+
+    ``threads``: intra-op threads (``None``: onnxruntime's default, one per core); no
+    busy-waiting (spinning threads starve each other on shared cores).  ``optimization``: graph
+    optimisation level, ``"all"`` (default: constant folding, node fusions and, on x86, the
+    NCHWc blocked layout for convolutions), ``"extended"`` (fusions, no layout change),
+    ``"basic"`` or ``"none"``; measured in docs/PROPAGATION.md.  ``profile``: a file prefix
+    for onnxruntime's per-node profile (``enable_profiling``; ``session.end_profiling()``
+    writes it).
+    """
     import onnxruntime as ort
 
+    levels = {"all": ort.GraphOptimizationLevel.ORT_ENABLE_ALL,
+              "extended": ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED,
+              "basic": ort.GraphOptimizationLevel.ORT_ENABLE_BASIC,
+              "none": ort.GraphOptimizationLevel.ORT_DISABLE_ALL}
+    if optimization not in levels:
+        raise ValueError(f"optimization must be one of {', '.join(levels)}, got {optimization!r}")
     so = ort.SessionOptions()
     if threads:
         so.intra_op_num_threads = threads
-    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    # no busy-waiting: on shared cores spinning threads starve each other
+    so.graph_optimization_level = levels[optimization]
     so.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    if profile:
+        so.enable_profiling = True
+        so.profile_file_prefix = str(profile)
     prov = [p for p in ("CUDAExecutionProvider", "CPUExecutionProvider") if p in ort.get_available_providers()]
     return ort.InferenceSession(str(path), so, providers=prov)
 
@@ -90,15 +115,60 @@ def onnx_paths(model_path: str | Path) -> tuple[Path, Path]:
     return p.with_suffix(".onnx"), p.with_suffix(".fp16.onnx")
 
 
-def export_model(model_path: str | Path, check: bool = True) -> dict:
-    """Export a model file to fp32 and fp16 ONNX next to it; returns paths and parity per map."""
+def onnx_path(model_path: str | Path, precision: str) -> Path:
+    """The ONNX file of ``precision`` (``fp32``, ``fp16``, ``int8``) next to a model file."""
+    p = Path(model_path)
+    suffix = {"fp32": ".onnx", "fp16": ".fp16.onnx", "int8": ".int8.onnx"}.get(precision)
+    if suffix is None:
+        raise ValueError(f"precision must be fp32, fp16 or int8, got {precision!r}")
+    return p.with_suffix(suffix)
+
+
+def quantize_int8(fp32_path: str | Path, path: str | Path) -> Path:
+    """Dynamic int8 quantisation of an fp32 export (``quantize_dynamic``, uint8 weights: int8
+    weights ran ~6x slower in onnxruntime's ``ConvInteger`` here), written atomically.  The
+    metadata say ``dualscale:precision`` = ``int8`` and record the fp32 file's name and SHA-256
+    (``dualscale:quantised_from[_sha256]``), so a stale int8 file is refused when opened
+    (:meth:`dualscale.propagate.infer.OnnxModel.open`)."""
+    import onnx
+    from onnxruntime.quantization import QuantType, quantize_dynamic
+
+    from dualscale.formats.atomic import atomic_path
+
+    fp32_path = Path(fp32_path)
+    digest = hashlib.sha256(fp32_path.read_bytes()).hexdigest()
+    with atomic_path(path) as tmp:
+        quantize_dynamic(str(fp32_path), str(tmp), weight_type=QuantType.QUInt8)
+        proto = onnx.load(str(tmp))
+        props = {e.key: e.value for e in proto.metadata_props if e.key != "onnx.infer"}
+        if props.get("dualscale:precision") != "fp32":
+            raise ValueError(f"{fp32_path}: not an fp32 dualscale export (precision "
+                             f"{props.get('dualscale:precision')!r})")
+        props.update({"dualscale:precision": "int8", "dualscale:quantised_from": fp32_path.name,
+                      "dualscale:quantised_from_sha256": digest})
+        del proto.metadata_props[:]
+        for k, v in props.items():
+            e = proto.metadata_props.add()
+            e.key, e.value = k, v
+        onnx.save(proto, str(tmp))
+    return Path(path)
+
+
+def export_model(model_path: str | Path, check: bool = True, int8: bool = False) -> dict:
+    """Export a model file to fp32 and fp16 ONNX next to it (and int8 with ``int8=True``:
+    :func:`quantize_int8`); returns paths and parity per map (max abs difference against
+    PyTorch fp32, :func:`parity`)."""
     model, doc = load_model(model_path)
     meta = {"dualscale:input_reference": json.dumps(doc.get("input_reference"))}
     p32, p16 = onnx_paths(model_path)
     export_onnx(model, p32, half=False, meta=meta)
     export_onnx(model, p16, half=True, meta=meta)
     out: dict = {"fp32": str(p32), "fp16": str(p16)}
+    if int8:
+        out["int8"] = str(quantize_int8(p32, onnx_path(model_path, "int8")))
     if check:
         out["parity_fp32"] = parity(model, p32)
         out["parity_fp16"] = parity(model, p16)
+        if int8:
+            out["parity_int8"] = parity(model, out["int8"])
     return out
