@@ -210,3 +210,33 @@ def test_a_normal_on_the_rim_keeps_an_inward_derivative():
     lit = fd.abs() > 1e-3
     assert bool(lit.any())
     assert torch.allclose(jac[:, col][lit], fd[lit], rtol=0.15, atol=1e-3)  # two secants: the render's, n_z's
+
+
+def test_carried_residuals_are_the_ones_a_fresh_render_gives(datasets, monkeypatch):
+    """The fused LM renders once per iteration: the accepted trial's residuals are carried into
+    the next one.  They are used (every iteration but the first of each step) and the fit is bit
+    for bit the fit that renders afresh every iteration."""
+    from dualscale.fit import lm
+    from dualscale.fit.core import fit_observations
+    from dualscale.fit.observations import load_observations
+    from dualscale.fit.params import fit_components
+    from dualscale.fit.presets import PRESETS
+
+    obs = load_observations(datasets("twill")).crop(0, 6, 0, 6)
+    comps = fit_components(opaque=True, isotropic=False, tinted=True)
+    p = PRESETS["standard"].scaled(0.4)
+    used = []
+    carried = lm._carried
+
+    def counted(db, x, fixed):
+        r = carried(db, x, fixed)
+        used.append(r is not None)
+        return r
+
+    monkeypatch.setattr(lm, "_carried", counted)
+    with_carry = fit_observations(obs, p, comps)
+    assert sum(used) == p.total - 3, used  # the first iteration of each step renders
+    monkeypatch.setattr(lm, "_carried", lambda db, x, fixed: None)
+    fresh = fit_observations(obs, p, comps)
+    for name, t in with_carry.maps.items():
+        assert torch.equal(t, getattr(fresh.maps, name)), name

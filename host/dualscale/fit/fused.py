@@ -302,15 +302,22 @@ def residual_rows(x, view, dirs, w_s, w_p, w_d, images, back, back_wd, flags, et
 
 
 @njit(parallel=True, **JIT)
-def weighted_cost(x, view, dirs, w_s, w_p, w_d, images, back, back_wd, flags, eta_const, cw, l1, out):
-    """``out (npix,)`` = ``sum cw |r|`` (``l1``) or ``sum cw r^2`` over the residual rows, with the
-    row weights ``cw (npix, K)``; the residuals are never stored."""
+def weighted_cost(x, view, dirs, w_s, w_p, w_d, images, back, back_wd, flags, eta_const, sel, c_rows, l1, out,
+                  rows_out):
+    """``out (npix,)`` = ``sum c sel |r|`` (``l1``) or ``sum c sel r^2`` over the residual rows, with
+    the row weights ``c_rows (K,)`` and the row selection ``sel (npix, K)`` (1/0; empty = all);
+    the residuals go to ``rows_out (npix, K)`` unless it is empty."""
+    kk = c_rows.shape[0]
+    has_sel, keep_rows = sel.shape[0] == x.shape[0], rows_out.shape[0] == x.shape[0]
     for p in prange(x.shape[0]):
-        row = np.empty(cw.shape[1])
+        row = np.empty(kk)
         _pixel_residuals(p, x, view, dirs, w_s, w_p, w_d, images, back, back_wd, flags, eta_const, row)
         acc = 0.0
-        for i in range(cw.shape[1]):
-            acc += cw[p, i] * (abs(row[i]) if l1 else row[i] * row[i])
+        for i in range(kk):
+            w = c_rows[i] * sel[p, i] if has_sel else c_rows[i]
+            acc += w * (abs(row[i]) if l1 else row[i] * row[i])
+            if keep_rows:
+                rows_out[p, i] = row[i]
         out[p] = acc
 
 
@@ -534,23 +541,20 @@ class Problem:
                 t(scale).reshape(self.shape))
 
     def cost(self, x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor], loss,
-             keep: Tensor | None) -> Tensor:
-        """Per-pixel data cost ``(H, W)`` of :class:`.lm.Loss` at ``x`` over the rows ``keep``
-        (``(H, W, K)``), else over the valid rows (:func:`weighted_cost`)."""
+             keep: Tensor | None, residuals: bool = False) -> tuple[Tensor, Tensor | None]:
+        """``(cost (H, W), residuals (H, W, K) or None)``: the per-pixel data cost of
+        :class:`.lm.Loss` at ``x`` over the rows ``keep`` (``(H, W, K)``), else over the valid
+        rows, and with ``residuals`` the residuals it rendered (:func:`weighted_cost`)."""
         _threads()
         full, _ = full_vectors(x, names, fixed)
         npix = full.shape[0]
-        c = self.row_weights(loss)
-        if keep is not None:
-            cw = np.ascontiguousarray(keep.reshape(npix, -1).double().numpy() * c)
-        elif self.valid.shape[0]:
-            cw = self.valid * c
-        else:
-            cw = np.ascontiguousarray(np.broadcast_to(c, (npix, self.k)))
+        sel = (np.ascontiguousarray(keep.reshape(npix, -1).numpy()) if keep is not None else self.valid)
         out = np.empty(npix)
+        rows = np.empty((npix if residuals else 0, self.k), dtype=np.float32 if x.dtype == torch.float32 else np.float64)
         weighted_cost(full, self.view, self.dirs, self.w_s, self.w_p, self.w_d, self.rows, self.back, self.back_wd,
-                      self.flags, self.eta, cw, loss.kind == "l1", out)
-        return torch.from_numpy(out).to(x.dtype).reshape(self.shape)
+                      self.flags, self.eta, sel, self.row_weights(loss), loss.kind == "l1", out, rows)
+        return (torch.from_numpy(out).to(x.dtype).reshape(self.shape),
+                torch.from_numpy(rows).reshape(*self.shape, self.k) if residuals else None)
 
     def residuals(self, x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor]) -> Tensor:
         """``(H, W, K)`` residuals ``render - image`` in ``x``'s dtype (:func:`residual_rows`)."""

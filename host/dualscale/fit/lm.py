@@ -229,16 +229,20 @@ def _chunks(h: int, w: int) -> list[tuple[int, int]]:
 
 
 def cost(x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor], comps: Components, d: StepData,
-         loss: Loss, scale: Tensor | None = None, keep: Tensor | None = None) -> Tensor:
+         loss: Loss, scale: Tensor | None = None, keep: Tensor | None = None, remember: bool = False) -> Tensor:
     """Per-pixel cost ``(H, W)`` (see :class:`Loss`); with the likelihood ``scale`` ``(H, W)``,
     plus the priors; with ``keep`` ``(H, W, K)``, over the kept rows only, else over the valid
-    samples."""
+    samples.  ``remember`` (fused kernel): keep the residuals for :func:`_carry`."""
     out = []
     for y0, y1 in _chunks(*x.shape[:2]):
         fx = {k: v[y0:y1] for k, v in fixed.items()}
         db = _block(d, y0, y1)
         if d.kernel == "fused":
-            out.append(_problem(db, comps).cost(x[y0:y1], names, fx, loss, None if keep is None else keep[y0:y1]))
+            cb, rows = _problem(db, comps).cost(x[y0:y1], names, fx, loss, None if keep is None else keep[y0:y1],
+                                                residuals=remember)
+            if remember:
+                db.cache["trial rows"] = rows
+            out.append(cb)
             continue
         r = _residual(x[y0:y1], names, fx, comps, db)
         cw = _row_weights(d, loss, r)
@@ -246,6 +250,28 @@ def cost(x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor], comps: Com
         out.append(loss.cost(r, cw if kb is None else cw * kb))
     c = torch.cat(out, 0)
     return c if scale is None else c + loss.prior_terms(x, names, scale)[0]
+
+
+def _carry(d: StepData, x: Tensor, fixed: dict[str, Tensor], better: Tensor) -> None:
+    """Fused kernel: the residuals at the new ``x`` are the trial's where the step was taken and
+    the old ones elsewhere; keep them, keyed by ``x`` and the frozen maps, for the next
+    iteration (:func:`_carried`), which then renders once instead of twice."""
+    for y0, y1 in _chunks(*x.shape[:2]):
+        db = _block(d, y0, y1)
+        rows, r0 = db.cache.pop("trial rows"), db.cache.pop("rows")
+        rows[~better[y0:y1]] = r0[~better[y0:y1]]
+        db.cache["carried"] = (x[y0:y1].clone(), {k: v[y0:y1].clone() for k, v in fixed.items()}, rows)
+
+
+def _carried(db: StepData, x: Tensor, fixed: dict[str, Tensor]) -> Tensor | None:
+    """The residuals :func:`_carry` kept, if they belong to exactly this ``x`` and frozen maps (a
+    projection onto new bounds, or a new step, renders afresh)."""
+    hit = db.cache.pop("carried", None)
+    if hit is None or not torch.equal(hit[0], x) or hit[1].keys() != fixed.keys():
+        return None
+    if not all(torch.equal(hit[1][k], v) for k, v in fixed.items()):
+        return None
+    return hit[2]
 
 
 def _normal_equations(x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor], comps: Components, d: StepData,
@@ -259,8 +285,11 @@ def _normal_equations(x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor
         xb = x[y0:y1]
         fx = {k: v[y0:y1] for k, v in fixed.items()}
         db = _block(d, y0, y1)
-        r0 = _residual(xb, names, fx, comps, db)
         if d.kernel == "fused":
+            r0 = _carried(db, xb, fx)
+            if r0 is None:
+                r0 = _residual(xb, names, fx, comps, db)
+            db.cache["rows"] = r0
             prob = _problem(db, comps)
             keep, sw, cst, scl = prob.irls(r0, loss)
             a, b = prob.normal_equations(xb, names, fx, r0, sw)
@@ -270,6 +299,7 @@ def _normal_equations(x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor
             k.append(scl)
             kept.append(keep)
             continue
+        r0 = _residual(xb, names, fx, comps, db)
         cw = _row_weights(d, loss, r0)
         keep = loss.keep(r0, db)
         if keep is not None:
@@ -307,9 +337,14 @@ def lm_iteration(x: Tensor, lam: Tensor, names: tuple[str, ...], fixed: dict[str
     ok = (info == 0) & torch.isfinite(delta).all(-1)
     delta = torch.where(ok.unsqueeze(-1), delta, torch.zeros_like(delta))
     trial = torch.maximum(torch.minimum(x + delta, hi), lo)
-    c1 = cost(trial, names, fixed, comps, d, loss, k, keep)
+    if "tangent" in names:  # wrapped now as params.project will: the render is the same, the trial's bits too
+        j = sum(PARAM_CHANNELS[n] for n in names[:names.index("tangent")])
+        trial[..., j] = torch.remainder(torch.remainder(trial[..., j], 1.0), 1.0)  # -1e-9 % 1 rounds to 1.0
+    c1 = cost(trial, names, fixed, comps, d, loss, k, keep, remember=d.kernel == "fused")
     better = ok & torch.isfinite(c1) & (c1 < c0)
     x = torch.where(better.unsqueeze(-1), trial, x)
+    if d.kernel == "fused":
+        _carry(d, x, fixed, better)
     lam = torch.where(better, lam / 3.0, lam * 4.0).clamp(1e-7, 1e7)
     return x, lam, torch.where(better, c1, c0)
 
