@@ -12,7 +12,7 @@ from dualscale.bsdf import MaterialMaps
 from dualscale.errors import FormatError, InputError
 from dualscale.formats.exr import read_exr, read_exr_attributes, write_exr
 from dualscale.formats.maps import MapsWriter, load_maps, save_maps
-from dualscale.propagate.export import export_model, onnx_path
+from dualscale.propagate.export import export_model
 from dualscale.propagate.infer import OnnxModel, run_tiled
 
 OPT_TOLERANCE = 1e-5  # max abs difference between graph optimisation levels (fp32 reordering only)
@@ -197,3 +197,23 @@ def test_interrupted_stream_leaves_no_partial_file(model_dir, tmp_path, monkeypa
     assert threading.active_count() == threads
     if where == "writer":
         assert calls == [0, 24, 40]  # two strips had been written (to temporary files) before the error
+
+
+@pytest.mark.parametrize("n,tile,overlap", [(4072, 1024, 64), (4072, 512, 64), (4072, 768, 64), (4200, 512, 64),
+                                            (100, 48, 16), (33, 48, 16), (515, 128, 0)])
+def test_tiles_fitted_to_the_image(n, tile, overlap):
+    """The fewest tiles of at most `tile` px cover the image with at least `overlap`, each as small
+    as that count allows (4072 px at 1024: 5 tiles of 880 instead of 5 of 1024)."""
+    from dualscale.propagate.infer import TilePlan, tile_positions
+
+    plan = TilePlan.make(n, n, tile, overlap)
+    t, pos = plan.th, plan.ys
+    assert t % 16 == 0 and t <= tile and pos[0] == 0
+    assert pos[-1] + t == n if n > t else pos == (0,)
+    assert all(b - a <= t - overlap for a, b in zip(pos, pos[1:]))  # every neighbour overlaps >= overlap
+    fewest = len(tile_positions(n, tile, tile - overlap))
+    assert len(pos) == fewest
+    if n > tile:
+        assert len(tile_positions(n, t - 16, t - 16 - overlap)) > fewest  # a smaller tile needs more
+    if (n, tile) == (4072, 1024):
+        assert (t, plan.tiles) == (880, 25)

@@ -129,6 +129,15 @@ def _check_int8_source(path: Path, meta: dict) -> None:
                           "export_model(MODEL, int8=True)")
 
 
+def fit_tile(n: int, tile: int, overlap: int) -> int:
+    """The tile side (a multiple of 16, at most ``tile``; an image smaller than a tile: the image
+    rounded up to 16) for which the fewest tiles cover ``n`` px with at least ``overlap``."""
+    if n <= tile:
+        return min(tile, math.ceil(n / MULTIPLE) * MULTIPLE)
+    count = math.ceil((n - overlap) / (tile - overlap))
+    return min(tile, math.ceil((n + (count - 1) * overlap) / count / MULTIPLE) * MULTIPLE)
+
+
 def tile_positions(n: int, tile: int, stride: int) -> list[int]:
     """Tile origins covering ``[0, n)``; the last tile ends exactly at ``n``."""
     if n <= tile:
@@ -238,10 +247,14 @@ class TilePlan:
 
     @classmethod
     def make(cls, height: int, width: int, tile: int, overlap: int) -> "TilePlan":
+        """Tiles of at most ``tile`` px: per axis the fewest tiles that cover the image with
+        ``overlap``, then the smallest multiple of 16 that lets that many cover it
+        (:func:`fit_tile`), so that no tile is spent on a last tile overlapping its neighbour
+        by far more than ``overlap`` (4072 px with 1024 px tiles: 5 tiles of 880 px, not 5 of
+        1024)."""
         if tile % MULTIPLE or overlap < 0 or overlap >= tile // 2:
             raise ValueError(f"tile must be a multiple of {MULTIPLE} and 0 <= overlap < tile/2 (got {tile}, {overlap})")
-        th = min(tile, math.ceil(height / MULTIPLE) * MULTIPLE)
-        tw = min(tile, math.ceil(width / MULTIPLE) * MULTIPLE)
+        th, tw = fit_tile(height, tile, overlap), fit_tile(width, tile, overlap)
         return cls(height, width, th, tw, overlap, tuple(tile_positions(height, th, th - overlap)),
                    tuple(tile_positions(width, tw, tw - overlap)))
 
