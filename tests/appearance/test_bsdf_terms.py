@@ -148,6 +148,12 @@ def test_diffuse_values():
     cl, cv, clv, s = 0.3 * one, 0.4 * one, 0.5 * one, 0.6 * one
     fl, fv, rr = 0.7 ** 5, 0.6 ** 5, 0.6 * 1.5
     torch.testing.assert_close(B.retro_reflection(b, s, cl, cv, clv), b / math.pi * rr * (fl + fv + fl * fv * (rr - 1)))
+    # the fused diffuse (Schlick weights once, factor on one channel) is the sum of its two terms
+    c = rand(64, 1, lo=-0.2, hi=1.2, seed=5)
+    args = (rand(64, 3), rand(64, 1, seed=6), c, c.flip(0), rand(64, 1, lo=-1.1, hi=1.1, seed=7))
+    torch.testing.assert_close(B.diffuse(*args), B.diffuse_base(args[0], c, c.flip(0)) + B.retro_reflection(*args),
+                               rtol=1e-13, atol=1e-15)
+    torch.testing.assert_close(B.schlick_weight(c), (1 - c.clamp(0, 1)) ** 5, rtol=1e-13, atol=1e-15)
 
 
 def test_diffuse_gradcheck():

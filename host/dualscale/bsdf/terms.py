@@ -23,8 +23,10 @@ INV_PI = 1.0 / math.pi
 
 
 def schlick_weight(cos: Tensor) -> Tensor:
-    """``F_x = (1 - cos)^5`` with ``cos`` clamped to [0, 1]."""
-    return (1.0 - torch.clamp(cos, 0.0, 1.0)) ** 5
+    """``F_x = (1 - cos)^5`` with ``cos`` clamped to [0, 1] (three multiplications, not ``pow``)."""
+    t = 1.0 - torch.clamp(cos, 0.0, 1.0)
+    t2 = t * t
+    return t2 * t2 * t
 
 
 def diffuse_base(albedo: Tensor, cos_l: Tensor, cos_v: Tensor) -> Tensor:
@@ -41,8 +43,12 @@ def retro_reflection(albedo: Tensor, roughness: Tensor, cos_l: Tensor, cos_v: Te
 
 
 def diffuse(albedo: Tensor, roughness: Tensor, cos_l: Tensor, cos_v: Tensor, cos_lv: Tensor) -> Tensor:
-    """Full diffuse term: ``diffuse_base + retro_reflection``."""
-    return diffuse_base(albedo, cos_l, cos_v) + retro_reflection(albedo, roughness, cos_l, cos_v, cos_lv)
+    """Full diffuse term: ``diffuse_base + retro_reflection``, with the Schlick weights computed
+    once and the angular factor on one channel before it scales the RGB albedo."""
+    fl = schlick_weight(cos_l)
+    fv = schlick_weight(cos_v)
+    rr = roughness * (1.0 + torch.clamp(cos_lv, -1.0, 1.0))
+    return albedo * (INV_PI * ((1.0 - 0.5 * fl) * (1.0 - 0.5 * fv) + rr * (fl + fv + fl * fv * (rr - 1.0))))
 
 
 def chromaticity(albedo: Tensor, eps: float = 1e-6) -> Tensor:
