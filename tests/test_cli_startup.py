@@ -18,7 +18,7 @@ import pytest
 #: never imported by ``import dualscale.cli`` + ``build_parser()``: the libraries that cost
 #: seconds of CPU (issue 15 measured 3.7 s for torch) or pull in large native code
 HEAVY = ("torch", "onnxruntime", "OpenImageIO", "colour", "scipy", "matplotlib", "cv2", "pygltflib", "MaterialX",
-         "jinja2", "kornia", "onnx", "PIL", "skimage")
+         "jinja2", "kornia", "onnx", "PIL", "skimage", "numba")
 
 BUDGET_S = 0.5  # CPU seconds (issue 15: "start in under 0.5 s of CPU")
 
