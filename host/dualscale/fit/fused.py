@@ -59,7 +59,8 @@ NFULL = 14
 #: the secant over an inward step of ``RIM_STEP``: the exact derivative is infinite on the rim and
 #: 0 through the square root's guard, which would pin a normal that reached the box's edge there
 RIM_W, RIM_STEP = 1e-3, 3e-4
-BLOCK_ROWS = 48  # Jacobian rows gathered per pixel before they are folded into J^T W J (16 lights)
+LIGHT_BLOCK = 256  # lights whose weighted Jacobian rows are gathered per pixel before they are folded into J^T W J
+NCONST = 42  # size of a pixel's light-independent scratch (_pixel_consts)
 DEFAULTS = np.array([0.5, 0.5, 0.5, 0.5, 0.0, 0.0, 0.0, 0.0, 0.25, 0.0, 0.0, 0.0, 0.0, 1.0])
 JIT = dict(cache=True, nogil=True, fastmath=False, error_model="numpy")
 
@@ -145,164 +146,349 @@ def _pixel_setup(xp, iso, normal_mapped, ior_mapped, eta_const, geo):
 
 
 @njit(**JIT)
-def _sample(xp, geo, al, ex, lx_, ly_, lz_, vx_, vy_, vz_, ws, wp, wd, iso, tinted, opaque, normal_mapped,
-            want_jac, out, jac):
-    """Render of one light at one pixel into ``out`` (3) and, when ``want_jac``, its Jacobian
-    over the full vector into ``jac`` (3 x 14); values before the clamp at 2 (the caller clamps).
-    ``al`` = the alphas tuple of :func:`_pixel_setup`, ``ex`` = eta."""
+def _pixel_consts(xp, geo, al, eta, vx, vy, vz, iso, tinted, k):
+    """Light-independent terms of one pixel into ``k`` (a scratch vector, layout in the body)."""
     ax, ay, dax_r, dax_an, day_r, day_an = al
-    for c in range(3):
-        out[c] = 0.0
-        if want_jac:
-            for i in range(14):
-                jac[c, i] = 0.0
     nx, ny, nz = geo[0], geo[1], geo[2]
-    if normal_mapped:
-        cl = lx_ * nx + ly_ * ny + lz_ * nz
-        cv = vx_ * nx + vy_ * ny + vz_ * nz
-    else:
-        cl, cv = lz_, vz_
-    if cl > 0.0 and cv > 0.0 and lz_ > 0.0 and vz_ > 0.0:
-        clv = lx_ * vx_ + ly_ * vy_ + lz_ * vz_
-        len2 = max(2.0 + 2.0 * clv, 1e-12)
-        inv_len = 1.0 / math.sqrt(len2)
-        cos_d = 0.5 * len2 * inv_len
-        g, dg_cl, dg_cv, dg_r = diffuse_d(cl, cv, clv, xp[3])
-        f, df_eta = fresnel_weighted_d(cos_d, ex, ws, wp)
-        hz = (cl + cv) * inv_len
-        # spec S = D V F and its partials over (cl, cv, lx, ly, vx, vy, ax, ay)
-        ds_lx = ds_ly = ds_vx = ds_vy = 0.0
-        if iso:
-            a = ax
-            d, dd_hz, dd_a = ggx_d_iso_d(hz, a)
-            a2 = a * a
-            a2l, a2v = a2 * (1.0 - cl * cl), a2 * (1.0 - cv * cv)
-            vis, dv_zl, dv_a2l, dv_zv, dv_a2v = smith_visibility_d(cl, a2l, cv, a2v)
-            ds_cl = f * (dd_hz * inv_len * vis + d * (dv_zl + dv_a2l * (-2.0 * a2 * cl)))
-            ds_cv = f * (dd_hz * inv_len * vis + d * (dv_zv + dv_a2v * (-2.0 * a2 * cv)))
-            ds_a = f * (dd_a * vis + d * (dv_a2l * 2.0 * a * (1.0 - cl * cl) + dv_a2v * 2.0 * a * (1.0 - cv * cv)))
-            ds_ax, ds_ay = ds_a, 0.0
-        else:
-            tx, ty, tz, bx, by, bz = geo[9], geo[10], geo[11], geo[12], geo[13], geo[14]
-            llx, lly = lx_ * tx + ly_ * ty + lz_ * tz, lx_ * bx + ly_ * by + lz_ * bz
-            vvx, vvy = vx_ * tx + vy_ * ty + vz_ * tz, vx_ * bx + vy_ * by + vz_ * bz
-            d, dd_hx, dd_hy, dd_hz, dd_ax, dd_ay = ggx_d_aniso_d((llx + vvx) * inv_len, (lly + vvy) * inv_len, hz,
-                                                                 ax, ay)
-            a2l = (ax * llx) ** 2 + (ay * lly) ** 2
-            a2v = (ax * vvx) ** 2 + (ay * vvy) ** 2
-            vis, dv_zl, dv_a2l, dv_zv, dv_a2v = smith_visibility_d(cl, a2l, cv, a2v)
-            ds_cl = f * (dd_hz * inv_len * vis + d * dv_zl)
-            ds_cv = f * (dd_hz * inv_len * vis + d * dv_zv)
-            ds_lx = f * (dd_hx * inv_len * vis + d * dv_a2l * 2.0 * ax * ax * llx)
-            ds_ly = f * (dd_hy * inv_len * vis + d * dv_a2l * 2.0 * ay * ay * lly)
-            ds_vx = f * (dd_hx * inv_len * vis + d * dv_a2v * 2.0 * ax * ax * vvx)
-            ds_vy = f * (dd_hy * inv_len * vis + d * dv_a2v * 2.0 * ay * ay * vvy)
-            ds_ax = f * (dd_ax * vis + d * (dv_a2l * 2.0 * ax * llx * llx + dv_a2v * 2.0 * ax * vvx * vvx))
-            ds_ay = f * (dd_ay * vis + d * (dv_a2l * 2.0 * ay * lly * lly + dv_a2v * 2.0 * ay * vvy * vvy))
-        s = d * vis * f
-        # chromaticity of the tint
-        m, im = xp[0], 0
-        for c in range(1, 3):
-            if xp[c] > m:
-                m, im = xp[c], c
-        rho = xp[9] if tinted else 0.0
-        if want_jac:  # what the three channels share: the geometric derivatives of cl, cv, G and S
-            ds_r = ds_ax * dax_r + ds_ay * day_r
-            ds_an = ds_ax * dax_an + ds_ay * day_an
-            ds_eta = d * vis * df_eta * 2.0
-            dcl0 = dcv0 = ds0 = dcl1 = dcv1 = ds1 = ds2 = 0.0
-            if normal_mapped:
-                dcl0 = lx_ * geo[3] + ly_ * geo[4] + lz_ * geo[5]
-                dcv0 = vx_ * geo[3] + vy_ * geo[4] + vz_ * geo[5]
-                dcl1 = lx_ * geo[6] + ly_ * geo[7] + lz_ * geo[8]
-                dcv1 = vx_ * geo[6] + vy_ * geo[7] + vz_ * geo[8]
-                ds0 = ds_cl * dcl0 + ds_cv * dcv0
-                ds1 = ds_cl * dcl1 + ds_cv * dcv1
-            if not iso:
-                for k in range(3):  # sx, sy, tau through the tangent frame
-                    dtx, dty, dtz = geo[15 + 3 * k], geo[16 + 3 * k], geo[17 + 3 * k]
-                    dbx, dby, dbz = geo[33 + 3 * k], geo[34 + 3 * k], geo[35 + 3 * k]
-                    e = (ds_lx * (lx_ * dtx + ly_ * dty + lz_ * dtz) + ds_ly * (lx_ * dbx + ly_ * dby + lz_ * dbz)
-                         + ds_vx * (vx_ * dtx + vy_ * dty + vz_ * dtz) + ds_vy * (vx_ * dbx + vy_ * dby + vz_ * dbz))
-                    if k == 0:
-                        ds0 += e
-                    elif k == 1:
-                        ds1 += e
-                    else:
-                        ds2 = e
-            dg0 = dg_cl * dcl0 + dg_cv * dcv0
-            dg1 = dg_cl * dcl1 + dg_cv * dcv1
-        for c in range(3):
-            chr_c = xp[c] / m if m > CHROMA_EPS else 1.0
-            tint = chr_c * rho + 1.0 - rho if tinted else 1.0
-            q = wd * xp[c] * g + s * tint
-            out[c] = cl * q
-            if not want_jac:
-                continue
-            # albedo: diffuse in its own channel; through chr(b) when tinted
-            jac[c, c] = cl * wd * g
-            if tinted and m > CHROMA_EPS:
-                for j in range(3):
-                    dchr = (1.0 / m if j == c else 0.0) - (xp[c] / (m * m) if j == im else 0.0)
-                    jac[c, j] += cl * s * rho * dchr
-                jac[c, 9] = cl * s * (chr_c - 1.0)
-            wa = wd * xp[c]
-            jac[c, 3] = cl * (wa * dg_r + tint * ds_r)
-            jac[c, 4] = cl * tint * ds_an
-            jac[c, 8] = cl * tint * ds_eta
-            jac[c, 6] = dcl0 * q + cl * (wa * dg0 + tint * ds0)
-            jac[c, 7] = dcl1 * q + cl * (wa * dg1 + tint * ds1)
-            jac[c, 5] = cl * tint * ds2
-    if not opaque:  # transmission, then the opacity scales the whole response
-        op = xp[13]
-        tr = wd * abs(lz_) * INV_PI if lz_ * vz_ < 0.0 else 0.0
-        for c in range(3):
-            out[c] += xp[10 + c] * tr
-            if want_jac:
-                jac[c, 10 + c] = tr
-                for i in range(13):
-                    jac[c, i] *= op
-                jac[c, 13] = out[c]
-            out[c] *= op
-    return 0
+    cv = vx * nx + vy * ny + vz * nz
+    fv, dfv = schlick_weight_d(cv)
+    vvx = vx * geo[9] + vy * geo[10] + vz * geo[11]
+    vvy = vx * geo[12] + vy * geo[13] + vz * geo[14]
+    a2v = ax * ax * (1.0 - cv * cv) if iso else (ax * vvx) ** 2 + (ay * vvy) ** 2
+    zv = max(cv, 0.0)
+    sv = math.sqrt(zv * zv + max(a2v, 0.0) + TINY)
+    amax = max(ax, ay)
+    k[0], k[1], k[2], k[3], k[4], k[5], k[6] = cv, fv, dfv, vvx, vvy, a2v, sv
+    k[7] = min(1.0 / (amax * amax), 1.0)  # the aniso D-bracket floor and its derivative there
+    k[8] = -2.0 / (ax * ax * ax) if (1.0 / (amax * amax) < 1.0 and ax >= ay) else 0.0
+    k[9] = -2.0 / (ay * ay * ay) if (1.0 / (amax * amax) < 1.0 and ax < ay) else 0.0
+    for j in range(3):  # d(v.n)/d(sx, sy); d(v.t), d(v.b) / d(sx, sy, tau)
+        k[10 + j] = vx * geo[3 + 3 * j] + vy * geo[4 + 3 * j] + vz * geo[5 + 3 * j] if j < 2 else 0.0
+        k[13 + j] = vx * geo[15 + 3 * j] + vy * geo[16 + 3 * j] + vz * geo[17 + 3 * j]
+        k[16 + j] = vx * geo[33 + 3 * j] + vy * geo[34 + 3 * j] + vz * geo[35 + 3 * j]
+    m, im = xp[0], 0
+    for c in range(1, 3):
+        if xp[c] > m:
+            m, im = xp[c], c
+    rho = xp[9] if tinted else 0.0
+    for c in range(3):  # tint, chr, d tint / d albedo_j (3 x 3)
+        chr_c = xp[c] / m if m > CHROMA_EPS else 1.0
+        k[20 + c] = chr_c * rho + 1.0 - rho if tinted else 1.0
+        k[23 + c] = chr_c
+        for j in range(3):
+            dchr = (1.0 / m if j == c else 0.0) - (xp[c] / (m * m) if j == im else 0.0)
+            k[26 + 3 * c + j] = rho * dchr if (tinted and m > CHROMA_EPS) else 0.0
+    k[35] = dax_r
+    k[36] = dax_an
+    k[37] = day_r
+    k[38] = day_an
+    k[39] = eta
 
 
 @njit(**JIT)
-def _pixel_residuals(p, x, view, dirs, w_s, w_p, w_d, images, back, back_wd, flags, eta_const, row):
-    """Residuals of pixel ``p`` (render clamped at 2 - image) into ``row (K,)``."""
-    n = dirs.shape[0]
-    iso, tinted, opaque, nmap, imap = flags[0] != 0, flags[1] != 0, flags[2] != 0, flags[3] != 0, flags[4] != 0
-    xp = x[p]
-    geo = np.empty(51)
-    o3 = np.empty(3)
-    jac = np.empty((3, 14))
-    al6 = _pixel_setup(xp, iso, nmap, imap, eta_const, geo)
-    al = (al6[0], al6[1], al6[2], al6[3], al6[4], al6[5])
-    for k in range(n):
-        _sample(xp, geo, al, al6[6], dirs[k, 0], dirs[k, 1], dirs[k, 2], view[p, 0], view[p, 1], view[p, 2],
-                w_s[k], w_p[k], w_d[k], iso, tinted, opaque, nmap, False, o3, jac)
+def _render_lights(xp, geo, al, kc, L, vz, ws, wp, wd, iso, opaque, k0, k1, out):
+    """Renders of lights ``k0:k1`` (``L (3, N)``) at one pixel into ``out[c, k - k0]`` (before the
+    clamp at 2).  One branch-free loop over the lights: LLVM vectorises it."""
+    ax, ay = al[0], al[1]
+    nx, ny, nz = geo[0], geo[1], geo[2]
+    tx, ty, tz, bx, by, bz = geo[9], geo[10], geo[11], geo[12], geo[13], geo[14]
+    cv, fv, vvx, vvy, sv, floor = kc[0], kc[1], kc[3], kc[4], kc[6], kc[7]
+    vx, vy = kc[40], kc[41]
+    zv = max(cv, 0.0)
+    t0, t1, t2 = kc[20], kc[21], kc[22]
+    a0, a1, a2_, rough, eta = xp[0], xp[1], xp[2], xp[3], kc[39]
+    eta2 = eta * eta
+    a2 = ax * ax
+    fl_iso = min(a2, 1.0)
+    vok = cv > 0.0 and vz > 0.0
+    op = 1.0 if opaque else xp[13]
+    for k in range(k0, k1):
+        lx, ly, lz = L[0, k], L[1, k], L[2, k]
+        cl = lx * nx + ly * ny + lz * nz
+        clv = lx * vx + ly * vy + lz * vz
+        len2 = max(2.0 + 2.0 * clv, 1e-12)
+        inv_len = 1.0 / math.sqrt(len2)
+        cos_d = 0.5 * len2 * inv_len
+        tl = 1.0 - min(max(cl, 0.0), 1.0)
+        tl2 = tl * tl
+        fl = tl2 * tl2 * tl
+        rr = rough * (1.0 + min(max(clv, -1.0), 1.0))
+        g = INV_PI * ((1.0 - 0.5 * fl) * (1.0 - 0.5 * fv) + rr * (fl + fv + fl * fv * (rr - 1.0)))
+        c = min(max(cos_d, 0.0), 1.0)
+        g2 = eta2 - 1.0 + c * c
+        gg = math.sqrt(max(g2, TINY))
+        cc = max(c, TINY)
+        rs = (cc - gg) / (cc + gg)
+        e = eta2 * cc
+        rp = (e - gg) / (e + gg)
+        f = ws[k] * rs * rs + wp[k] * rp * rp if g2 > 0.0 else ws[k] + wp[k]
+        hz = (cl + cv) * inv_len
+        zl = max(cl, 0.0)
+        if iso:
+            s = hz * hz * (a2 - 1.0) + 1.0
+            m = max(s, fl_iso)
+            d = a2 * INV_PI / (m * m)
+            a2l = a2 * (1.0 - cl * cl)
+        else:
+            llx = lx * tx + ly * ty + lz * tz
+            lly = lx * bx + ly * by + lz * bz
+            hx = (llx + vvx) * inv_len
+            hy = (lly + vvy) * inv_len
+            s = (hx / ax) ** 2 + (hy / ay) ** 2 + hz * hz
+            m = max(s, floor)
+            d = INV_PI / (ax * ay * m * m)
+            a2l = (ax * llx) ** 2 + (ay * lly) ** 2
+        d = d if hz > 0.0 else 0.0
+        sl = math.sqrt(zl * zl + max(a2l, 0.0) + TINY)
+        spec = d * f / ((zl + sl) * (zv + sv))
+        front = cl > 0.0 and lz > 0.0 and vok
+        w = wd[k] * g
+        o0 = cl * (w * a0 + spec * t0) if front else 0.0
+        o1 = cl * (w * a1 + spec * t1) if front else 0.0
+        o2 = cl * (w * a2_ + spec * t2) if front else 0.0
+        if not opaque:
+            tr = wd[k] * abs(lz) * INV_PI if lz * vz < 0.0 else 0.0
+            o0 = (o0 + xp[10] * tr) * op
+            o1 = (o1 + xp[11] * tr) * op
+            o2 = (o2 + xp[12] * tr) * op
+        out[0, k - k0] = o0
+        out[1, k - k0] = o1
+        out[2, k - k0] = o2
+
+
+@njit(inline="always", **JIT)
+def _light_basis(k, L, ws, wp, wd, pc, iso, opaque):
+    """The 12 shared rows of light ``k``'s Jacobian at one pixel (``pc``: the pixel's
+    constants, :func:`_jacobian_lights`): ``clf wd G``, ``clf S``, ``clf wd dG/dr``, ``clf dS/dr``,
+    ``clf dS/dan``, ``clf dS/dtau``, the normal's two (diffuse, specular) pairs, ``clf dS/deta``
+    and the transmission factor, where ``clf`` is ``n.l`` on the lit front and 0 elsewhere."""
+    (ax, ay, nx, ny, nz, tx, ty, tz, bx, by, bz, cv, fv, dfv, vvx, vvy, a2v, sv, floor, fax, fay, dcv0,
+     dcv1, dvx0, dvx1, dvx2, dvy0, dvy1, dvy2, dax_r, dax_an, day_r, day_an, eta, vx, vy, vz, rough, dn0x,
+     dn0y, dn0z, dn1x, dn1y, dn1z, t0x, t0y, t0z, t1x, t1y, t1z, t2x, t2y, t2z, b0x, b0y, b0z, b1x, b1y,
+     b1z, b2x, b2y, b2z) = pc
+    eta2 = eta * eta
+    a2 = ax * ax
+    fl_iso = min(a2, 1.0)
+    zv = max(cv, 0.0)
+    pv = zv + sv
+    vok = cv > 0.0 and vz > 0.0
+    lx, ly, lz = L[0, k], L[1, k], L[2, k]
+    wsk, wpk, wdk = ws[k], wp[k], wd[k]
+    cl = lx * nx + ly * ny + lz * nz
+    clv = lx * vx + ly * vy + lz * vz
+    len2 = max(2.0 + 2.0 * clv, 1e-12)
+    inv_len = 1.0 / math.sqrt(len2)
+    cos_d = 0.5 * len2 * inv_len
+    # diffuse G(cl, cv, rough) and its partials
+    tl = 1.0 - min(max(cl, 0.0), 1.0)
+    tl2 = tl * tl
+    fl = tl2 * tl2 * tl
+    dfl = -5.0 * tl2 * tl2 if (cl > 0.0 and cl < 1.0) else 0.0
+    kf = 1.0 + min(max(clv, -1.0), 1.0)
+    rr = rough * kf
+    g = INV_PI * ((1.0 - 0.5 * fl) * (1.0 - 0.5 * fv) + rr * (fl + fv + fl * fv * (rr - 1.0)))
+    dg_cl = INV_PI * (-0.5 * (1.0 - 0.5 * fv) + rr * (1.0 + fv * (rr - 1.0))) * dfl
+    dg_cv = INV_PI * (-0.5 * (1.0 - 0.5 * fl) + rr * (1.0 + fl * (rr - 1.0))) * dfv
+    dg_r = INV_PI * (fl + fv + fl * fv * (2.0 * rr - 1.0)) * kf
+    # Fresnel w_s R_s + w_p R_p and d/d eta
+    c = min(max(cos_d, 0.0), 1.0)
+    g2 = eta2 - 1.0 + c * c
+    gg = math.sqrt(max(g2, TINY))
+    dgg = eta / gg if g2 > TINY else 0.0
+    cc = max(c, TINY)
+    rs = (cc - gg) / (cc + gg)
+    drs = -2.0 * cc / ((cc + gg) * (cc + gg)) * dgg
+    e = eta2 * cc
+    rp = (e - gg) / (e + gg)
+    drp = (2.0 * gg * (2.0 * eta * cc) - 2.0 * e * dgg) / ((e + gg) * (e + gg))
+    f = wsk * rs * rs + wpk * rp * rp if g2 > 0.0 else wsk + wpk
+    df = 2.0 * wsk * rs * drs + 2.0 * wpk * rp * drp if g2 > 0.0 else 0.0
+    hz = (cl + cv) * inv_len
+    zl = max(cl, 0.0)
+    # D, the Smith visibility V and S = D V F with their partials
+    if iso:
+        s = hz * hz * (a2 - 1.0) + 1.0
+        sgt = s >= fl_iso
+        m = s if sgt else fl_iso
+        dm_hz = 2.0 * hz * (a2 - 1.0) if sgt else 0.0
+        dm_a2 = hz * hz if sgt else (1.0 if a2 < 1.0 else 0.0)
+        d = a2 * INV_PI / (m * m)
+        dd_m = -2.0 * d / m
+        dd_hz = dd_m * dm_hz
+        dd_ax = (INV_PI / (m * m) + dd_m * dm_a2) * 2.0 * ax
+        dd_hx = dd_hy = dd_ay = 0.0
+        a2l = a2 * (1.0 - cl * cl)
+        llx = lly = 0.0
+    else:
+        llx = lx * tx + ly * ty + lz * tz
+        lly = lx * bx + ly * by + lz * bz
+        hx = (llx + vvx) * inv_len
+        hy = (lly + vvy) * inv_len
+        s = (hx / ax) ** 2 + (hy / ay) ** 2 + hz * hz
+        sgt = s >= floor
+        m = s if sgt else floor
+        d = INV_PI / (ax * ay * m * m)
+        dd_m = -2.0 * d / m
+        dd_hx = dd_m * 2.0 * hx / (ax * ax) if sgt else 0.0
+        dd_hy = dd_m * 2.0 * hy / (ay * ay) if sgt else 0.0
+        dd_hz = dd_m * 2.0 * hz if sgt else 0.0
+        dd_ax = -d / ax + dd_m * (-2.0 * hx * hx / (ax * ax * ax) if sgt else fax)
+        dd_ay = -d / ay + dd_m * (-2.0 * hy * hy / (ay * ay * ay) if sgt else fay)
+        a2l = (ax * llx) ** 2 + (ay * lly) ** 2
+    pos = hz > 0.0
+    d = d if pos else 0.0
+    dd_hx = dd_hx if pos else 0.0
+    dd_hy = dd_hy if pos else 0.0
+    dd_hz = dd_hz if pos else 0.0
+    dd_ax = dd_ax if pos else 0.0
+    dd_ay = dd_ay if pos else 0.0
+    sl = math.sqrt(zl * zl + max(a2l, 0.0) + TINY)
+    pl = zl + sl
+    vis = 1.0 / (pl * pv)
+    dl, dv = -vis / pl, -vis / pv
+    dv_zl = dl * (1.0 + zl / sl) if cl > 0.0 else 0.0
+    dv_a2l = dl * 0.5 / sl if a2l > 0.0 else 0.0
+    dv_zv = dv * (1.0 + zv / sv) if cv > 0.0 else 0.0
+    dv_a2v = dv * 0.5 / sv if a2v > 0.0 else 0.0
+    dvis_h = inv_len * vis
+    if iso:
+        ds_cl = f * (dd_hz * dvis_h + d * (dv_zl + dv_a2l * (-2.0 * a2 * cl)))
+        ds_cv = f * (dd_hz * dvis_h + d * (dv_zv + dv_a2v * (-2.0 * a2 * cv)))
+        ds_ax = f * (dd_ax * vis + d * (dv_a2l * 2.0 * ax * (1.0 - cl * cl) + dv_a2v * 2.0 * ax * (1.0 - cv * cv)))
+        ds_ay = ds_lx = ds_ly = ds_vx = ds_vy = 0.0
+    else:
+        ds_cl = f * (dd_hz * dvis_h + d * dv_zl)
+        ds_cv = f * (dd_hz * dvis_h + d * dv_zv)
+        ds_lx = f * (dd_hx * dvis_h + d * dv_a2l * 2.0 * ax * ax * llx)
+        ds_ly = f * (dd_hy * dvis_h + d * dv_a2l * 2.0 * ay * ay * lly)
+        ds_vx = f * (dd_hx * dvis_h + d * dv_a2v * 2.0 * ax * ax * vvx)
+        ds_vy = f * (dd_hy * dvis_h + d * dv_a2v * 2.0 * ay * ay * vvy)
+        ds_ax = f * (dd_ax * vis + d * (dv_a2l * 2.0 * ax * llx * llx + dv_a2v * 2.0 * ax * vvx * vvx))
+        ds_ay = f * (dd_ay * vis + d * (dv_a2l * 2.0 * ay * lly * lly + dv_a2v * 2.0 * ay * vvy * vvy))
+    sp = d * vis * f
+    ds_r = ds_ax * dax_r + ds_ay * day_r
+    ds_an = ds_ax * dax_an + ds_ay * day_an
+    ds_eta = d * vis * df * 2.0
+    dcl0 = lx * dn0x + ly * dn0y + lz * dn0z
+    dcl1 = lx * dn1x + ly * dn1y + lz * dn1z
+    ds0 = ds_cl * dcl0 + ds_cv * dcv0
+    ds1 = ds_cl * dcl1 + ds_cv * dcv1
+    ds2 = 0.0
+    if not iso:  # the tangent frame's derivatives w.r.t. sx, sy, tau
+        ds0 += (ds_lx * (lx * t0x + ly * t0y + lz * t0z) + ds_ly * (lx * b0x + ly * b0y + lz * b0z)
+                + ds_vx * dvx0 + ds_vy * dvy0)
+        ds1 += (ds_lx * (lx * t1x + ly * t1y + lz * t1z) + ds_ly * (lx * b1x + ly * b1y + lz * b1z)
+                + ds_vx * dvx1 + ds_vy * dvy1)
+        ds2 = (ds_lx * (lx * t2x + ly * t2y + lz * t2z) + ds_ly * (lx * b2x + ly * b2y + lz * b2z)
+               + ds_vx * dvx2 + ds_vy * dvy2)
+    dg0 = dg_cl * dcl0 + dg_cv * dcv0
+    dg1 = dg_cl * dcl1 + dg_cv * dcv1
+    front = cl > 0.0 and lz > 0.0 and vok
+    fr = 1.0 if front else 0.0
+    clf = cl * fr
+    tr = (wdk * abs(lz) * INV_PI if lz * vz < 0.0 else 0.0) if not opaque else 0.0
+    return (clf * wdk * g, clf * sp, clf * wdk * dg_r, clf * ds_r, clf * ds_an, clf * ds2,
+            fr * wdk * (dcl0 * g + cl * dg0), fr * (dcl0 * sp + cl * ds0), fr * wdk * (dcl1 * g + cl * dg1),
+            fr * (dcl1 * sp + cl * ds1), clf * ds_eta, tr)
+
+@njit(inline="always", **JIT)
+def _basis_lights(xp, geo, al, kc, L, vz, ws, wp, wd, iso, opaque, k0, k1, bas):
+    """The shared Jacobian rows ``bas[r, k - k0]`` (:func:`_light_basis`) of lights ``k0:k1`` at
+    one pixel; every channel's render and Jacobian row is a combination of them
+    (:func:`_coefficients`).  The light loops are branch-free and write 6 arrays each, so that
+    LLVM vectorises them (at 12 its runtime alias checks exceed their limit and the loop stays
+    scalar)."""
+    ax, ay = al[0], al[1]
+    pc = (ax, ay, geo[0], geo[1], geo[2], geo[9], geo[10], geo[11], geo[12], geo[13], geo[14], kc[0], kc[1], kc[2],
+          kc[3], kc[4], kc[5], kc[6], kc[7], kc[8], kc[9], kc[10], kc[11], kc[13], kc[14], kc[15], kc[16], kc[17],
+          kc[18], kc[35], kc[36], kc[37], kc[38], kc[39], kc[40], kc[41], vz, xp[3], geo[3], geo[4], geo[5], geo[6],
+          geo[7], geo[8], geo[15], geo[16], geo[17], geo[18], geo[19], geo[20], geo[21], geo[22], geo[23], geo[33],
+          geo[34], geo[35], geo[36], geo[37], geo[38], geo[39], geo[40], geo[41])
+    for q in range(k1 - k0):
+        b = _light_basis(k0 + q, L, ws, wp, wd, pc, iso, opaque)
+        bas[0, q], bas[1, q], bas[2, q], bas[3, q], bas[4, q], bas[5, q] = b[0], b[1], b[2], b[3], b[4], b[5]
+    for q in range(k1 - k0):
+        b = _light_basis(k0 + q, L, ws, wp, wd, pc, iso, opaque)
+        bas[6, q], bas[7, q], bas[8, q], bas[9, q], bas[10, q], bas[11, q] = b[6], b[7], b[8], b[9], b[10], b[11]
+
+
+@njit(**JIT)
+def _coefficients(xp, kc, cols, opaque, rows, coef):
+    """How each free column ``i`` and channel ``c`` of the Jacobian combines the shared rows:
+    ``J[c, i] = sum_j coef[i, c, j] bas[rows[i, c, j]]`` (3 terms; the opacity folded in).  Per
+    channel, ``render = (A_c bas0 + tint_c bas1 + T_c bas11) op``."""
+    op = 1.0 if opaque else xp[13]
+    for i in range(cols.shape[0]):
+        s = cols[i]
         for c in range(3):
-            row[3 * k + c] = min(o3[c], CLAMP) - images[p, 3 * k + c]
+            ac, tc, tt = xp[c], kc[20 + c], (0.0 if opaque else xp[10 + c])
+            r0, w0, r1, w1, r2, w2 = 0, 0.0, 1, 0.0, 11, 0.0
+            if s < 3:  # albedo: its own channel's diffuse, and every channel's tint through chr(b)
+                w0, w1 = (op if c == s else 0.0), op * kc[26 + 3 * c + s]
+            elif s == 3:
+                r0, w0, r1, w1 = 2, op * ac, 3, op * tc
+            elif s == 4 or s == 5:
+                r1, w1 = s, op * tc
+            elif s == 6:
+                r0, w0, r1, w1 = 6, op * ac, 7, op * tc
+            elif s == 7:
+                r0, w0, r1, w1 = 8, op * ac, 9, op * tc
+            elif s == 8:
+                r1, w1 = 10, op * tc
+            elif s == 9:
+                w1 = op * (kc[23 + c] - 1.0)
+            elif s < 13:
+                w2 = op if c == s - 10 else 0.0
+            else:  # opacity: the render before it
+                w0, w1, w2 = ac, tc, tt
+            rows[i, c, 0], rows[i, c, 1], rows[i, c, 2] = r0, r1, r2
+            coef[i, c, 0], coef[i, c, 1], coef[i, c, 2] = w0, w1, w2
+
+
+@njit(**JIT)
+def _setup(x, p, view, flags, eta_const, geo, kc):
+    """Per-pixel setup of the kernels: geometry, alphas and the light-independent terms."""
+    iso, tinted, nmap, imap = flags[0] != 0, flags[1] != 0, flags[3] != 0, flags[4] != 0
+    al7 = _pixel_setup(x[p], iso, nmap, imap, eta_const, geo)
+    al = (al7[0], al7[1], al7[2], al7[3], al7[4], al7[5])
+    _pixel_consts(x[p], geo, al, al7[6], view[p, 0], view[p, 1], view[p, 2], iso, tinted, kc)
+    kc[40], kc[41] = view[p, 0], view[p, 1]
+    return al
+
+
+@njit(**JIT)
+def _pixel_residuals(p, x, view, L, w_s, w_p, w_d, images, back, back_wd, flags, eta_const, row, geo, kc, o):
+    """Residuals of pixel ``p`` (render clamped at 2 - image) into ``row (K,)``."""
+    n = L.shape[1]
+    iso, opaque = flags[0] != 0, flags[2] != 0
+    al = _setup(x, p, view, flags, eta_const, geo, kc)
+    _render_lights(x[p], geo, al, kc, L, view[p, 2], w_s, w_p, w_d, iso, opaque, 0, n, o)
+    for k in range(n):
+        for c in range(3):
+            row[3 * k + c] = min(o[c, k], CLAMP) - images[p, 3 * k + c]
     if back.shape[0] == x.shape[0]:
+        xp = x[p]
         for c in range(3):
             b = 0.0 if opaque else back_wd * (xp[10 + c] * xp[13] + 1.0 - xp[13])
             row[3 * n + c] = min(b, CLAMP) - back[p, c]
 
 
 @njit(parallel=True, **JIT)
-def residual_rows(x, view, dirs, w_s, w_p, w_d, images, back, back_wd, flags, eta_const, out):
+def residual_rows(x, view, L, w_s, w_p, w_d, images, back, back_wd, flags, eta_const, out):
     """``out (npix, K)`` = render clamped at 2 - image, for every pixel (``x (npix, 14)`` full
-    vectors, ``view (npix, 3)``, ``dirs (N, 3)``, weights ``(N,)``, ``images (npix, 3N)``,
-    ``back (npix, 3)`` or empty; ``flags`` = (iso, tinted, opaque, normal_mapped, ior_mapped))."""
+    vectors, ``view (npix, 3)``, light directions ``L (3, N)``, weights ``(N,)``, ``images
+    (npix, 3N)``, ``back (npix, 3)`` or empty; ``flags`` = (iso, tinted, opaque, normal_mapped,
+    ior_mapped))."""
     for p in prange(x.shape[0]):
         row = np.empty(out.shape[1])
-        _pixel_residuals(p, x, view, dirs, w_s, w_p, w_d, images, back, back_wd, flags, eta_const, row)
+        geo, kc, o = np.empty(51), np.empty(NCONST), np.empty((3, L.shape[1]))
+        _pixel_residuals(p, x, view, L, w_s, w_p, w_d, images, back, back_wd, flags, eta_const, row, geo, kc, o)
         for i in range(out.shape[1]):
             out[p, i] = row[i]
 
 
 @njit(parallel=True, **JIT)
-def weighted_cost(x, view, dirs, w_s, w_p, w_d, images, back, back_wd, flags, eta_const, sel, c_rows, l1, out,
+def weighted_cost(x, view, L, w_s, w_p, w_d, images, back, back_wd, flags, eta_const, sel, c_rows, l1, out,
                   rows_out):
     """``out (npix,)`` = ``sum c sel |r|`` (``l1``) or ``sum c sel r^2`` over the residual rows, with
     the row weights ``c_rows (K,)`` and the row selection ``sel (npix, K)`` (1/0; empty = all);
@@ -311,7 +497,8 @@ def weighted_cost(x, view, dirs, w_s, w_p, w_d, images, back, back_wd, flags, et
     has_sel, keep_rows = sel.shape[0] == x.shape[0], rows_out.shape[0] == x.shape[0]
     for p in prange(x.shape[0]):
         row = np.empty(kk)
-        _pixel_residuals(p, x, view, dirs, w_s, w_p, w_d, images, back, back_wd, flags, eta_const, row)
+        geo, kc, o = np.empty(51), np.empty(NCONST), np.empty((3, L.shape[1]))
+        _pixel_residuals(p, x, view, L, w_s, w_p, w_d, images, back, back_wd, flags, eta_const, row, geo, kc, o)
         acc = 0.0
         for i in range(kk):
             w = c_rows[i] * sel[p, i] if has_sel else c_rows[i]
@@ -400,56 +587,58 @@ def _flush(blk, wrb, q, a, g):
 
 
 @njit(parallel=True, **JIT)
-def normal_equations(x, cols, view, dirs, w_s, w_p, w_d, back, back_wd, flags, eta_const, r, sw, jtj, jtr):
+def normal_equations(x, cols, view, L, w_s, w_p, w_d, back, back_wd, flags, eta_const, r, sw, jtj, jtr):
     """Accumulate ``J^T W J (npix, P, P)`` and ``J^T W r (npix, P)`` (overwritten) from the
     residuals ``r (npix, K)`` and row multipliers ``sw = sqrt(W) (npix, K)``; ``cols (P,)`` are
-    the full-vector slots of the free parameters, in their order.  Rows with ``sw == 0`` and
-    rows whose render is clamped (> 2) contribute nothing (zero derivative)."""
-    npix, n, P = x.shape[0], dirs.shape[0], cols.shape[0]
-    iso, tinted, opaque, nmap, imap = flags[0] != 0, flags[1] != 0, flags[2] != 0, flags[3] != 0, flags[4] != 0
+    the full-vector slots of the free parameters, in their order.  The lights are taken
+    ``LIGHT_BLOCK`` at a time: their weighted Jacobian rows (a few kB) are folded into the
+    normal equations at once.  Rows with ``sw == 0`` and rows whose render is clamped (> 2)
+    contribute nothing (zero derivative)."""
+    npix, n, P = x.shape[0], L.shape[1], cols.shape[0]
+    iso, opaque = flags[0] != 0, flags[2] != 0
     has_back = back.shape[0] == npix
     for p in prange(npix):
-        xp = x[p]
-        geo = np.empty(51)
-        o3 = np.empty(3)
-        jac = np.empty((3, 14))
+        geo, kc = np.empty(51), np.empty(NCONST)
+        bas, wv = np.empty((12, LIGHT_BLOCK)), np.empty((3, LIGHT_BLOCK))
+        rows, coef = np.empty((P, 3, 3), dtype=np.int64), np.empty((P, 3, 3))
+        jw, wr = np.empty((P, 3 * LIGHT_BLOCK)), np.empty(3 * LIGHT_BLOCK)
         row = np.empty(P)
-        a = np.zeros((P, P))
-        g = np.zeros(P)
-        blk = np.empty((P, BLOCK_ROWS))  # weighted Jacobian rows, transposed, flushed into a and g
-        wrb = np.empty(BLOCK_ROWS)
-        q = 0
-        al6 = _pixel_setup(xp, iso, nmap, imap, eta_const, geo)
-        al = (al6[0], al6[1], al6[2], al6[3], al6[4], al6[5])
-        for k in range(n):
-            if sw[p, 3 * k] == 0.0 and sw[p, 3 * k + 1] == 0.0 and sw[p, 3 * k + 2] == 0.0:
-                continue
-            _sample(xp, geo, al, al6[6], dirs[k, 0], dirs[k, 1], dirs[k, 2], view[p, 0], view[p, 1], view[p, 2],
-                    w_s[k], w_p[k], w_d[k], iso, tinted, opaque, nmap, True, o3, jac)
-            for c in range(3):
-                w = sw[p, 3 * k + c]
-                if w == 0.0 or o3[c] > 2.0:
-                    continue
-                for i in range(P):
-                    blk[i, q] = jac[c, cols[i]] * w
-                wrb[q] = r[p, 3 * k + c] * w
-                q += 1
-                if q == BLOCK_ROWS:
-                    _flush(blk, wrb, q, a, g)
-                    q = 0
-        _flush(blk, wrb, q, a, g)
+        a, g = np.zeros((P, P)), np.zeros(P)
+        al = _setup(x, p, view, flags, eta_const, geo, kc)
+        xp = x[p]
+        op = 1.0 if opaque else xp[13]
+        _coefficients(xp, kc, cols, opaque, rows, coef)
+        for k0 in range(0, n, LIGHT_BLOCK):
+            k1 = min(n, k0 + LIGHT_BLOCK)
+            b = k1 - k0
+            _basis_lights(xp, geo, al, kc, L, view[p, 2], w_s, w_p, w_d, iso, opaque, k0, k1, bas)
+            for c in range(3):  # row weights; a clamped render (> 2) has no derivative
+                ac, tc, tt = xp[c], kc[20 + c], (0.0 if opaque else xp[10 + c])
+                for q in range(b):
+                    o = (ac * bas[0, q] + tc * bas[1, q] + tt * bas[11, q]) * op
+                    w = sw[p, 3 * (k0 + q) + c]
+                    w = w if o <= CLAMP else 0.0
+                    wv[c, q] = w
+                    wr[c * b + q] = r[p, 3 * (k0 + q) + c] * w
+            for i in range(P):
+                for c in range(3):
+                    r0, r1, r2 = rows[i, c, 0], rows[i, c, 1], rows[i, c, 2]
+                    w0, w1, w2 = coef[i, c, 0], coef[i, c, 1], coef[i, c, 2]
+                    for q in range(b):
+                        jw[i, c * b + q] = (w0 * bas[r0, q] + w1 * bas[r1, q] + w2 * bas[r2, q]) * wv[c, q]
+            _flush(jw, wr, 3 * b, a, g)
         if has_back and not opaque:
             for c in range(3):
                 w = sw[p, 3 * n + c]
-                b = back_wd * (xp[10 + c] * xp[13] + 1.0 - xp[13])
-                if w == 0.0 or b > 2.0:
+                bk = back_wd * (xp[10 + c] * xp[13] + 1.0 - xp[13])
+                if w == 0.0 or bk > CLAMP:
                     continue
                 for i in range(P):
                     s = cols[i]
                     row[i] = (back_wd * xp[13] if s == 10 + c else (back_wd * (xp[10 + c] - 1.0) if s == 13 else 0.0)) * w
-                wr = r[p, 3 * n + c] * w
+                wrb = r[p, 3 * n + c] * w
                 for i in range(P):
-                    g[i] += row[i] * wr
+                    g[i] += row[i] * wrb
                     for j in range(i, P):
                         a[i, j] += row[i] * row[j]
         for i in range(P):
@@ -500,7 +689,7 @@ class Problem:
         self.comps = comps
         self.flags = flags_of(comps)
         self.eta = float(comps.ior)
-        self.dirs = np.ascontiguousarray(obs.dirs.double().numpy())
+        self.dirs = np.ascontiguousarray(obs.dirs.double().numpy().T)  # (3, N): a light loop reads it contiguously
         self.w_s, self.w_p, self.w_d = (np.ascontiguousarray(t.double().numpy()) for t in (obs.w_s, obs.w_p, obs.w_d))
         view = obs.view.double()
         self.view = np.ascontiguousarray((view.expand(h, w, 3) if view.ndim == 1 else view).reshape(-1, 3).numpy())
