@@ -6,8 +6,10 @@ Stages: ``prep`` (synthetic data: twill micro dataset 256^2 at 6 um/texel, all 1
 P0/P90; guidance = twill, another seed, 768^2 at the same texel size, diffuse group, no
 analyser), ``warm`` (train the generic warm-start model on plain/satin/denim), ``presets``
 (cold and warm-started training, scores on the guidance), ``parity`` (ONNX fp32/fp16),
-``seams`` (border vs interior error), ``big`` (4072^2 inference time and peak memory in a
-child process), ``bridge-reg`` (locating the micro field in the guidance: error against the truth
+``seams`` (border vs interior error), ``big`` (4072^2 inference: the runs of ``--big-configs``,
+before and after issue 15 side by side, each in a child process, interleaved ``--big-repeats`` times;
+time, peak memory, int8's accuracy), ``profile`` (onnxruntime per op type and network part,
+optimisation levels, precisions, tile size against overlap; not in the default list), ``bridge-reg`` (locating the micro field in the guidance: error against the truth
 from shifted priors) and ``bridge`` (propagation accuracy with the micro data resampled to the
 guidance texel vs trained at the micro texel on an enlarged guidance) and ``real`` (the warm-start
 model on the real fabric photos of ../shared/data/fabric-rt); the last three are not in the default
@@ -18,6 +20,7 @@ Everything is cached under ``--work``.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import subprocess
 import sys
@@ -166,28 +169,275 @@ def stage_seams(work: Path, tile: int = 128) -> None:
                   f"{b:.4f} | {i:.4f} | {b / i:.3f} |")
 
 
-def stage_big(work: Path, size: int = 4072) -> None:
-    from dualscale.formats.exr import read_exr, write_exr
-    from dualscale.propagate.export import onnx_paths
+def _big_inputs(work: Path, repo: Path, model: str | None, size: int = 4072) -> tuple[Path, Path]:
+    """The model (``--big-model``; else the first ``model_*.dsp``, else ``bridge_rig_A/model.dsp``,
+    else the shipped warm-start model: all are W=16, 7 maps) with its fp32 and int8 exports,
+    and the guidance tiled to ``size``^2 (from ``guide/``, else the rig test bed's guidance)."""
+    import shutil
+
+    from dualscale.formats.exr import write_exr
+    from dualscale.propagate.export import export_model, onnx_path
+    from dualscale.propagate.guidance import read_guidance
 
     big = work / f"guidance_{size}.exr"
     if not big.is_file():
-        g = read_exr(work / "guide" / "guidance.exr")
-        reps = -(-size // GUIDE)
+        src = work / "guide" / "guidance.exr"
+        if not src.is_file():
+            src, _ = bridge_testbed(work, "rig")
+            src = src / "mid"
+        g = read_guidance(src).rgb
+        reps = -(-size // g.shape[0])
         write_exr(big, np.tile(g, (reps, reps, 1))[:size, :size])
-    model = sorted(work.glob("model_*.dsp"))[0]
-    print(f"\n4072x4072 inference ({model.name}, onnxruntime CPU, 2 threads):\n")
-    print("| precision | ORT threads | wall time [s] | peak RSS [GB] | load before |\n|---|---:|---:|---:|---:|")
-    for prec, th in (("fp32", 2), ("fp32", 1), ("fp16", 2)):
-        onnx = onnx_paths(model)[0 if prec == "fp32" else 1]
-        code = ("import resource,sys,time;from dualscale.propagate.infer import OnnxModel,run_tiled;"
-                "t=time.perf_counter();"
-                f"run_tiled(OnnxModel.open('{onnx}',{th}),'{big}','{work / 'big_out'}',512,64,progress=False);"
-                "print(time.perf_counter()-t, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)")
-        l0 = load()
-        res = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True)
-        sec, rss = res.stdout.split()[-2:]
-        print(f"| {prec} | {th} | {float(sec):.1f} | {int(rss) / 1024 ** 2:.2f} | {l0} |")
+    if model is None:
+        found = sorted(work.glob("model_*.dsp")) or [p for p in [work / "bridge_rig_A" / "model.dsp"] if p.is_file()]
+        if found:
+            m = found[0]
+        else:
+            m = work / "warmstart_w16.dsp"
+            shutil.copy(repo / "models" / "warmstart_w16.dsp", m)
+    else:
+        m = Path(model)
+    if not onnx_path(m, "int8").is_file() or onnx_path(m, "int8").stat().st_mtime < m.stat().st_mtime:
+        export_model(m, check=False, int8=True)
+    return m, big
+
+
+# the runs of the 4072^2 table: run_tiled keywords, and the precision
+BIG_CONFIGS = {
+    "before": {"stream": False, "tile": 512, "optimization": "all", "precision": "fp32"},  # issue 15 start
+    "after": {"stream": True, "tile": 512, "optimization": "all", "precision": "fp32"},
+    "after-640": {"stream": True, "tile": 640, "optimization": "all", "precision": "fp32"},
+    "after-768": {"stream": True, "tile": 768, "optimization": "all", "precision": "fp32"},
+    "extended": {"stream": True, "tile": 512, "optimization": "extended", "precision": "fp32"},
+    "int8": {"stream": True, "tile": 512, "optimization": "all", "precision": "int8"},
+}
+
+_BIG_CHILD = """
+import json, resource, sys, time
+from dualscale.propagate.infer import OnnxModel, run_tiled
+c = json.loads(sys.argv[1])
+t = time.perf_counter(); cpu = time.process_time()
+om = OnnxModel.open(c["model"], c["threads"], precision=c["precision"], optimization=c["optimization"])
+run_tiled(om, c["guidance"], c["out"], c["tile"], 64, progress=False, stream=c["stream"])
+print(json.dumps({"wall": time.perf_counter() - t, "cpu": time.process_time() - cpu,
+                  "rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024 ** 2}))
+"""
+
+
+def _uptime() -> str:
+    return subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+
+
+def stage_big(work: Path, repo: Path, model: str | None, configs: list[str], repeats: int, threads: int = 2) -> None:
+    """4072^2 fp32 (and int8): each configuration in a child process (``run_tiled`` from reading the
+    guidance to the last file, ``ru_maxrss``), the configurations interleaved ``repeats`` times so
+    that a changing load hits them alike; medians, and every run's 1-min load."""
+    import platform
+    import statistics
+
+    m, big = _big_inputs(work, repo, model)
+    runs: dict[str, list[dict]] = {c: [] for c in configs}
+    print(f"\n4072x4072 inference ({m.name}, onnxruntime CPU, {threads} threads, overlap 64; "
+          f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores):")
+    print(f"start: {_uptime()}")
+    for r in range(repeats):
+        for name in configs:
+            c = {**BIG_CONFIGS[name], "model": str(m), "guidance": str(big), "out": str(work / f"big_{name}"),
+                 "threads": threads}
+            l0 = load()
+            res = subprocess.run([sys.executable, "-c", _BIG_CHILD, json.dumps(c)], check=True, capture_output=True,
+                                 text=True, env={**os.environ, "OMP_WAIT_POLICY": "PASSIVE"})
+            d = json.loads(res.stdout.splitlines()[-1])
+            d["load"] = float(l0)
+            runs[name].append(d)
+            print(f"  run {r + 1} {name}: {d['wall']:.1f} s, cpu {d['cpu']:.1f} s, {d['rss_gb']:.2f} GB, "
+                  f"load {l0}", file=sys.stderr)
+    print(f"end: {_uptime()}\n")
+    med = {n: statistics.median(d["wall"] for d in v) for n, v in runs.items()}
+    ref = med.get("before")
+    print("| run | stream | tile (fitted) | graph opt. | precision | wall median [s] (min-max) | CPU median [s] | "
+          "peak RSS [GB] | before / run | 1-min load during |")
+    print("|---|---|---|---|---|---:|---:|---:|---:|---|")
+    from dualscale.propagate.infer import TilePlan
+
+    for n, v in runs.items():
+        c = BIG_CONFIGS[n]
+        plan = TilePlan.make(4072, 4072, c["tile"], 64)
+        walls = [d["wall"] for d in v]
+        print(f"| {n} | {'yes' if c['stream'] else 'no (held whole)'} | {c['tile']} ({plan.th}, {plan.tiles} tiles) | "
+              f"{c['optimization']} | {c['precision']} | {med[n]:.1f} ({min(walls):.1f}-{max(walls):.1f}) | "
+              f"{statistics.median(d['cpu'] for d in v):.1f} | {max(d['rss_gb'] for d in v):.2f} | "
+              f"{(ref / med[n]) if ref else float('nan'):.2f} | "
+              f"{min(d['load'] for d in v):.2f}-{max(d['load'] for d in v):.2f} |")
+    if "int8" in runs:
+        ref32 = "after" if "after" in runs else "before"
+        _int8_accuracy(work, m, work / f"big_{ref32}", work / "big_int8")
+
+
+def _map_diffs(a: dict, b: dict) -> dict[str, tuple[float, float, float]]:
+    """Per map: mean, 99th percentile and max of |a - b| (normals: angle in degrees; the tangent
+    axially, min(d, 1 - d))."""
+    out = {}
+    for k in a:
+        x, y = np.asarray(a[k], np.float64), np.asarray(b[k], np.float64)
+        if k == "normal":
+            d = np.degrees(np.arccos(np.clip((x * y).sum(-1), -1, 1)))
+        elif k == "tangent":
+            d = np.abs(x - y)[..., 0]
+            d = np.minimum(d, 1 - d)
+        else:
+            d = np.abs(x - y).max(-1)
+        out[k] = (float(d.mean()), float(np.percentile(d, 99)), float(d.max()))
+    return out
+
+
+def _int8_accuracy(work: Path, model: Path, fp32_dir: Path, int8_dir: Path) -> None:
+    """int8 against fp32 on the 4072^2 run, and both against the ground truth of the rig test
+    bed's guidance (when ``model`` is the one trained there, ``bridge_rig_A``)."""
+    from dualscale.formats.maps import load_maps
+
+    a, _ = load_maps(fp32_dir)
+    b, _ = load_maps(int8_dir)
+    d = _map_diffs({k: v.numpy() for k, v in a.items()}, {k: v.numpy() for k, v in b.items()})
+    del a, b
+    print("\nint8 against fp32, 4072^2 (per texel; normal: angle in degrees, tangent: axial):\n")
+    print("| map | mean abs diff | 99th percentile | max |\n|---|---:|---:|---:|")
+    for k, (mean, p99, mx) in d.items():
+        print(f"| {k} | {mean:.4f} | {p99:.4f} | {mx:.4f} |")
+    if model.parent.name != "bridge_rig_A":
+        return
+    from dualscale.propagate.guidance import read_guidance
+    from dualscale.propagate.infer import OnnxModel, exposure_gain, propagate_image
+    from dualscale.propagate.metrics import compare
+    from dualscale.sim.materials import generate
+
+    bed, tex = bridge_testbed(work, "rig")
+    g = read_guidance(bed / "mid")
+    gt = {k: v.numpy() for k, v in generate(EVAL, BRIDGE_CONFIGS["rig"][2], tex, 0).maps.items()}
+    scores = {}
+    for prec in ("fp32", "int8"):
+        om = OnnxModel.open(model, 2, precision=prec)
+        maps, _ = propagate_image(om, g.rgb, 512, 64, exposure_gain(om, g.luminance()), progress=False)
+        scores[prec] = compare(maps, gt)
+    print(f"\nAccuracy against the ground truth of the rig test bed's guidance ({g.shape[0]}^2, the data this model "
+          "was trained for; L1 / SSIM):\n")
+    print("| map | fp32 | int8 | L1 change |\n|---|---:|---:|---:|")
+    for k in scores["fp32"]:
+        f, q = scores["fp32"][k], scores["int8"][k]
+        print(f"| {k} | {f['l1']:.4f} / {f['ssim']:.3f} | {q['l1']:.4f} / {q['ssim']:.3f} | "
+              f"{100 * (q['l1'] / f['l1'] - 1):+.1f} % |")
+
+
+_PROFILE_CHILD = """
+import json, resource, statistics, sys, time
+import numpy as np
+from dualscale.propagate.infer import OnnxModel
+c = json.loads(sys.argv[1])
+om = OnnxModel.open(c["path"], c["threads"], optimization=c["optimization"])
+x = (0.1 + 0.3 * np.random.default_rng(0).random((1, 3, c["tile"], c["tile"]))).astype(np.float32)
+r0 = int(open("/proc/self/statm").read().split()[1]) * resource.getpagesize() / 1024  # resident now, KiB
+om(x)
+walls, cpus = [], []
+for _ in range(c["n"]):
+    t, cpu = time.perf_counter(), time.process_time()
+    om(x)
+    walls.append(time.perf_counter() - t); cpus.append(time.process_time() - cpu)
+r1 = int(open("/proc/self/statm").read().split()[1]) * resource.getpagesize() / 1024  # the arena stays resident
+print(json.dumps({"wall": statistics.median(walls), "cpu": statistics.median(cpus), "rss_mb": (r1 - r0) / 1024}))
+"""
+
+
+def _tile_child(path: Path, tile: int, optimization: str = "all", threads: int = 2, n: int = 3) -> dict:
+    res = subprocess.run([sys.executable, "-c", _PROFILE_CHILD, json.dumps(
+        {"path": str(path), "tile": tile, "optimization": optimization, "threads": threads, "n": n})],
+        check=True, capture_output=True, text=True)
+    return json.loads(res.stdout.splitlines()[-1])
+
+
+def stage_profile(work: Path, repo: Path, model: str | None, rounds: int = 2, threads: int = 2) -> None:
+    """Where onnxruntime spends a 512^2 tile (per op type, per network part), what the graph
+    optimisation level and the precision change, and the cost per output pixel of a 4072^2
+    image against the tile size (the overlap's share)."""
+    import collections
+    import re
+    import statistics
+
+    from dualscale.propagate.export import onnx_path, session
+    from dualscale.propagate.infer import TilePlan
+
+    m, _ = _big_inputs(work, repo, model)
+    p32 = onnx_path(m, "fp32")
+    print(f"\nonnxruntime profile ({m.name}, {threads} threads, {_uptime()}):")
+    x = (0.1 + 0.3 * np.random.default_rng(0).random((1, 3, 512, 512))).astype(np.float32)
+    for level in ("all", "extended"):
+        s = session(p32, threads, level, profile=str(work / f"ortprofile_{level}"))
+        for _ in range(4):
+            s.run(None, {"image": x})
+        f = Path(s.end_profiling())
+        ev = json.loads(f.read_text())
+        f.unlink()
+        ops, parts = collections.Counter(), collections.Counter()
+        for e in ev:
+            if e.get("cat") != "Node" or not e["name"].endswith("_kernel_time"):
+                continue
+            name, op = e["name"], e["args"]["op_name"]
+            if re.search(r"/norm\d/", name) and op != "Conv":
+                op = "GroupNorm (Reshape, InstanceNormalization, Mul, Add)"
+            ops[op] += e["dur"]
+            mm = re.match(r"/(enc\.\d|bottleneck)", name) or re.match(r"/\w+/(ups|blocks)\.(\d)", name)
+            if mm is None:
+                part = ("decoder heads (1x1 conv) and activations" if "/head/" in name or op in (
+                    "Sigmoid", "Tanh", "Sqrt", "Div", "ReduceSum", "Slice") else
+                    "layout reorders, skip concats, other")
+            elif mm.group(1) == "bottleneck":
+                part = "bottleneck (1/16 resolution)"
+            elif mm.group(1).startswith("enc"):
+                part = f"encoder, level {int(mm.group(1)[-1]) + 1}"
+            else:
+                part = f"decoders, level {4 - int(mm.group(2))} {'up-convolution' if mm.group(1) == 'ups' else 'block'}"
+            parts[part] += e["dur"]
+        tot = sum(ops.values())
+        per = tot / 5 / 1e3  # ms per run (1 warm-up + 4 runs are in the profile)
+        print(f"\nGraph optimisation `{level}`, tile 512^2: {per:.0f} ms of kernels per tile.\n")
+        print("| op type | share | ms per tile |\n|---|---:|---:|")
+        for op, v in ops.most_common(10):
+            print(f"| {op} | {100 * v / tot:.1f} % | {v / 5 / 1e3:.1f} |")
+        if level == "all":
+            print("\n| part of the network (decoder level 1 = full resolution) | share |\n|---|---:|")
+            for part, v in sorted(parts.items()):
+                print(f"| {part} | {100 * v / tot:.1f} % |")
+    # optimisation levels and precisions, per tile (children, interleaved)
+    cases = [("all", p32), ("extended", p32), ("basic", p32), ("none", p32), ("all", onnx_path(m, "fp16")),
+             ("all", onnx_path(m, "int8"))]
+    res: dict[int, list[dict]] = {i: [] for i in range(len(cases))}
+    for _ in range(rounds):
+        for i, (level, path) in enumerate(cases):
+            res[i].append(_tile_child(path, 512, level, threads))
+    print(f"\nPer 512^2 tile, {threads} threads, median of {rounds} x 3 runs (child processes, interleaved; "
+          f"{_uptime()}):\n")
+    print("| model | graph optimisation | wall [s] | CPU [s] |\n|---|---|---:|---:|")
+    for i, (level, path) in enumerate(cases):
+        prec = "fp16" if ".fp16." in path.name else "int8" if ".int8." in path.name else "fp32"
+        print(f"| {prec} | {level} | {statistics.median(d['wall'] for d in res[i]):.3f} | "
+              f"{statistics.median(d['cpu'] for d in res[i]):.3f} |")
+    # tile size against overlap
+    tiles = (256, 384, 512, 640, 768, 1024)
+    tres: dict[int, list[dict]] = {t: [] for t in tiles}
+    for _ in range(rounds):
+        for t in tiles:
+            tres[t].append(_tile_child(p32, t, "all", threads))
+    print(f"\nTile size against the overlap (64 px) on a 4072^2 image, fp32, {threads} threads; per-tile times "
+          f"measured as above ({_uptime()}):\n")
+    print("| --tile | fitted tile | tiles | computed / output pixels | wall per computed px [ns] | CPU per "
+          "computed px [ns] | ORT wall for 4072^2 [s] | ORT memory [MB] |\n|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for t in tiles:
+        plan = TilePlan.make(4072, 4072, t, 64)
+        w = statistics.median(d["wall"] for d in tres[t])
+        c = statistics.median(d["cpu"] for d in tres[t])
+        px = plan.th * plan.tw
+        rss = max(d["rss_mb"] for d in tres[t])
+        print(f"| {t} | {plan.th} | {plan.tiles} | {plan.tiles * px / 4072 ** 2:.2f} | {1e9 * w / px:.0f} | "
+              f"{1e9 * c / px:.0f} | {plan.tiles * w:.1f} | {rss:.0f} |")
 
 
 # bridging the two scales: (name, micro size, micro texel um, guidance size, guidance texel um)
@@ -377,6 +627,10 @@ def main() -> int:
     ap.add_argument("--runs", default="quick,quick+warm,fast,fast+warm")
     ap.add_argument("--bridge-preset", default="fast", help="training preset of the bridge stage")
     ap.add_argument("--bridge-configs", default=",".join(BRIDGE_CONFIGS), help="test beds of the bridge stage")
+    ap.add_argument("--big-model", help="model of the big/profile stages (default: see _big_inputs)")
+    ap.add_argument("--big-configs", default="before,after,int8", help=f"runs of the big stage, of {list(BIG_CONFIGS)}")
+    ap.add_argument("--big-repeats", type=int, default=3, help="rounds of the big stage (medians)")
+    ap.add_argument("--profile-rounds", type=int, default=2, help="rounds of the profile stage's per-tile timings")
     ap.add_argument("--warm-iterations", type=int, default=300)
     ap.add_argument("--warm-batch", type=int, default=8)
     ap.add_argument("--threads", type=int, default=1, help="torch threads for training (1: the shared cores "
@@ -399,8 +653,10 @@ def main() -> int:
         stage_parity(work)
     if "seams" in st:
         stage_seams(work)
+    if "profile" in st:
+        stage_profile(work, repo, a.big_model, a.profile_rounds)
     if "big" in st:
-        stage_big(work)
+        stage_big(work, repo, a.big_model, a.big_configs.split(","), a.big_repeats)
     if "bridge-reg" in st:
         stage_bridge_registration(work)
     if "real" in st:

@@ -14,6 +14,7 @@ from __future__ import annotations
 import copy
 import hashlib
 import json
+import logging
 import warnings
 from pathlib import Path
 
@@ -138,7 +139,11 @@ def quantize_int8(fp32_path: str | Path, path: str | Path) -> Path:
     fp32_path = Path(fp32_path)
     digest = hashlib.sha256(fp32_path.read_bytes()).hexdigest()
     with atomic_path(path) as tmp:
-        quantize_dynamic(str(fp32_path), str(tmp), weight_type=QuantType.QUInt8)
+        logging.disable(logging.WARNING)  # its advice to pre-process: measured, gives the same graph here
+        try:
+            quantize_dynamic(str(fp32_path), str(tmp), weight_type=QuantType.QUInt8)
+        finally:
+            logging.disable(logging.NOTSET)
         proto = onnx.load(str(tmp))
         props = {e.key: e.value for e in proto.metadata_props if e.key != "onnx.infer"}
         if props.get("dualscale:precision") != "fp32":

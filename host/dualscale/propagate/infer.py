@@ -1,7 +1,9 @@
 """Tiled onnxruntime inference over a large guidance image.
 
 * The guidance (:mod:`.guidance`: linear RGB, refused when it has non-finite pixels) is
-  processed in ``tile`` x ``tile`` tiles overlapping by ``overlap`` pixels.
+  processed in tiles of at most ``tile`` x ``tile`` px overlapping by at least ``overlap`` px:
+  per axis the fewest tiles that cover the image, each as small as that count allows
+  (:func:`fit_tile`, :class:`TilePlan`).
 * Blending: each tile's output is weighted by a separable window that is 0 on a ``margin`` of
   ``overlap / 4`` px at inner tile edges (where zero padding hurts the network), then rises as a
   raised cosine over the rest of the overlap, and is 1 inside; sides on the image border keep
