@@ -240,3 +240,17 @@ def test_carried_residuals_are_the_ones_a_fresh_render_gives(datasets, monkeypat
     fresh = fit_observations(obs, p, comps)
     for name, t in with_carry.maps.items():
         assert torch.equal(t, getattr(fresh.maps, name)), name
+
+
+def test_select_is_the_lower_median_and_any_order_statistic():
+    """The likelihood scale's median (``fused._select``, in place) equals sorting's, ties and
+    small sizes included (torch's median is the lower one for an even count)."""
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    for m in (1, 2, 3, 4, 7, 100, 669):
+        for t in range(20):
+            a = rng.random(m) if t % 2 else rng.integers(0, 3, m).astype(float)
+            for k in {(m - 1) // 2, 0, m - 1, int(rng.integers(0, m))}:
+                assert fused._select(a.copy(), m, k) == np.sort(a)[k]
+            assert fused._select(a.copy(), m, (m - 1) // 2) == torch.from_numpy(a).median().item()

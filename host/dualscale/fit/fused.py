@@ -528,8 +528,12 @@ def irls_rows(r, c_rows, valid, lum, partner_ptr, partner_idx, near, shadow_rati
     for p in prange(npix):
         dark = np.zeros(n, dtype=np.bool_)
         buf = np.empty(kk)
-        for i in range(kk):
-            keep[p, i] = valid[p, i] if has_valid else 1.0
+        if has_valid:
+            for i in range(kk):
+                keep[p, i] = valid[p, i]
+        else:
+            for i in range(kk):
+                keep[p, i] = 1.0
         if shadow_ratio > 0.0:
             dark_near = 0
             for i in range(n):
@@ -548,23 +552,75 @@ def irls_rows(r, c_rows, valid, lum, partner_ptr, partner_idx, near, shadow_rati
                                 drop = True
                     if drop:
                         keep[p, 3 * i] = keep[p, 3 * i + 1] = keep[p, 3 * i + 2] = 0.0
-        acc, m = 0.0, 0
-        for i in range(kk):
-            w = c_rows[i] * keep[p, i]
-            a = abs(r[p, i])
-            acc += w * (a if l1 else a * a)
-            if l1:
-                sw[p, i] = math.sqrt(w / max(a, eps))
-            else:
-                sw[p, i] = math.sqrt(w)
-            if not has_valid or valid[p, i] > 0.0:
-                buf[m] = a
-                m += 1
+        kp, rp, sp = keep[p], r[p], sw[p]
+        if l1:  # branch-free loops over the rows (vectorised)
+            for i in range(kk):
+                sp[i] = math.sqrt(c_rows[i] * kp[i] / max(abs(rp[i]), eps))
+        else:
+            for i in range(kk):
+                sp[i] = math.sqrt(c_rows[i] * kp[i])
+        acc = _row_cost(c_rows, kp, rp, l1)
+        if has_valid:
+            m = 0
+            for i in range(kk):
+                if valid[p, i] > 0.0:
+                    buf[m] = abs(rp[i])
+                    m += 1
+        else:
+            m = kk
+            for i in range(kk):
+                buf[i] = abs(rp[i])
         cost[p] = acc
         med = eps
         if m > 0:
-            med = max(np.partition(buf[:m], (m - 1) // 2)[(m - 1) // 2], eps)
+            med = max(_select(buf, m, (m - 1) // 2), eps)
         scale[p] = med / math.log(2.0) if l1 else (1.4826 * med) ** 2
+
+
+@njit(**JIT)
+def _select(a, m, kth):
+    """The ``kth`` smallest of ``a[:m]`` (0-based; the lower median at ``(m - 1) // 2``), by an
+    in-place quickselect with a median-of-three pivot (``a`` is scratch)."""
+    lo, hi = 0, m - 1
+    while hi > lo:
+        mid = (lo + hi) // 2
+        if a[mid] < a[lo]:
+            a[mid], a[lo] = a[lo], a[mid]
+        if a[hi] < a[lo]:
+            a[hi], a[lo] = a[lo], a[hi]
+        if a[hi] < a[mid]:
+            a[hi], a[mid] = a[mid], a[hi]
+        pivot = a[mid]
+        i, j = lo, hi
+        while i <= j:
+            while a[i] < pivot:
+                i += 1
+            while a[j] > pivot:
+                j -= 1
+            if i <= j:
+                a[i], a[j] = a[j], a[i]
+                i += 1
+                j -= 1
+        if kth <= j:
+            hi = j
+        elif kth >= i:
+            lo = i
+        else:
+            return a[kth]
+    return a[kth]
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc", "contract"})
+def _row_cost(c_rows, keep, r, l1):
+    """``sum c keep |r|`` (``l1``) or ``sum c keep r^2`` over one pixel's rows."""
+    acc = 0.0
+    if l1:
+        for i in range(r.shape[0]):
+            acc += c_rows[i] * keep[i] * abs(r[i])
+    else:
+        for i in range(r.shape[0]):
+            acc += c_rows[i] * keep[i] * r[i] * r[i]
+    return acc
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc", "contract"})
