@@ -36,6 +36,28 @@ def make_leaves(size: int, dtype: torch.dtype) -> dict[str, torch.Tensor]:
                 specular_tint=r(1), square=r(2, -0.6, 0.6))
 
 
+def _old_diffuse(albedo, roughness, cos_l, cos_v, cos_lv):
+    """The diffuse term as it was before 2026-11-30 (the baseline of issue 15's profile): the
+    Schlick weights by ``pow``, four times, on three-channel products."""
+    def w(c):
+        return (1.0 - torch.clamp(c, 0.0, 1.0)) ** 5
+
+    rr = roughness * (1.0 + torch.clamp(cos_lv, -1.0, 1.0))
+    base = albedo * (1.0 / math.pi) * (1.0 - 0.5 * w(cos_l)) * (1.0 - 0.5 * w(cos_v))
+    fl, fv = w(cos_l), w(cos_v)
+    return base + albedo * (1.0 / math.pi) * rr * (fl + fv + fl * fv * (rr - 1.0))
+
+
+def _with_old_diffuse(*args, **kw):
+    from dualscale.bsdf import model
+
+    new, model.diffuse = model.diffuse, _old_diffuse
+    try:
+        return B.evaluate(*args, **kw)
+    finally:
+        model.diffuse = new
+
+
 def step(fn, leaves, lights, view, **kw) -> float:
     for t in leaves.values():
         t.grad = None
@@ -76,6 +98,7 @@ def main() -> None:
     n_eval = args.size * args.size * lights.shape[0]
 
     variants = [("straightforward (unfused reference)", B.evaluate_reference, {}),
+                ("evaluate, eager, all lights at once, the diffuse term before 2026-11-30", _with_old_diffuse, {}),
                 ("evaluate, eager, all lights at once", B.evaluate, {}),
                 (f"evaluate, eager, chunks of {args.chunk} lights", B.evaluate, dict(light_chunk=args.chunk))]
     if not args.no_compile:

@@ -704,6 +704,77 @@ def normal_equations(x, cols, view, L, w_s, w_p, w_d, back, back_wd, flags, eta_
                 jtj[p, j, i] = a[i, j]
 
 
+@njit(parallel=True, **JIT)
+def vector_jacobian(x, cols, view, L, w_s, w_p, w_d, back, back_wd, flags, eta_const, grad, out):
+    """``out (npix, P)`` = ``J^T grad``: the gradient of a loss whose derivative with respect to
+    the residuals is ``grad (npix, K)`` (reverse mode for Adam, :class:`Residuals`); clamped
+    renders (> 2) pass no gradient, as in torch's ``clamp``."""
+    npix, n, P = x.shape[0], L.shape[1], cols.shape[0]
+    iso, opaque = flags[0] != 0, flags[2] != 0
+    has_back = back.shape[0] == npix
+    for p in prange(npix):
+        geo, kc = np.empty(51), np.empty(NCONST)
+        bas, wv = np.empty((12, LIGHT_BLOCK)), np.empty((3, LIGHT_BLOCK))
+        rows, coef = np.empty((P, 3, 3), dtype=np.int64), np.empty((P, 3, 3))
+        g = np.zeros(P)
+        al = _setup(x, p, view, flags, eta_const, geo, kc)
+        xp = x[p]
+        op = 1.0 if opaque else xp[13]
+        _coefficients(xp, kc, cols, opaque, rows, coef)
+        for k0 in range(0, n, LIGHT_BLOCK):
+            k1 = min(n, k0 + LIGHT_BLOCK)
+            b = k1 - k0
+            _basis_lights(xp, geo, al, kc, L, view[p, 2], w_s, w_p, w_d, iso, opaque, k0, k1, bas)
+            for c in range(3):
+                ac, tc, tt = xp[c], kc[20 + c], (0.0 if opaque else xp[10 + c])
+                for q in range(b):
+                    o = (ac * bas[0, q] + tc * bas[1, q] + tt * bas[11, q]) * op
+                    w = grad[p, 3 * (k0 + q) + c]
+                    wv[c, q] = w if o <= CLAMP else 0.0
+            for i in range(P):
+                for c in range(3):
+                    r0, r1, r2 = rows[i, c, 0], rows[i, c, 1], rows[i, c, 2]
+                    w0, w1, w2 = coef[i, c, 0], coef[i, c, 1], coef[i, c, 2]
+                    g[i] += _combine(bas, r0, w0, r1, w1, r2, w2, wv[c], b)
+        if has_back and not opaque:
+            for c in range(3):
+                bk = back_wd * (xp[10 + c] * xp[13] + 1.0 - xp[13])
+                if bk > CLAMP:
+                    continue
+                for i in range(P):
+                    s = cols[i]
+                    d = back_wd * xp[13] if s == 10 + c else (back_wd * (xp[10 + c] - 1.0) if s == 13 else 0.0)
+                    g[i] += d * grad[p, 3 * n + c]
+        for i in range(P):
+            out[p, i] = g[i]
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc", "contract"})
+def _combine(bas, r0, w0, r1, w1, r2, w2, wv, b):
+    """``sum_q (w0 bas[r0] + w1 bas[r1] + w2 bas[r2])[q] wv[q]`` over the first ``b`` lights."""
+    acc = 0.0
+    for q in range(b):
+        acc += (w0 * bas[r0, q] + w1 * bas[r1, q] + w2 * bas[r2, q]) * wv[q]
+    return acc
+
+
+class Residuals(torch.autograd.Function):
+    """Residuals ``(H, W, K)`` of :meth:`Problem.residuals` as a differentiable function of the
+    packed free parameters ``x (H, W, P)``: its backward is :func:`vector_jacobian` (the
+    analytic derivatives), so Adam's presets fit through the fused kernel too."""
+
+    @staticmethod
+    def forward(ctx, x: Tensor, prob: "Problem", names: tuple[str, ...], fixed: dict[str, Tensor]) -> Tensor:
+        ctx.save_for_backward(x.detach().clone())
+        ctx.prob, ctx.names, ctx.fixed = prob, names, fixed
+        return prob.residuals(x.detach(), names, fixed)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        (x,) = ctx.saved_tensors
+        return ctx.prob.vjp(x, ctx.names, ctx.fixed, grad), None, None, None
+
+
 def _threads() -> None:
     """numba's pool at the command's thread count (``--threads``; else torch's), leaving torch's
     count as it is (starting numba's OpenMP pool would reset it)."""
@@ -765,10 +836,10 @@ class Problem:
         self.partner_idx = np.ascontiguousarray(same.nonzero()[:, 1].numpy().astype(np.int64))
         self.near = np.ascontiguousarray((obs.dirs[:, 2] >= SHADOW_ANCHOR_COS).numpy())
 
-    def row_weights(self, loss) -> np.ndarray:
-        """``c`` per residual row: 1 per LED row, ``loss.back_weight`` per back-lit row."""
+    def row_weights(self, back_weight: float) -> np.ndarray:
+        """``c`` per residual row: 1 per LED row, ``back_weight`` per back-lit row."""
         c = np.ones(self.k)
-        c[self.rows.shape[1]:] = loss.back_weight
+        c[self.rows.shape[1]:] = back_weight
         return c
 
     def irls(self, r: Tensor, loss) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -779,7 +850,7 @@ class Problem:
         r2 = np.ascontiguousarray(r.reshape(npix, -1).numpy())
         keep, sw = np.empty_like(r2), np.empty_like(r2)
         cost, scale = np.empty(npix, dtype=r2.dtype), np.empty(npix, dtype=r2.dtype)
-        irls_rows(r2, self.row_weights(loss), self.valid, self.lum, self.partner_ptr, self.partner_idx, self.near,
+        irls_rows(r2, self.row_weights(loss.back_weight), self.valid, self.lum, self.partner_ptr, self.partner_idx, self.near,
                   float(loss.shadow_ratio), SHADOW_FLOOR, loss.kind == "l1", float(loss.eps), keep, sw, cost, scale)
         t = torch.from_numpy
         return (t(keep).reshape(r.shape), t(sw).reshape(r.shape), t(cost).reshape(self.shape),
@@ -797,7 +868,7 @@ class Problem:
         out = np.empty(npix)
         rows = np.empty((npix if residuals else 0, self.k), dtype=np.float32 if x.dtype == torch.float32 else np.float64)
         weighted_cost(full, self.view, self.dirs, self.w_s, self.w_p, self.w_d, self.rows, self.back, self.back_wd,
-                      self.flags, self.eta, sel, self.row_weights(loss), loss.kind == "l1", out, rows)
+                      self.flags, self.eta, sel, self.row_weights(loss.back_weight), loss.kind == "l1", out, rows)
         return (torch.from_numpy(out).to(x.dtype).reshape(self.shape),
                 torch.from_numpy(rows).reshape(*self.shape, self.k) if residuals else None)
 
@@ -809,6 +880,17 @@ class Problem:
         residual_rows(full, self.view, self.dirs, self.w_s, self.w_p, self.w_d, self.rows, self.back, self.back_wd,
                       self.flags, self.eta, out)
         return torch.from_numpy(out).reshape(*self.shape, self.k)
+
+    def vjp(self, x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor], grad: Tensor) -> Tensor:
+        """``J^T grad``, ``(H, W, P)`` in ``x``'s dtype, for ``grad (H, W, K)`` (:func:`vector_jacobian`)."""
+        _threads()
+        full, cols = full_vectors(x, names, fixed)
+        npix = full.shape[0]
+        out = np.empty((npix, cols.shape[0]))
+        g = np.ascontiguousarray(grad.reshape(npix, -1).double().numpy())
+        vector_jacobian(full, cols, self.view, self.dirs, self.w_s, self.w_p, self.w_d, self.back, self.back_wd,
+                        self.flags, self.eta, g, out)
+        return torch.from_numpy(out).to(x.dtype).reshape(*self.shape, -1)
 
     def normal_equations(self, x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor], r: Tensor,
                          sw: Tensor) -> tuple[Tensor, Tensor]:

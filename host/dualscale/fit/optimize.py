@@ -15,6 +15,7 @@ from torch import Tensor
 
 from dualscale.bsdf import Components
 
+from . import fused
 from .loop import Loop
 from .observations import Observations
 from .params import project, to_maps
@@ -41,6 +42,26 @@ def l1_loss(params: dict[str, Tensor], fixed: dict[str, Tensor], comps: Componen
     return err / count.clamp(min=1.0)
 
 
+def fused_l1_loss(params: dict[str, Tensor], fixed: dict[str, Tensor], prob: fused.Problem,
+                  back_weight: float) -> Tensor:
+    """:func:`l1_loss` through the fused kernel (:class:`.fused.Residuals`: numba renders, the
+    gradient by its analytic derivatives); ``prob`` holds the step's (or batch's) images."""
+    names = tuple(params)
+    r = fused.Residuals.apply(torch.cat([params[k] for k in names], -1), prob, names, fixed)
+    c = torch.from_numpy(prob.row_weights(back_weight)).to(r.dtype).expand_as(r)
+    if prob.valid.shape[0]:
+        c = c * torch.from_numpy(prob.valid).to(r.dtype).reshape(r.shape)
+    return (r.abs() * c).sum() / c.sum().clamp(min=1.0)
+
+
+def _problem(data, o: Observations, imgs: Tensor, comps: Components, full: bool) -> fused.Problem:
+    if not full:
+        return fused.Problem(o, imgs, data.back, comps)
+    if "adam" not in data.cache:
+        data.cache["adam"] = fused.Problem(o, imgs, data.back, comps)
+    return data.cache["adam"]
+
+
 def run_adam(params: dict[str, Tensor], comps: Components, obs: Observations, loop: Loop,
              resume: dict | None = None, seed: int = 0) -> dict[str, Tensor]:
     """Optimise ``params`` in place through the preset's three steps; returns them."""
@@ -60,7 +81,11 @@ def run_adam(params: dict[str, Tensor], comps: Components, obs: Observations, lo
                 idx = torch.randperm(o.n, generator=gen)[:preset.light_batch]
                 o, imgs = o.select(idx), imgs[idx]
             opt.zero_grad(set_to_none=True)
-            loss = l1_loss({k: params[k] for k in free}, fixed, comps, o, imgs, data.back, preset.back_weight)
+            if preset.kernel == "fused":
+                prob = _problem(data, o, imgs, comps, o is data.obs)
+                loss = fused_l1_loss({k: params[k] for k in free}, fixed, prob, preset.back_weight)
+            else:
+                loss = l1_loss({k: params[k] for k in free}, fixed, comps, o, imgs, data.back, preset.back_weight)
             loss.backward()
             for p in leaves:  # a non-finite gradient (never expected) must not poison the maps
                 if p.grad is not None:

@@ -54,12 +54,12 @@ class Preset:
     diffuse-only (P90) capture is below that fraction of its render: a cast shadow, which the
     local model cannot produce (:meth:`.lm.Loss.keep`); 0 fits every capture.
 
-    ``kernel`` (LM only) computes the residuals and normal equations: ``'fused'`` (the default
-    of the LM presets) is :mod:`.fused`, one numba pass per pixel with analytic derivatives;
-    ``'eager'`` is the reference, torch renders of whole blocks with forward-difference
-    Jacobians; ``'compiled'`` is the reference through ``torch.compile``d BSDF kernels
-    (compiling costs seconds to a minute per distinct problem shape in a process, cached on
-    disk by Inductor)."""
+    ``kernel`` computes the residuals and their derivatives: ``'fused'`` (every built-in preset's)
+    is :mod:`.fused`, numba passes per pixel with analytic derivatives (LM: the normal equations;
+    Adam: the gradient, :class:`.fused.Residuals`); ``'eager'`` is the reference, torch renders
+    of whole maps (LM: forward-difference Jacobians; Adam: autograd); ``'compiled'`` (LM only)
+    is the LM reference through ``torch.compile``d BSDF kernels (compiling costs seconds to a
+    minute per distinct problem shape in a process, cached on disk by Inductor)."""
 
     name: str
     optimizer: str
@@ -85,8 +85,8 @@ class Preset:
             raise ValueError("shadow_ratio must be in [0, 1) and is implemented for the LM optimiser only")
         if self.kernel not in KERNELS:
             raise ValueError(f"unknown kernel {self.kernel!r}; choose from {KERNELS}")
-        if self.kernel != "eager" and self.optimizer != "lm":
-            raise ValueError(f"the {self.kernel} kernel is implemented for the LM optimiser only")
+        if self.kernel == "compiled" and self.optimizer != "lm":
+            raise ValueError("the compiled kernel is implemented for the LM optimiser only")
         if self.ior_prior_sd < 0 or (self.ior_prior_sd > 0 and self.optimizer != "lm"):
             raise ValueError("ior_prior_sd must be >= 0 and is implemented for the LM optimiser only")
         if self.loss not in ("l1", "l2"):
@@ -121,7 +121,7 @@ IOR_PRIOR_SD = 0.05
 SHADOW_RATIO = 0.5
 
 PRESETS: dict[str, Preset] = {
-    "paper": Preset("paper", "adam", (700, 500, 600), lr=0.01, loss="l1"),
+    "paper": Preset("paper", "adam", (700, 500, 600), lr=0.01, loss="l1", kernel="fused"),
     # the joint step does the work: the first two only give it a start (docs/FITTING.md)
     "standard": Preset("standard", "lm", (3, 3, 15), grid_init=True, loss="l1", ior_prior_sd=IOR_PRIOR_SD,
                        shadow_ratio=SHADOW_RATIO, kernel="fused"),
@@ -131,7 +131,7 @@ PRESETS: dict[str, Preset] = {
     "coarse-to-fine": Preset("coarse-to-fine", "lm", (2, 2, 6), grid_init=True, loss="l1", coarse_factor=2,
                              coarse_iterations=(5, 5, 10), ior_prior_sd=IOR_PRIOR_SD, shadow_ratio=SHADOW_RATIO,
                              kernel="fused"),
-    "adam-fast": Preset("adam-fast", "adam", (140, 100, 120), lr=0.03, light_batch=64),
+    "adam-fast": Preset("adam-fast", "adam", (140, 100, 120), lr=0.03, light_batch=64, kernel="fused"),
 }
 
 
