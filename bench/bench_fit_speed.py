@@ -2,9 +2,10 @@
 side by side in one run, at several map sizes; prints markdown tables for docs/FITTING.md.
 
     PYTHONPATH=host python bench/bench_fit_speed.py [--sizes 16,64,128,256] [--eager-max 128]
-        [--paper-max 32] [--threads 1] [--material twill] [--json out.json]
+        [--paper-max 32] [--compiled-max 0] [--threads 1] [--material twill] [--json out.json]
 
-Every size is its own synthetic capture (``bench_fit.dataset``: the material at ``size`` x
+`paper` runs through both kernels (Adam's gradient by autograd, or by the fused kernel's
+vector-Jacobian product).  Every size is its own synthetic capture (``bench_fit.dataset``: the material at ``size`` x
 ``size`` texels of 9 um, 127 LEDs x P0/P90 plus the back light, HDR-style sensor noise, every
 8th LED held out).  Components are chosen once per size with the fused kernel (timed apart, and
 with the eager kernel up to ``--eager-max``).  Per size and kernel: the fit's wall time, its
@@ -52,7 +53,7 @@ def select(train, kernel: str):
         select_module.PRESETS = saved
 
 
-def run(sizes: list[int], material: str, eager_max: int, paper_max: int) -> dict:
+def run(sizes: list[int], material: str, eager_max: int, paper_max: int, compiled_max: int = 0) -> dict:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         warm, _ = dataset(Path(tmp) / "warm", "leather", 8, 9.0)  # numba cache, thread pools, allocator
@@ -65,7 +66,8 @@ def run(sizes: list[int], material: str, eager_max: int, paper_max: int) -> dict
             comps, t_sel = select(train, "fused")
             t_sel_eager = select(train, "eager")[1] if size <= eager_max else None
             runs = [("standard", "fused")] + ([("standard", "eager")] if size <= eager_max else []) + \
-                   ([("paper", "eager")] if size <= paper_max else [])
+                   ([("standard", "compiled")] if size <= compiled_max else []) + \
+                   ([("paper", "eager"), ("paper", "fused")] if size <= paper_max else [])
             for preset, kernel in runs:
                 p = replace(PRESETS[preset], kernel=kernel)
                 res = fit_observations(train, p, comps, held_out=held)
@@ -96,12 +98,14 @@ def tables(rep: dict) -> str:
     sizes = sorted({r["size"] for r in rows})
     out += ["", "Ratios in this run (eager `standard` / fused `standard`; `standard` / `paper`), and the map errors "
             "of the fused fit relative to the eager one (1.00 = equal, < 1 = better):", "",
-            "| size | eager / fused time | fused / paper time | eager / paper time | "
-            + " | ".join(f"{k} fused/eager" for k in ERRORS) + " |", "|---:|---:|---:|---:|" + "---:|" * len(ERRORS)]
+            "| size | eager / fused time | fused / paper time | eager / paper time | paper: eager / fused time | "
+            + " | ".join(f"{k} fused/eager" for k in ERRORS) + " |", "|---:|---:|---:|---:|---:|" + "---:|" * len(ERRORS)]
     for s in sizes:
         f, e, p = by.get((s, "standard", "fused")), by.get((s, "standard", "eager")), by.get((s, "paper", "eager"))
+        pf = by.get((s, "paper", "fused"))
         cells = [f"{e['seconds'] / f['seconds']:.1f}" if e else "-", f"1/{p['seconds'] / f['seconds']:.0f}" if p else "-",
-                 f"1/{p['seconds'] / e['seconds']:.0f}" if (p and e) else "-"]
+                 f"1/{p['seconds'] / e['seconds']:.0f}" if (p and e) else "-",
+                 f"{p['seconds'] / pf['seconds']:.1f}" if (p and pf) else "-"]
         cells += [f"{f[k] / e[k]:.2f}" if (e and e[k] > 0) else "-" for k in ERRORS]
         out.append(f"| {s}² | " + " | ".join(cells) + " |")
     out += ["", "Marginal cost per pixel (slope between consecutive sizes) and fixed cost (the smallest size):", "",
@@ -120,12 +124,14 @@ def main() -> None:
     ap.add_argument("--sizes", default="16,64,128,256")
     ap.add_argument("--eager-max", type=int, default=128)
     ap.add_argument("--paper-max", type=int, default=32)
+    ap.add_argument("--compiled-max", type=int, default=0,
+                    help="also fit `standard` through the torch.compile'd eager reference up to this size")
     ap.add_argument("--material", default="twill")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--json", default=None)
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
-    rep = run([int(s) for s in a.sizes.split(",")], a.material, a.eager_max, a.paper_max)
+    rep = run([int(s) for s in a.sizes.split(",")], a.material, a.eager_max, a.paper_max, a.compiled_max)
     if a.json:
         Path(a.json).write_text(json.dumps(rep, indent=1))
     print(tables(rep))
