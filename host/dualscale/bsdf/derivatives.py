@@ -4,7 +4,7 @@ Each function mirrors one tensor term of :mod:`.terms`, :mod:`.ggx` and :mod:`.f
 (supplementary Section 5) for one sample, in float64, and returns the value followed by its
 partial derivatives with respect to the term's own inputs, in the order of the arguments
 named in its docstring.  The fit's fused kernel (:mod:`dualscale.fit.fused`) chains them to
-the normalised map parameters; ``tests/bsdf/test_derivatives.py`` checks every partial against
+the normalised map parameters; ``tests/appearance/test_bsdf_derivatives.py`` checks every partial against
 torch autograd in float64.
 
 Clamp conventions follow the tensor terms: where an input is clamped (``cos`` to [0, 1], the
@@ -23,7 +23,9 @@ from .vec import TINY
 
 INV_PI = 1.0 / math.pi
 CHROMA_EPS = 1e-6  # terms.chromaticity: a max channel at or below this is black (white chromaticity)
-JIT = dict(cache=True, fastmath=False, nogil=True, error_model="numpy")
+#: inlined into the fit's kernels (numba IR inlining), where LLVM vectorises them over the lights
+#: and drops the partials a caller does not use
+JIT = dict(cache=True, fastmath=False, nogil=True, error_model="numpy", inline="always")
 
 
 @njit(**JIT)

@@ -192,14 +192,11 @@ def _render_lights(xp, geo, al, kc, L, vz, ws, wp, wd, iso, opaque, k0, k1, out)
     ax, ay = al[0], al[1]
     nx, ny, nz = geo[0], geo[1], geo[2]
     tx, ty, tz, bx, by, bz = geo[9], geo[10], geo[11], geo[12], geo[13], geo[14]
-    cv, fv, vvx, vvy, sv, floor = kc[0], kc[1], kc[3], kc[4], kc[6], kc[7]
+    cv, vvx, vvy, a2v = kc[0], kc[3], kc[4], kc[5]
     vx, vy = kc[40], kc[41]
-    zv = max(cv, 0.0)
     t0, t1, t2 = kc[20], kc[21], kc[22]
     a0, a1, a2_, rough, eta = xp[0], xp[1], xp[2], xp[3], kc[39]
-    eta2 = eta * eta
     a2 = ax * ax
-    fl_iso = min(a2, 1.0)
     vok = cv > 0.0 and vz > 0.0
     op = 1.0 if opaque else xp[13]
     for k in range(k0, k1):
@@ -209,38 +206,18 @@ def _render_lights(xp, geo, al, kc, L, vz, ws, wp, wd, iso, opaque, k0, k1, out)
         len2 = max(2.0 + 2.0 * clv, 1e-12)
         inv_len = 1.0 / math.sqrt(len2)
         cos_d = 0.5 * len2 * inv_len
-        tl = 1.0 - min(max(cl, 0.0), 1.0)
-        tl2 = tl * tl
-        fl = tl2 * tl2 * tl
-        rr = rough * (1.0 + min(max(clv, -1.0), 1.0))
-        g = INV_PI * ((1.0 - 0.5 * fl) * (1.0 - 0.5 * fv) + rr * (fl + fv + fl * fv * (rr - 1.0)))
-        c = min(max(cos_d, 0.0), 1.0)
-        g2 = eta2 - 1.0 + c * c
-        gg = math.sqrt(max(g2, TINY))
-        cc = max(c, TINY)
-        rs = (cc - gg) / (cc + gg)
-        e = eta2 * cc
-        rp = (e - gg) / (e + gg)
-        f = ws[k] * rs * rs + wp[k] * rp * rp if g2 > 0.0 else ws[k] + wp[k]
+        g = diffuse_d(cl, cv, clv, rough)[0]
+        f = fresnel_weighted_d(cos_d, eta, ws[k], wp[k])[0]
         hz = (cl + cv) * inv_len
-        zl = max(cl, 0.0)
         if iso:
-            s = hz * hz * (a2 - 1.0) + 1.0
-            m = max(s, fl_iso)
-            d = a2 * INV_PI / (m * m)
+            d = ggx_d_iso_d(hz, ax)[0]
             a2l = a2 * (1.0 - cl * cl)
         else:
             llx = lx * tx + ly * ty + lz * tz
             lly = lx * bx + ly * by + lz * bz
-            hx = (llx + vvx) * inv_len
-            hy = (lly + vvy) * inv_len
-            s = (hx / ax) ** 2 + (hy / ay) ** 2 + hz * hz
-            m = max(s, floor)
-            d = INV_PI / (ax * ay * m * m)
+            d = ggx_d_aniso_d((llx + vvx) * inv_len, (lly + vvy) * inv_len, hz, ax, ay)[0]
             a2l = (ax * llx) ** 2 + (ay * lly) ** 2
-        d = d if hz > 0.0 else 0.0
-        sl = math.sqrt(zl * zl + max(a2l, 0.0) + TINY)
-        spec = d * f / ((zl + sl) * (zv + sv))
+        spec = d * f * smith_visibility_d(cl, a2l, cv, a2v)[0]
         front = cl > 0.0 and lz > 0.0 and vok
         w = wd[k] * g
         o0 = cl * (w * a0 + spec * t0) if front else 0.0
@@ -266,11 +243,7 @@ def _light_basis(k, L, ws, wp, wd, pc, iso, opaque):
      dcv1, dvx0, dvx1, dvx2, dvy0, dvy1, dvy2, dax_r, dax_an, day_r, day_an, eta, vx, vy, vz, rough, dn0x,
      dn0y, dn0z, dn1x, dn1y, dn1z, t0x, t0y, t0z, t1x, t1y, t1z, t2x, t2y, t2z, b0x, b0y, b0z, b1x, b1y,
      b1z, b2x, b2y, b2z) = pc
-    eta2 = eta * eta
     a2 = ax * ax
-    fl_iso = min(a2, 1.0)
-    zv = max(cv, 0.0)
-    pv = zv + sv
     vok = cv > 0.0 and vz > 0.0
     lx, ly, lz = L[0, k], L[1, k], L[2, k]
     wsk, wpk, wdk = ws[k], wp[k], wd[k]
@@ -279,77 +252,21 @@ def _light_basis(k, L, ws, wp, wd, pc, iso, opaque):
     len2 = max(2.0 + 2.0 * clv, 1e-12)
     inv_len = 1.0 / math.sqrt(len2)
     cos_d = 0.5 * len2 * inv_len
-    # diffuse G(cl, cv, rough) and its partials
-    tl = 1.0 - min(max(cl, 0.0), 1.0)
-    tl2 = tl * tl
-    fl = tl2 * tl2 * tl
-    dfl = -5.0 * tl2 * tl2 if (cl > 0.0 and cl < 1.0) else 0.0
-    kf = 1.0 + min(max(clv, -1.0), 1.0)
-    rr = rough * kf
-    g = INV_PI * ((1.0 - 0.5 * fl) * (1.0 - 0.5 * fv) + rr * (fl + fv + fl * fv * (rr - 1.0)))
-    dg_cl = INV_PI * (-0.5 * (1.0 - 0.5 * fv) + rr * (1.0 + fv * (rr - 1.0))) * dfl
-    dg_cv = INV_PI * (-0.5 * (1.0 - 0.5 * fl) + rr * (1.0 + fl * (rr - 1.0))) * dfv
-    dg_r = INV_PI * (fl + fv + fl * fv * (2.0 * rr - 1.0)) * kf
-    # Fresnel w_s R_s + w_p R_p and d/d eta
-    c = min(max(cos_d, 0.0), 1.0)
-    g2 = eta2 - 1.0 + c * c
-    gg = math.sqrt(max(g2, TINY))
-    dgg = eta / gg if g2 > TINY else 0.0
-    cc = max(c, TINY)
-    rs = (cc - gg) / (cc + gg)
-    drs = -2.0 * cc / ((cc + gg) * (cc + gg)) * dgg
-    e = eta2 * cc
-    rp = (e - gg) / (e + gg)
-    drp = (2.0 * gg * (2.0 * eta * cc) - 2.0 * e * dgg) / ((e + gg) * (e + gg))
-    f = wsk * rs * rs + wpk * rp * rp if g2 > 0.0 else wsk + wpk
-    df = 2.0 * wsk * rs * drs + 2.0 * wpk * rp * drp if g2 > 0.0 else 0.0
+    g, dg_cl, dg_cv, dg_r = diffuse_d(cl, cv, clv, rough)
+    f, df = fresnel_weighted_d(cos_d, eta, wsk, wpk)
     hz = (cl + cv) * inv_len
-    zl = max(cl, 0.0)
     # D, the Smith visibility V and S = D V F with their partials
     if iso:
-        s = hz * hz * (a2 - 1.0) + 1.0
-        sgt = s >= fl_iso
-        m = s if sgt else fl_iso
-        dm_hz = 2.0 * hz * (a2 - 1.0) if sgt else 0.0
-        dm_a2 = hz * hz if sgt else (1.0 if a2 < 1.0 else 0.0)
-        d = a2 * INV_PI / (m * m)
-        dd_m = -2.0 * d / m
-        dd_hz = dd_m * dm_hz
-        dd_ax = (INV_PI / (m * m) + dd_m * dm_a2) * 2.0 * ax
+        d, dd_hz, dd_ax = ggx_d_iso_d(hz, ax)
         dd_hx = dd_hy = dd_ay = 0.0
         a2l = a2 * (1.0 - cl * cl)
         llx = lly = 0.0
     else:
         llx = lx * tx + ly * ty + lz * tz
         lly = lx * bx + ly * by + lz * bz
-        hx = (llx + vvx) * inv_len
-        hy = (lly + vvy) * inv_len
-        s = (hx / ax) ** 2 + (hy / ay) ** 2 + hz * hz
-        sgt = s >= floor
-        m = s if sgt else floor
-        d = INV_PI / (ax * ay * m * m)
-        dd_m = -2.0 * d / m
-        dd_hx = dd_m * 2.0 * hx / (ax * ax) if sgt else 0.0
-        dd_hy = dd_m * 2.0 * hy / (ay * ay) if sgt else 0.0
-        dd_hz = dd_m * 2.0 * hz if sgt else 0.0
-        dd_ax = -d / ax + dd_m * (-2.0 * hx * hx / (ax * ax * ax) if sgt else fax)
-        dd_ay = -d / ay + dd_m * (-2.0 * hy * hy / (ay * ay * ay) if sgt else fay)
+        d, dd_hx, dd_hy, dd_hz, dd_ax, dd_ay = ggx_d_aniso_d((llx + vvx) * inv_len, (lly + vvy) * inv_len, hz, ax, ay)
         a2l = (ax * llx) ** 2 + (ay * lly) ** 2
-    pos = hz > 0.0
-    d = d if pos else 0.0
-    dd_hx = dd_hx if pos else 0.0
-    dd_hy = dd_hy if pos else 0.0
-    dd_hz = dd_hz if pos else 0.0
-    dd_ax = dd_ax if pos else 0.0
-    dd_ay = dd_ay if pos else 0.0
-    sl = math.sqrt(zl * zl + max(a2l, 0.0) + TINY)
-    pl = zl + sl
-    vis = 1.0 / (pl * pv)
-    dl, dv = -vis / pl, -vis / pv
-    dv_zl = dl * (1.0 + zl / sl) if cl > 0.0 else 0.0
-    dv_a2l = dl * 0.5 / sl if a2l > 0.0 else 0.0
-    dv_zv = dv * (1.0 + zv / sv) if cv > 0.0 else 0.0
-    dv_a2v = dv * 0.5 / sv if a2v > 0.0 else 0.0
+    vis, dv_zl, dv_a2l, dv_zv, dv_a2v = smith_visibility_d(cl, a2l, cv, a2v)
     dvis_h = inv_len * vis
     if iso:
         ds_cl = f * (dd_hz * dvis_h + d * (dv_zl + dv_a2l * (-2.0 * a2 * cl)))
