@@ -38,6 +38,7 @@ from dualscale.fit.observations import load_observations
 from dualscale.fit.presets import PRESETS, Preset
 from dualscale.fit.select import select_components
 from dualscale.formats.maps import load_maps
+from dualscale.threads import set_threads
 
 CLASSES = {"plain": "woven", "twill": "woven", "satin": "woven", "denim": "woven (dark warp)", "rib_knit": "knit",
            "leather": "leather", "sheer": "sheer (extreme)", "brick": "photo surface", "grass": "photo surface",
@@ -79,9 +80,11 @@ def add_noise(obs, size: int, texel_um: float, headroom: float = 0.9):
 
 
 def dataset(root: Path, material: str, size: int, texel_um: float, noise: bool = True, shadows: bool = False):
+    threads = torch.get_num_threads()
     rc = cli_main(["synth", material, "-o", str(root), "--size", str(size), "--texel-um", str(texel_um),
                    "--dataset", "--no-previews", *(["--shadows"] if shadows else [])])
     assert rc == 0
+    set_threads(threads)  # the in-process command applied its own count (--threads auto)
     obs = load_observations(root)
     gt, _ = load_maps(root / "maps")
     if obs.backlight is None:  # the rig always captures the back light; the renderer gives black when opaque

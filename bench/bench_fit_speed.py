@@ -33,6 +33,7 @@ from dualscale.fit import select as select_module
 from dualscale.fit.core import fit_observations, split_holdout
 from dualscale.fit.metrics import map_errors
 from dualscale.fit.presets import PRESETS
+from dualscale.threads import set_threads
 
 ERRORS = ("albedo_rmse", "normal_mean_deg", "roughness_mae", "anisotropy_mae", "ior_mae")
 
@@ -53,15 +54,18 @@ def select(train, kernel: str):
         select_module.PRESETS = saved
 
 
-def run(sizes: list[int], material: str, eager_max: int, paper_max: int, compiled_max: int = 0) -> dict:
+def run(sizes: list[int], material: str, eager_max: int, paper_max: int, compiled_max: int = 0,
+        threads: int = 1) -> dict:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         warm, _ = dataset(Path(tmp) / "warm", "leather", 8, 9.0)  # numba cache, thread pools, allocator
+        set_threads(threads)
         for k in ("fused", "eager"):
             fit_observations(warm, replace(PRESETS["standard"], kernel=k).scaled(0.05),
                              select(warm, "fused")[0])
         for size in sizes:
             obs, gt = dataset(Path(tmp) / f"{material}{size}", material, size, 9.0)
+            set_threads(threads)  # the in-process `synth` command applied its own (--threads auto)
             train, held = split_holdout(obs, 8)
             comps, t_sel = select(train, "fused")
             t_sel_eager = select(train, "eager")[1] if size <= eager_max else None
@@ -130,8 +134,8 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--json", default=None)
     a = ap.parse_args()
-    torch.set_num_threads(a.threads)
-    rep = run([int(s) for s in a.sizes.split(",")], a.material, a.eager_max, a.paper_max, a.compiled_max)
+    set_threads(a.threads)
+    rep = run([int(s) for s in a.sizes.split(",")], a.material, a.eager_max, a.paper_max, a.compiled_max, a.threads)
     if a.json:
         Path(a.json).write_text(json.dumps(rep, indent=1))
     print(tables(rep))
