@@ -92,8 +92,9 @@ def register(subparsers) -> None:
                    help="set aside an LED's captures where its diffuse capture is below R x the render (a cast "
                         "shadow); 0 = fit every capture (LM presets only; default: the preset's, 0.5 for standard)")
     f.add_argument("--kernel", choices=FIT_KERNELS, default=None,
-                   help="LM presets: 'fused' (default: numba, analytic Jacobians), 'eager' (the reference: torch, "
-                        "forward differences) or 'compiled' (the reference through torch.compile) (docs/FITTING.md)")
+                   help="'fused' (the presets' default: numba, analytic derivatives), 'eager' (the reference: torch; "
+                        "forward differences for LM presets, autograd for Adam ones) or 'compiled' (LM presets only: "
+                        "the reference through torch.compile) (docs/FITTING.md)")
     f.add_argument("--compile", action="store_true", help="the same as --kernel compiled")
     f.add_argument("--holdout-every", type=int, default=8,
                    help="hold out every N-th LED for the re-render SSIM report (0 = fit all)")
