@@ -248,12 +248,12 @@ def test_select_is_the_lower_median_and_any_order_statistic():
     import numpy as np
 
     rng = np.random.default_rng(0)
-    for m in (1, 2, 3, 4, 7, 100, 669):
+    for m in (1, 2, 3, 4, 7, 24, 25, 26, 100, 669):
         for t in range(20):
             a = rng.random(m) if t % 2 else rng.integers(0, 3, m).astype(float)
             for k in {(m - 1) // 2, 0, m - 1, int(rng.integers(0, m))}:
-                assert fused._select(a.copy(), m, k) == np.sort(a)[k]
-            assert fused._select(a.copy(), m, (m - 1) // 2) == torch.from_numpy(a).median().item()
+                assert fused._select(a.copy(), m, k, np.empty(m)) == np.sort(a)[k]
+            assert fused._select(a.copy(), m, (m - 1) // 2, np.empty(m)) == torch.from_numpy(a).median().item()
 
 
 @pytest.mark.parametrize("comps", [COMBOS[2], COMBOS[13]], ids=["masked-opaque-aniso-tinted", "translucent-aniso-flat"])
