@@ -18,12 +18,19 @@ def cmd_fit(args: argparse.Namespace) -> int:
     from dualscale.fit.api import fit_dataset
     from dualscale.fit.presets import get_preset
 
+    from dualscale.errors import InputError
+
     apply_threads(args)
     preset = get_preset(args.preset)
     if args.ior_prior is not None:
         preset = replace(preset, ior_prior_sd=args.ior_prior)
     if args.shadow_ratio is not None:
         preset = replace(preset, shadow_ratio=args.shadow_ratio)
+    if args.compile and args.kernel not in (None, "compiled"):
+        raise InputError(f"--compile is --kernel compiled; it contradicts --kernel {args.kernel}")
+    if args.kernel is not None and args.preset == "standard-compiled" and args.kernel != "compiled":
+        raise InputError(f"--preset standard-compiled is `standard` with the compiled kernel; for --kernel "
+                         f"{args.kernel} use --preset standard")
     if args.compile:
         preset = replace(preset, kernel="compiled")
     if args.kernel is not None:
@@ -36,7 +43,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
                                  restart=args.restart, stop_after=args.stop_after, seed=args.seed,
                                  previews=not args.no_previews, gt=args.gt)
     c = res.comps
-    print(f"preset {res.preset.name}: {res.iterations} iterations in {res.seconds:.1f} s; components: "
+    print(f"preset {res.preset.name} (kernel {res.preset.kernel}, {extra['threads']} thread"
+          f"{'' if extra['threads'] == 1 else 's'}): {res.iterations} iterations in {res.seconds:.1f} s; components: "
           f"{'translucent' if not c.opaque else 'opaque'}, {'isotropic' if c.isotropic else 'anisotropic'}, "
           f"{'tinted' if c.tinted else 'untinted'}")
     print("losses: " + ", ".join(f"{k}={v:.4g}" for k, v in res.losses.items()))

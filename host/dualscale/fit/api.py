@@ -10,6 +10,7 @@ from dualscale.bsdf import Components
 from dualscale.errors import FormatError
 from dualscale.formats.atomic import remove_file, write_json
 from dualscale.formats.versioned import read_json
+from dualscale.threads import effective_threads
 
 from .core import FitResult, fit_observations, split_holdout
 from .io import save_fit
@@ -58,7 +59,8 @@ def fit_dataset(dataset: str | Path, out: str | Path, preset: str | Preset = "st
     res = fit_observations(train, p, comps, held_out=held, checkpoint=ck, checkpoint_every=checkpoint_every,
                            progress=progress, stop_after=stop_after, seed=seed)
     extra: dict[str, Any] = {"dataset": str(dataset), "lights": {"train_images": train.n,
-                                                                  "heldout_images": 0 if held is None else held.n}}
+                                                                  "heldout_images": 0 if held is None else held.n},
+                             "threads": effective_threads()}
     if gt is not None:
         from dualscale.formats.maps import load_maps
 

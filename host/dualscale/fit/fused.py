@@ -30,6 +30,7 @@ Threads: numba's pool, set on every call to the command's count (:func:`dualscal
 from __future__ import annotations
 
 import math
+import sys
 
 import numpy as np
 import torch
@@ -698,6 +699,26 @@ class Residuals(torch.autograd.Function):
         return ctx.prob.vjp(x, ctx.names, ctx.fixed, grad), None, None, None
 
 
+_ANNOUNCED: list[bool] = []
+
+
+def _announce_compile() -> None:
+    """Say once per process, on stderr, when the kernels are about to be compiled (no numba cache
+    for this version of the module yet): the first fit otherwise pauses for half a minute in
+    silence.  The compiled kernels are cached in this package's ``__pycache__``."""
+    if _ANNOUNCED:
+        return
+    _ANNOUNCED.append(True)
+    from pathlib import Path
+
+    here = Path(__file__)
+    line = normal_equations.py_func.__code__.co_firstlineno
+    index = here.parent / "__pycache__" / f"{here.stem}.normal_equations-{line}.py{sys.version_info[0]}{sys.version_info[1]}.nbi"
+    if not index.is_file() or index.stat().st_mtime < here.stat().st_mtime:
+        print("dualscale: compiling the fit's kernels (first run of this version only, about 30-60 s; numba caches "
+              f"them in {index.parent})", file=sys.stderr, flush=True)
+
+
 def _threads() -> None:
     """numba's pool at the command's thread count (``--threads``; else torch's), leaving torch's
     count as it is (starting numba's OpenMP pool would reset it)."""
@@ -734,6 +755,7 @@ class Problem:
     image rows ``(npix, 3N)`` and back-lit rows (built once per block and reused)."""
 
     def __init__(self, obs, images: Tensor, back: Tensor | None, comps: Components) -> None:
+        _announce_compile()
         h, w = obs.shape
         self.shape = (h, w)
         self.comps = comps
