@@ -12,7 +12,7 @@ with the eager kernel up to ``--eager-max``).  Per size and kernel: the fit's wa
 map errors against the ground truth and the held-out SSIM.  The marginal cost per pixel is the
 slope between consecutive sizes (what a bigger map adds); the fixed cost is the time of the
 smallest size.  A size above ``--eager-max`` (``--paper-max``) is fitted by the fused kernel
-only (paper: not at all): the eager `standard` costs about 12 ms per pixel on this machine.
+only (paper: not at all): the eager `standard` costs about 5 ms per pixel on this machine.
 """
 
 from __future__ import annotations
