@@ -566,6 +566,36 @@ def _flush(blk, wrb, q, a, g):
             a[i, j] += s
 
 
+@njit(inline="always", **JIT)
+def _pixel_start(x, p, view, flags, eta_const, cols):
+    """A pixel's setup for the Jacobian kernels: scratch, geometry, alphas and the coefficients."""
+    opaque = flags[2] != 0
+    geo, kc = np.empty(51), np.empty(NCONST)
+    rows, coef = np.empty((cols.shape[0], 3, 3), dtype=np.int64), np.empty((cols.shape[0], 3, 3))
+    al = _setup(x, p, view, flags, eta_const, geo, kc)
+    xp = x[p]
+    _coefficients(xp, kc, cols, opaque, rows, coef)
+    return geo, kc, al, xp, (1.0 if opaque else xp[13]), rows, coef
+
+
+@njit(inline="always", **JIT)
+def _block_weights(xp, kc, bas, opaque, op, src, p, k0, b, wv):
+    """``wv[c, q]`` = ``src[p, 3 (k0 + q) + c]`` (a row weight or an upstream gradient), 0 where
+    the render is clamped (> 2: no derivative, as torch's ``clamp``)."""
+    for c in range(3):
+        ac, tc, tt = xp[c], kc[20 + c], (0.0 if opaque else xp[10 + c])
+        for q in range(b):
+            o = (ac * bas[0, q] + tc * bas[1, q] + tt * bas[11, q]) * op
+            w = src[p, 3 * (k0 + q) + c]
+            wv[c, q] = w if o <= CLAMP else 0.0
+
+
+@njit(inline="always", **JIT)
+def _back_derivative(xp, back_wd, s, c):
+    """d(back-lit render, channel ``c``) / d(full slot ``s``): ``B = back_wd (T_c o + 1 - o)``."""
+    return back_wd * xp[13] if s == 10 + c else (back_wd * (xp[10 + c] - 1.0) if s == 13 else 0.0)
+
+
 @njit(parallel=True, **JIT)
 def normal_equations(x, cols, view, L, w_s, w_p, w_d, back, back_wd, flags, eta_const, r, sw, jtj, jtr):
     """Accumulate ``J^T W J (npix, P, P)`` and ``J^T W r (npix, P)`` (overwritten) from the
@@ -578,28 +608,19 @@ def normal_equations(x, cols, view, L, w_s, w_p, w_d, back, back_wd, flags, eta_
     iso, opaque = flags[0] != 0, flags[2] != 0
     has_back = back.shape[0] == npix
     for p in prange(npix):
-        geo, kc = np.empty(51), np.empty(NCONST)
+        geo, kc, al, xp, op, rows, coef = _pixel_start(x, p, view, flags, eta_const, cols)
         bas, wv = np.empty((12, LIGHT_BLOCK)), np.empty((3, LIGHT_BLOCK))
-        rows, coef = np.empty((P, 3, 3), dtype=np.int64), np.empty((P, 3, 3))
         jw, wr = np.empty((P, 3 * LIGHT_BLOCK)), np.empty(3 * LIGHT_BLOCK)
         row = np.empty(P)
         a, g = np.zeros((P, P)), np.zeros(P)
-        al = _setup(x, p, view, flags, eta_const, geo, kc)
-        xp = x[p]
-        op = 1.0 if opaque else xp[13]
-        _coefficients(xp, kc, cols, opaque, rows, coef)
         for k0 in range(0, n, LIGHT_BLOCK):
             k1 = min(n, k0 + LIGHT_BLOCK)
             b = k1 - k0
             _basis_lights(xp, geo, al, kc, L, view[p, 2], w_s, w_p, w_d, iso, opaque, k0, k1, bas)
-            for c in range(3):  # row weights; a clamped render (> 2) has no derivative
-                ac, tc, tt = xp[c], kc[20 + c], (0.0 if opaque else xp[10 + c])
+            _block_weights(xp, kc, bas, opaque, op, sw, p, k0, b, wv)
+            for c in range(3):
                 for q in range(b):
-                    o = (ac * bas[0, q] + tc * bas[1, q] + tt * bas[11, q]) * op
-                    w = sw[p, 3 * (k0 + q) + c]
-                    w = w if o <= CLAMP else 0.0
-                    wv[c, q] = w
-                    wr[c * b + q] = r[p, 3 * (k0 + q) + c] * w
+                    wr[c * b + q] = r[p, 3 * (k0 + q) + c] * wv[c, q]
             for i in range(P):
                 for c in range(3):
                     r0, r1, r2 = rows[i, c, 0], rows[i, c, 1], rows[i, c, 2]
@@ -614,8 +635,7 @@ def normal_equations(x, cols, view, L, w_s, w_p, w_d, back, back_wd, flags, eta_
                 if w == 0.0 or bk > CLAMP:
                     continue
                 for i in range(P):
-                    s = cols[i]
-                    row[i] = (back_wd * xp[13] if s == 10 + c else (back_wd * (xp[10 + c] - 1.0) if s == 13 else 0.0)) * w
+                    row[i] = _back_derivative(xp, back_wd, cols[i], c) * w
                 wrb = r[p, 3 * n + c] * w
                 for i in range(P):
                     g[i] += row[i] * wrb
@@ -637,24 +657,14 @@ def vector_jacobian(x, cols, view, L, w_s, w_p, w_d, back, back_wd, flags, eta_c
     iso, opaque = flags[0] != 0, flags[2] != 0
     has_back = back.shape[0] == npix
     for p in prange(npix):
-        geo, kc = np.empty(51), np.empty(NCONST)
+        geo, kc, al, xp, op, rows, coef = _pixel_start(x, p, view, flags, eta_const, cols)
         bas, wv = np.empty((12, LIGHT_BLOCK)), np.empty((3, LIGHT_BLOCK))
-        rows, coef = np.empty((P, 3, 3), dtype=np.int64), np.empty((P, 3, 3))
         g = np.zeros(P)
-        al = _setup(x, p, view, flags, eta_const, geo, kc)
-        xp = x[p]
-        op = 1.0 if opaque else xp[13]
-        _coefficients(xp, kc, cols, opaque, rows, coef)
         for k0 in range(0, n, LIGHT_BLOCK):
             k1 = min(n, k0 + LIGHT_BLOCK)
             b = k1 - k0
             _basis_lights(xp, geo, al, kc, L, view[p, 2], w_s, w_p, w_d, iso, opaque, k0, k1, bas)
-            for c in range(3):
-                ac, tc, tt = xp[c], kc[20 + c], (0.0 if opaque else xp[10 + c])
-                for q in range(b):
-                    o = (ac * bas[0, q] + tc * bas[1, q] + tt * bas[11, q]) * op
-                    w = grad[p, 3 * (k0 + q) + c]
-                    wv[c, q] = w if o <= CLAMP else 0.0
+            _block_weights(xp, kc, bas, opaque, op, grad, p, k0, b, wv)
             for i in range(P):
                 for c in range(3):
                     r0, r1, r2 = rows[i, c, 0], rows[i, c, 1], rows[i, c, 2]
@@ -666,9 +676,7 @@ def vector_jacobian(x, cols, view, L, w_s, w_p, w_d, back, back_wd, flags, eta_c
                 if bk > CLAMP:
                     continue
                 for i in range(P):
-                    s = cols[i]
-                    d = back_wd * xp[13] if s == 10 + c else (back_wd * (xp[10 + c] - 1.0) if s == 13 else 0.0)
-                    g[i] += d * grad[p, 3 * n + c]
+                    g[i] += _back_derivative(xp, back_wd, cols[i], c) * grad[p, 3 * n + c]
         for i in range(P):
             out[p, i] = g[i]
 
