@@ -63,7 +63,7 @@ def _refuse_foreign_model(model: Path, names: list[str], overwrite: bool) -> Non
 def cmd_export(args: argparse.Namespace) -> int:
     from dualscale.propagate.export import export_model
 
-    out = export_model(args.model, check=not args.no_check)
+    out = export_model(args.model, check=not args.no_check, int8=args.int8)
     print(json.dumps(out, indent=1))
     if "parity_fp32" in out and max(out["parity_fp32"].values()) >= 1e-4:
         import sys
@@ -82,6 +82,8 @@ def _onnx_for(model: Path, precision: str) -> Path:
     p32, p16 = onnx_paths(model)
     if not p32.is_file() or not p16.is_file() or p32.stat().st_mtime < model.stat().st_mtime:
         export_model(model, check=False)
+    if precision == "int8":  # the int8 file is opened (and checked) beside the fresh fp32 export
+        return p32
     if precision == "auto":
         import onnxruntime as ort
 
@@ -108,8 +110,12 @@ def cmd_run(args: argparse.Namespace) -> int:
         exposure = args.exposure if args.exposure == "auto" else float(args.exposure)
     except ValueError:
         raise InputError(f"--exposure {args.exposure!r}: use 'auto' or a positive gain") from None
+    if args.precision == "int8":  # the quantised export beside the model, checked against its fp32 export
+        net = OnnxModel.open(onnx if model.suffix == ".onnx" else model, threads, precision="int8")
+    else:
+        net = OnnxModel.open(onnx, threads)
     with output_folder(args, "propagate run", [args.model, args.guidance]):
-        summary = run_tiled(OnnxModel.open(onnx, threads), guidance, args.output,
+        summary = run_tiled(net, guidance, args.output,
                             args.tile, args.overlap, exposure, args.batch, want_progress(args))
     for w in summary["warnings"]:
         print(f"dualscale propagate run: warning: {w}", file=sys.stderr)
@@ -149,6 +155,9 @@ def register(subparsers) -> None:
     e = sub.add_parser("export", help="export a model to ONNX fp32 and fp16 and check parity")
     e.add_argument("model")
     e.add_argument("--no-check", action="store_true")
+    e.add_argument("--int8", action="store_true",
+                   help="also write MODEL.int8.onnx (dynamic int8 quantisation; slower than fp32 on this CPU, "
+                        "its loss per map is in docs/PROPAGATION.md)")
     e.set_defaults(fn=cmd_export)
 
     r = sub.add_parser("run", help="propagate maps over a guidance image (tiled, onnxruntime) to EXR")
@@ -164,8 +173,9 @@ def register(subparsers) -> None:
     r.add_argument("--tile", type=int, default=512)
     r.add_argument("--overlap", type=int, default=64)
     r.add_argument("--batch", type=int, default=1, help="tiles per onnxruntime call")
-    r.add_argument("--precision", choices=("auto", "fp32", "fp16"), default="auto",
-                   help="auto: fp16 on CUDA, fp32 on CPU")
+    r.add_argument("--precision", choices=("auto", "fp32", "fp16", "int8"), default="auto",
+                   help="auto: fp16 on CUDA, fp32 on CPU; int8: the export made by 'propagate export --int8' "
+                        "(refused when absent or stale)")
     r.add_argument("--exposure", default="auto", help="'auto' (match the training diffuse mean) or a gain")
     add_work_options(r, "onnxruntime (and torch/OpenCV) intra-op threads")
     r.set_defaults(fn=cmd_run)

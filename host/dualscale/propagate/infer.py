@@ -90,7 +90,7 @@ class OnnxModel:
                 raise InputError(f"{path}: not an ONNX file; pass precision= to open its export")
             path = onnx_path(path, precision)
         if not path.is_file():
-            how = (" (the int8 model is made by dualscale.propagate.export.export_model(MODEL, int8=True))"
+            how = (" (make it with 'dualscale propagate export MODEL --int8', or export_model(MODEL, int8=True))"
                    if precision == "int8" else " (export the model with 'dualscale propagate export')")
             raise InputError(f"ONNX model not found: {path}{how}")
         sess = session(path, threads, optimization)
