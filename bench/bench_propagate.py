@@ -228,10 +228,19 @@ def _uptime() -> str:
     return subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
 
 
-def stage_big(work: Path, repo: Path, model: str | None, configs: list[str], repeats: int, threads: int = 2) -> None:
+def _wait_quiet(below: float, most_s: float = 1800) -> None:
+    """Wait (at most ``most_s``) until the 1-min load average is under ``below`` (a shared machine)."""
+    t = time.time()
+    while float(load()) >= below and time.time() - t < most_s:
+        time.sleep(10)
+
+
+def stage_big(work: Path, repo: Path, model: str | None, configs: list[str], repeats: int, threads: int = 2,
+              quiet_below: float | None = None) -> None:
     """4072^2 fp32 (and int8): each configuration in a child process (``run_tiled`` from reading the
     guidance to the last file, ``ru_maxrss``), the configurations interleaved ``repeats`` times so
-    that a changing load hits them alike; medians, and every run's 1-min load."""
+    that a changing load hits them alike; medians, and every run's 1-min load.  ``quiet_below``:
+    before each run, wait until the 1-min load is under it (at most 30 min)."""
     import platform
     import statistics
 
@@ -244,6 +253,8 @@ def stage_big(work: Path, repo: Path, model: str | None, configs: list[str], rep
         for name in configs:
             c = {**BIG_CONFIGS[name], "model": str(m), "guidance": str(big), "out": str(work / f"big_{name}"),
                  "threads": threads}
+            if quiet_below:
+                _wait_quiet(quiet_below)
             l0 = load()
             res = subprocess.run([sys.executable, "-c", _BIG_CHILD, json.dumps(c)], check=True, capture_output=True,
                                  text=True, env={**os.environ, "OMP_WAIT_POLICY": "PASSIVE"})
@@ -251,12 +262,12 @@ def stage_big(work: Path, repo: Path, model: str | None, configs: list[str], rep
             d["load"] = float(l0)
             runs[name].append(d)
             print(f"  run {r + 1} {name}: {d['wall']:.1f} s, cpu {d['cpu']:.1f} s, {d['rss_gb']:.2f} GB, "
-                  f"load {l0}", file=sys.stderr)
+                  f"load {l0} -> {load()} ({time.strftime('%H:%M:%S')})", file=sys.stderr)
     print(f"end: {_uptime()}\n")
     med = {n: statistics.median(d["wall"] for d in v) for n, v in runs.items()}
     ref = med.get("before")
     print("| run | stream | tile (fitted) | graph opt. | precision | wall median [s] (min-max) | CPU median [s] | "
-          "peak RSS [GB] | before / run | 1-min load during |")
+          "peak RSS [GB] | before / run | 1-min load at the starts |")
     print("|---|---|---|---|---|---:|---:|---:|---:|---|")
     from dualscale.propagate.infer import TilePlan
 
@@ -630,6 +641,8 @@ def main() -> int:
     ap.add_argument("--big-model", help="model of the big/profile stages (default: see _big_inputs)")
     ap.add_argument("--big-configs", default="before,after,int8", help=f"runs of the big stage, of {list(BIG_CONFIGS)}")
     ap.add_argument("--big-repeats", type=int, default=3, help="rounds of the big stage (medians)")
+    ap.add_argument("--quiet-below", type=float, help="big stage: wait before each run until the 1-min load is "
+                    "under this (a shared machine)")
     ap.add_argument("--profile-rounds", type=int, default=2, help="rounds of the profile stage's per-tile timings")
     ap.add_argument("--warm-iterations", type=int, default=300)
     ap.add_argument("--warm-batch", type=int, default=8)
@@ -656,7 +669,7 @@ def main() -> int:
     if "profile" in st:
         stage_profile(work, repo, a.big_model, a.profile_rounds)
     if "big" in st:
-        stage_big(work, repo, a.big_model, a.big_configs.split(","), a.big_repeats)
+        stage_big(work, repo, a.big_model, a.big_configs.split(","), a.big_repeats, quiet_below=a.quiet_below)
     if "bridge-reg" in st:
         stage_bridge_registration(work)
     if "real" in st:
