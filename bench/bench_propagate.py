@@ -9,7 +9,7 @@ analyser), ``warm`` (train the generic warm-start model on plain/satin/denim), `
 ``seams`` (border vs interior error), ``big`` (4072^2 inference: the runs of ``--big-configs``,
 before and after issue 15 side by side, each in a child process, interleaved ``--big-repeats`` times;
 time, peak memory, int8's accuracy), ``profile`` (onnxruntime per op type and network part,
-optimisation levels, precisions, tile size against overlap; not in the default list), ``bridge-reg`` (locating the micro field in the guidance: error against the truth
+optimisation levels, precisions, tile size against overlap), ``bridge-reg`` (locating the micro field in the guidance: error against the truth
 from shifted priors) and ``bridge`` (propagation accuracy with the micro data resampled to the
 guidance texel vs trained at the micro texel on an enlarged guidance) and ``real`` (the warm-start
 model on the real fabric photos of ../shared/data/fabric-rt); the last three are not in the default
@@ -634,7 +634,7 @@ def stage_real(work: Path, repo: Path) -> None:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--work", default="/tmp/propbench")
-    ap.add_argument("--stages", default="prep,warm,presets,parity,seams,big")
+    ap.add_argument("--stages", default="prep,warm,presets,parity,seams,profile,big")
     ap.add_argument("--runs", default="quick,quick+warm,fast,fast+warm")
     ap.add_argument("--bridge-preset", default="fast", help="training preset of the bridge stage")
     ap.add_argument("--bridge-configs", default=",".join(BRIDGE_CONFIGS), help="test beds of the bridge stage")
