@@ -9,8 +9,8 @@ analyser), ``warm`` (train the generic warm-start model on plain/satin/denim), `
 ``seams`` (border vs interior error), ``big`` (4072^2 inference: the runs of ``--big-configs``,
 before and after issue 15 side by side, each in a child process, interleaved ``--big-repeats`` times;
 time, peak memory, int8's accuracy), ``profile`` (onnxruntime per op type and network part,
-optimisation levels, precisions, tile size against overlap), ``bridge-reg`` (locating the micro field in the guidance: error against the truth
-from shifted priors) and ``bridge`` (propagation accuracy with the micro data resampled to the
+optimisation levels, precisions, tile size against overlap), ``bridge-reg`` (locating the micro
+field in the guidance: error against the truth from shifted priors) and ``bridge`` (propagation accuracy with the micro data resampled to the
 guidance texel vs trained at the micro texel on an enlarged guidance) and ``real`` (the warm-start
 model on the real fabric photos of ../shared/data/fabric-rt); the last three are not in the default
 list.
