@@ -39,7 +39,7 @@ from torch import Tensor
 
 from dualscale.bsdf import Components
 from dualscale.bsdf.derivatives import (CHROMA_EPS, INV_PI, alphas_aniso_d, alphas_iso_d, diffuse_d,
-                                        fresnel_weighted_d, ggx_d_aniso_d, ggx_d_iso_d, schlick_weight_d,
+                                        fresnel_weighted_d, ggx_d_aniso_d, ggx_d_iso_d,
                                         smith_visibility_d)
 from dualscale.bsdf.vec import TINY
 from dualscale.threads import sync_numba
@@ -152,17 +152,10 @@ def _pixel_consts(xp, geo, al, eta, vx, vy, vz, iso, tinted, k):
     ax, ay, dax_r, dax_an, day_r, day_an = al
     nx, ny, nz = geo[0], geo[1], geo[2]
     cv = vx * nx + vy * ny + vz * nz
-    fv, dfv = schlick_weight_d(cv)
     vvx = vx * geo[9] + vy * geo[10] + vz * geo[11]
     vvy = vx * geo[12] + vy * geo[13] + vz * geo[14]
     a2v = ax * ax * (1.0 - cv * cv) if iso else (ax * vvx) ** 2 + (ay * vvy) ** 2
-    zv = max(cv, 0.0)
-    sv = math.sqrt(zv * zv + max(a2v, 0.0) + TINY)
-    amax = max(ax, ay)
-    k[0], k[1], k[2], k[3], k[4], k[5], k[6] = cv, fv, dfv, vvx, vvy, a2v, sv
-    k[7] = min(1.0 / (amax * amax), 1.0)  # the aniso D-bracket floor and its derivative there
-    k[8] = -2.0 / (ax * ax * ax) if (1.0 / (amax * amax) < 1.0 and ax >= ay) else 0.0
-    k[9] = -2.0 / (ay * ay * ay) if (1.0 / (amax * amax) < 1.0 and ax < ay) else 0.0
+    k[0], k[3], k[4], k[5] = cv, vvx, vvy, a2v  # (slots 1, 2, 6-9 unused)
     for j in range(3):  # d(v.n)/d(sx, sy); d(v.t), d(v.b) / d(sx, sy, tau)
         k[10 + j] = vx * geo[3 + 3 * j] + vy * geo[4 + 3 * j] + vz * geo[5 + 3 * j] if j < 2 else 0.0
         k[13 + j] = vx * geo[15 + 3 * j] + vy * geo[16 + 3 * j] + vz * geo[17 + 3 * j]
@@ -240,7 +233,7 @@ def _light_basis(k, L, ws, wp, wd, pc, iso, opaque):
     constants, :func:`_jacobian_lights`): ``clf wd G``, ``clf S``, ``clf wd dG/dr``, ``clf dS/dr``,
     ``clf dS/dan``, ``clf dS/dtau``, the normal's two (diffuse, specular) pairs, ``clf dS/deta``
     and the transmission factor, where ``clf`` is ``n.l`` on the lit front and 0 elsewhere."""
-    (ax, ay, nx, ny, nz, tx, ty, tz, bx, by, bz, cv, fv, dfv, vvx, vvy, a2v, sv, floor, fax, fay, dcv0,
+    (ax, ay, nx, ny, nz, tx, ty, tz, bx, by, bz, cv, vvx, vvy, a2v, dcv0,
      dcv1, dvx0, dvx1, dvx2, dvy0, dvy1, dvy2, dax_r, dax_an, day_r, day_an, eta, vx, vy, vz, rough, dn0x,
      dn0y, dn0z, dn1x, dn1y, dn1z, t0x, t0y, t0z, t1x, t1y, t1z, t2x, t2y, t2z, b0x, b0y, b0z, b1x, b1y,
      b1z, b2x, b2y, b2z) = pc
@@ -317,8 +310,8 @@ def _basis_lights(xp, geo, al, kc, L, vz, ws, wp, wd, iso, opaque, k0, k1, bas):
     LLVM vectorises them (at 12 its runtime alias checks exceed their limit and the loop stays
     scalar)."""
     ax, ay = al[0], al[1]
-    pc = (ax, ay, geo[0], geo[1], geo[2], geo[9], geo[10], geo[11], geo[12], geo[13], geo[14], kc[0], kc[1], kc[2],
-          kc[3], kc[4], kc[5], kc[6], kc[7], kc[8], kc[9], kc[10], kc[11], kc[13], kc[14], kc[15], kc[16], kc[17],
+    pc = (ax, ay, geo[0], geo[1], geo[2], geo[9], geo[10], geo[11], geo[12], geo[13], geo[14], kc[0],
+          kc[3], kc[4], kc[5], kc[10], kc[11], kc[13], kc[14], kc[15], kc[16], kc[17],
           kc[18], kc[35], kc[36], kc[37], kc[38], kc[39], kc[40], kc[41], vz, xp[3], geo[3], geo[4], geo[5], geo[6],
           geo[7], geo[8], geo[15], geo[16], geo[17], geo[18], geo[19], geo[20], geo[21], geo[22], geo[23], geo[33],
           geo[34], geo[35], geo[36], geo[37], geo[38], geo[39], geo[40], geo[41])
@@ -859,17 +852,3 @@ class Problem:
         normal_equations(full, cols, self.view, self.dirs, self.w_s, self.w_p, self.w_d, self.back, self.back_wd,
                          self.flags, self.eta, r2, sw2, jtj, jtr)
         return torch.from_numpy(jtj).reshape(*self.shape, p, p), torch.from_numpy(jtr).reshape(*self.shape, p)
-
-    def jacobian(self, x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor]) -> Tensor:
-        """The dense Jacobian ``(H, W, K, P)`` (tests and diagnostics only: it is what
-        :meth:`normal_equations` never stores), column by column through unit weights."""
-        r = self.residuals(x, names, fixed).double()
-        p = x.shape[-1]
-        h, w = self.shape
-        out = torch.zeros(h, w, self.k, p, dtype=torch.float64)
-        for k in range(self.k):  # J^T W J with W = e_k e_k^T is J_k^T J_k; J^T W r with r = 1 gives J_k
-            sw = torch.zeros(h, w, self.k, dtype=torch.float64)
-            sw[..., k] = 1.0
-            _, jtr = self.normal_equations(x, names, fixed, torch.ones_like(r), sw)
-            out[..., k, :] = jtr
-        return out
