@@ -45,7 +45,7 @@ $(VENV)/.stamp: pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q torch==2.13.0
-	$(PY) -m pip install -q -e '.[dev,cameras]'
+	$(PY) -m pip install -q -e '.[dev,cameras,dask]'
 	@touch $@
 
 # npm packages (package-lock.json): the glTF-Validator the tests run, and three.js, whose module

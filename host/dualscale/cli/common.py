@@ -221,3 +221,41 @@ def want_progress(args: argparse.Namespace) -> bool:
     """``--progress`` / ``--no-progress`` if given, else whether stderr is a terminal."""
     p = getattr(args, "progress", None)
     return sys.stderr.isatty() if p is None else bool(p)
+
+
+def add_engine_options(parser: argparse.ArgumentParser, workers_help: str, default_workers: int | None = None) -> None:
+    """Add ``--workers N``, ``--scheduler ADDRESS``, ``--cluster KIND`` and ``--cluster-config
+    FILE`` (:mod:`dualscale.engine`; they need the ``dask`` extra)."""
+    from dualscale.engine import CLUSTERS
+
+    g = parser.add_argument_group("cluster (Dask; pip install 'dualscale[dask]')")
+    g.add_argument("--workers", type=int, default=default_workers, metavar="N", help=workers_help)
+    g.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="an existing Dask scheduler (tcp://host:8786) and its workers, instead of a local cluster")
+    g.add_argument("--cluster", choices=list(CLUSTERS), default="local",
+                   help="'local' (worker processes on this machine, the default) or a batch system through "
+                        "dask-jobqueue (--workers jobs; settings in --cluster-config)")
+    g.add_argument("--cluster-config", default=None, metavar="YAML",
+                   help="dask-jobqueue settings for --cluster slurm/pbs/...: memory, cores, queue, walltime, "
+                        "account, job_extra_directives (docs/SCALE.md)")
+
+
+def engine_spec(args: argparse.Namespace):
+    """The :class:`dualscale.engine.EngineSpec` the engine options ask for, or ``None`` to run
+    in-process (no ``--workers`` above 1, no ``--scheduler``, no job-queue ``--cluster``).
+    Raises :class:`~dualscale.errors.InputError` for unusable values and
+    :class:`~dualscale.errors.ToolError` when a cluster is asked for without the ``dask`` extra."""
+    from dualscale.engine import EngineSpec, require
+
+    workers, scheduler = getattr(args, "workers", None), getattr(args, "scheduler", None)
+    cluster, config = getattr(args, "cluster", "local"), getattr(args, "cluster_config", None)
+    if workers is not None and workers < 1:
+        raise InputError(f"--workers must be at least 1, got {workers}")
+    if scheduler is None and cluster == "local" and (workers is None or workers <= 1):
+        if config is not None:
+            raise InputError("--cluster-config is for a job-queue cluster (--cluster slurm, pbs, ...)")
+        return None
+    spec = EngineSpec(workers=workers or 1, scheduler=scheduler, cluster=cluster,
+                      config=None if config is None else Path(config))
+    require("--scheduler" if scheduler else (f"--cluster {cluster}" if cluster != "local" else "--workers"))
+    return spec

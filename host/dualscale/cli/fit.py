@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 
 from .choices import FIT_KERNELS, FIT_PRESETS
-from .common import add_output, add_work_options, apply_threads, output_folder, want_progress
+from .common import add_engine_options, add_output, add_work_options, apply_threads, engine_spec, output_folder, want_progress
 
 _SWITCH = {"auto": None, "on": True, "off": False}
 
@@ -21,6 +21,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     from dualscale.errors import InputError
 
     apply_threads(args)
+    engine = engine_spec(args)
     preset = get_preset(args.preset)
     if args.ior_prior is not None:
         preset = replace(preset, ior_prior_sd=args.ior_prior)
@@ -41,12 +42,16 @@ def cmd_fit(args: argparse.Namespace) -> int:
         res, extra = fit_dataset(args.dataset, args.output, preset, overrides, holdout_every=args.holdout_every,
                                  progress=want_progress(args), checkpoint_every=args.checkpoint_every,
                                  restart=args.restart, stop_after=args.stop_after, seed=args.seed,
-                                 previews=not args.no_previews, gt=args.gt)
+                                 previews=not args.no_previews, gt=args.gt, engine=engine, tile_px=args.tile_px)
     c = res.comps
     print(f"preset {res.preset.name} (kernel {res.preset.kernel}, {extra['threads']} thread"
           f"{'' if extra['threads'] == 1 else 's'}): {res.iterations} iterations in {res.seconds:.1f} s; components: "
           f"{'translucent' if not c.opaque else 'opaque'}, {'isotropic' if c.isotropic else 'anisotropic'}, "
           f"{'tinted' if c.tinted else 'untinted'}")
+    if "tiled" in extra:
+        t = extra["tiled"]
+        print(f"tiled on {t['engine']}: {t['tiles']} tiles of {t['tile_px']} px"
+              + (f" ({t['resumed_tiles']} done before)" if t["resumed_tiles"] else ""))
     print("losses: " + ", ".join(f"{k}={v:.4g}" for k, v in res.losses.items()))
     if "ground_truth" in extra:
         print("vs ground truth: " + ", ".join(f"{k}={v:.4g}" for k, v in extra["ground_truth"]["errors"].items()))
@@ -114,6 +119,10 @@ def register(subparsers) -> None:
     f.add_argument("--seed", type=int, default=0)
     f.add_argument("--no-previews", action="store_true")
     add_work_options(f)
+    add_engine_options(f, "fit in pixel tiles on N local Dask worker processes, one thread each (LM presets; "
+                          "the same maps as one process; default: one process)")
+    f.add_argument("--tile-px", type=int, default=128, metavar="PX",
+                   help="side of a tile with --workers/--scheduler/--cluster (default 128; docs/SCALE.md)")
     f.set_defaults(fn=cmd_fit)
 
     s = subparsers.add_parser("study", help="studies of the micro fit")

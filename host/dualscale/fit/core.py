@@ -91,8 +91,7 @@ def fit_observations(obs: Observations, preset: Preset, comps: Components, *, he
                       checkpoint_every)
     resume = ck.load()
     if init is None and resume is None and preset.coarse_factor > 1:  # a resumed fit is past the coarse level
-        coarse = fit_observations(downsample(obs, preset.coarse_factor), coarse_preset(preset), comps, seed=seed)
-        init = start_from_coarse(coarse.maps, obs, preset, comps)
+        init = coarse_start(obs, preset, comps, seed)
     params = {k: v.clone() for k, v in (init if init is not None else initial_params(obs, comps)).items()}
     loop = Loop(fine_preset(preset), comps, ck, progress=progress, stop_after=stop_after)
     done0 = 0
@@ -113,11 +112,28 @@ def fit_observations(obs: Observations, preset: Preset, comps: Components, *, he
         raise
     loop.close()
     maps = to_maps({k: v.detach() for k, v in params.items()})
+    return FitResult(maps, comps, preset, preset.total, time.perf_counter() - t0, fit_losses(maps, comps, obs, held_out),
+                     loop.history, done0)
+
+
+def coarse_start(obs: Observations, preset: Preset, comps: Components, seed: int = 0) -> dict[str, Tensor]:
+    """The full-resolution start of a preset with a coarse level (``coarse_factor`` > 1): the
+    coarse fit of the box-downsampled ``obs`` (already strided to the preset's LEDs), upsampled
+    (:mod:`.pyramid`)."""
+    coarse = fit_observations(downsample(obs, preset.coarse_factor), coarse_preset(preset), comps, seed=seed)
+    return start_from_coarse(coarse.maps, obs, preset, comps)
+
+
+def fit_losses(maps: MaterialMaps, comps: Components, obs: Observations,
+               held_out: Observations | None = None) -> dict[str, float]:
+    """The fit's report figures: ``train_*`` (re-render errors on ``obs``, the fitted images)
+    and, with held-out lights, ``heldout_*`` and ``heldout_ssim``.  Raises ``RuntimeError`` for
+    non-finite maps (guarded by the optimisers; must never happen)."""
     losses = {f"train_{k}": v for k, v in image_losses(maps, comps, obs).items()}
     if held_out is not None and held_out.n:
         losses.update({f"heldout_{k}": v for k, v in image_losses(maps, comps, held_out).items()})
         losses["heldout_ssim"] = rerender_ssim(maps, comps, held_out)
     for name, t in maps.items():
         if not bool(torch.isfinite(t).all()):
-            raise RuntimeError(f"fit produced non-finite values in {name}")  # guarded above; must never happen
-    return FitResult(maps, comps, preset, preset.total, time.perf_counter() - t0, losses, loop.history, done0)
+            raise RuntimeError(f"fit produced non-finite values in {name}")
+    return losses

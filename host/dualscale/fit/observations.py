@@ -116,7 +116,8 @@ class Observations:
 
     def crop(self, y0: int, y1: int, x0: int, x1: int) -> "Observations":
         back = None if self.backlight is None else self.backlight[y0:y1, x0:x1]
-        return replace(self, images=self.images[:, y0:y1, x0:x1], backlight=back,
+        view = self.view[y0:y1, x0:x1] if self.view.ndim == 3 else self.view  # a per-pixel view (H, W, 3)
+        return replace(self, images=self.images[:, y0:y1, x0:x1], backlight=back, view=view,
                        valid=None if self.valid is None else self.valid[:, y0:y1, x0:x1],
                        back_valid=None if self.back_valid is None else self.back_valid[y0:y1, x0:x1])
 
@@ -127,7 +128,8 @@ class Observations:
         back = None if self.backlight is None else self.backlight.reshape(h * w, c)[flat_index].unsqueeze(0)
         valid = None if self.valid is None else self.valid.reshape(n, h * w)[:, flat_index].unsqueeze(1)
         bv = None if self.back_valid is None else self.back_valid.reshape(h * w)[flat_index].unsqueeze(0)
-        return replace(self, images=imgs, backlight=back, valid=valid, back_valid=bv)
+        view = self.view.reshape(h * w, 3)[flat_index].unsqueeze(0) if self.view.ndim == 3 else self.view
+        return replace(self, images=imgs, backlight=back, valid=valid, back_valid=bv, view=view)
 
     def to(self, dtype: torch.dtype) -> "Observations":
         """The same observations in floating type ``dtype`` (the masks stay bool)."""

@@ -1,0 +1,220 @@
+"""Where work runs beyond one process (issue 16): a Dask distributed cluster, or none.
+
+dualscale does not schedule work across processes itself; `Dask distributed
+<https://distributed.dask.org>`_ does.  This module only *chooses and opens* the cluster; the
+stages that can use one (the tiled fit, :mod:`dualscale.fit.tiled`; the batch,
+:mod:`dualscale.batch`) submit their tasks to the :class:`distributed.Client` it yields.
+
+**Clusters** (:data:`CLUSTERS`, a ``method=``-style registry; :class:`EngineSpec`):
+
+- ``local`` (the default): a ``distributed.LocalCluster`` of ``workers`` *processes* on this
+  machine, each with ``threads_per_worker`` threads (1 by default).  Every worker runs
+  :func:`dualscale.threads.set_threads` at the start of each task (:func:`in_worker`), so
+  torch, numba and OpenCV each use that many threads: N workers x 1 thread fill N cores without
+  oversubscription.  Killed worker processes are restarted by their nanny, and the scheduler
+  reruns the tasks they held on another worker (up to ``distributed.scheduler.allowed-failures``
+  times, 3 by default).
+- ``--scheduler ADDRESS`` (``tcp://host:8786``): an existing scheduler and its workers, started
+  by whoever runs the cluster (``dask scheduler`` / ``dask worker``, a Kubernetes operator ...).
+  The workers need dualscale and its dependencies installed, the same version.
+- ``slurm``, ``pbs``, ``sge``, ``lsf``, ``htcondor``: ``dask-jobqueue`` submits batch jobs that
+  start workers (``workers`` of them, ``cluster.scale(workers)``).  Its settings (``cores``,
+  ``memory``, ``queue``, ``walltime``, ``account``, ``job_extra_directives`` ...: the keyword
+  arguments of ``dask_jobqueue.SLURMCluster`` and its siblings) come from a small YAML file
+  (``--cluster-config``), else from Dask's own configuration (``~/.config/dask/jobqueue.yaml``).
+  ``job_script(spec)`` returns the batch script without submitting anything.
+
+**Without the extra** (``pip install dualscale[dask]``), :func:`available` is False and the
+commands run in-process as before; asking for a cluster then raises
+:class:`~dualscale.errors.ToolError` naming the extra.
+
+Bottom layer: imports nothing of dualscale but :mod:`dualscale.errors` and
+:mod:`dualscale.threads`; ``distributed`` only when a cluster is opened.
+"""
+
+from __future__ import annotations
+
+import logging
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterator
+
+from dualscale.errors import InputError, ToolError
+
+#: cluster kinds: ``local`` (distributed.LocalCluster) and the dask-jobqueue classes
+CLUSTERS: dict[str, str] = {"local": "LocalCluster", "slurm": "SLURMCluster", "pbs": "PBSCluster",
+                            "sge": "SGECluster", "lsf": "LSFCluster", "htcondor": "HTCondorCluster"}
+EXTRA = "pip install 'dualscale[dask]'"
+#: seconds to wait for a scheduler given by address, and for a cluster's first worker
+CONNECT_TIMEOUT_S = 30
+
+
+@dataclass(frozen=True)
+class EngineSpec:
+    """Which cluster to open.  ``workers``: worker processes (``local``) or jobs' workers
+    (jobqueue kinds; ignored for ``scheduler``), at least 1; ``threads_per_worker``: threads of
+    each worker *and* of the libraries in it; ``scheduler``: address of an existing scheduler
+    (takes precedence over ``cluster``); ``cluster``: a key of :data:`CLUSTERS`; ``config``: a
+    YAML file of keyword arguments for a jobqueue cluster.  Raises
+    :class:`~dualscale.errors.InputError` for values that cannot be used."""
+
+    workers: int = 1
+    threads_per_worker: int = 1
+    scheduler: str | None = None
+    cluster: str = "local"
+    config: Path | None = None
+
+    def __post_init__(self) -> None:
+        if isinstance(self.workers, bool) or not isinstance(self.workers, int) or self.workers < 1:
+            raise InputError(f"--workers must be a whole number >= 1, got {self.workers!r}")
+        if isinstance(self.threads_per_worker, bool) or not isinstance(self.threads_per_worker, int) \
+                or self.threads_per_worker < 1:
+            raise InputError(f"threads per worker must be a whole number >= 1, got {self.threads_per_worker!r}")
+        if self.cluster not in CLUSTERS:
+            raise InputError(f"--cluster {self.cluster!r}: choose one of {', '.join(CLUSTERS)}")
+        if self.config is not None:
+            object.__setattr__(self, "config", Path(self.config))
+            if self.cluster == "local" and self.scheduler is None:
+                raise InputError("--cluster-config is for a job-queue cluster (--cluster slurm, pbs, ...); "
+                                 "the local cluster takes --workers only")
+            if not self.config.is_file():
+                raise InputError(f"--cluster-config {self.config}: no such file")
+
+    @property
+    def describe(self) -> str:
+        """One line for logs and records: ``local (2 workers x 1 thread)``, ``scheduler tcp://...``."""
+        if self.scheduler is not None:
+            return f"scheduler {self.scheduler}"
+        return f"{self.cluster} ({self.workers} worker{'s' if self.workers != 1 else ''} x " \
+               f"{self.threads_per_worker} thread{'s' if self.threads_per_worker != 1 else ''})"
+
+
+def available() -> bool:
+    """Whether Dask distributed is installed (the ``dask`` extra)."""
+    try:
+        import distributed  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def require(what: str) -> None:
+    """Raise :class:`~dualscale.errors.ToolError` naming the extra unless :func:`available`
+    (``what``: the option or command that needs it, for the message)."""
+    if not available():
+        raise ToolError(f"{what} needs Dask distributed, which is not installed: {EXTRA}")
+
+
+def read_config(path: Path) -> dict[str, Any]:
+    """The keyword arguments in a ``--cluster-config`` YAML file (a mapping; an optional top-level
+    ``jobqueue:`` or cluster-kind key is unwrapped).  Raises :class:`~dualscale.errors.InputError`
+    for a file that is not such a mapping."""
+    import yaml
+
+    try:
+        doc = yaml.safe_load(Path(path).read_text())
+    except (OSError, yaml.YAMLError) as e:
+        raise InputError(f"--cluster-config {path}: not readable YAML ({e})") from None
+    if doc is None:
+        return {}
+    if not isinstance(doc, dict):
+        raise InputError(f"--cluster-config {path}: expected a mapping of cluster settings, got {type(doc).__name__}")
+    for key in ("jobqueue", *CLUSTERS):
+        if set(doc) == {key} and isinstance(doc[key], dict):
+            doc = doc[key]
+    bad = [k for k in doc if not isinstance(k, str)]
+    if bad:
+        raise InputError(f"--cluster-config {path}: setting names must be text, got {bad}")
+    return doc
+
+
+def _jobqueue_class(kind: str):
+    try:
+        import dask_jobqueue
+    except ImportError:
+        raise ToolError(f"--cluster {kind} needs dask-jobqueue, which is not installed: {EXTRA}") from None
+    return getattr(dask_jobqueue, CLUSTERS[kind])
+
+
+def _jobqueue_kwargs(spec: EngineSpec) -> dict[str, Any]:
+    kw = read_config(spec.config) if spec.config is not None else {}
+    kw.setdefault("processes", 1)  # one worker process per job ...
+    kw.setdefault("cores", spec.threads_per_worker)  # ... with this many threads
+    if "memory" not in kw:
+        import dask
+
+        if dask.config.get(f"jobqueue.{spec.cluster}.memory", None) is None:
+            raise InputError(f"--cluster {spec.cluster}: give the memory per job (e.g. 'memory: 8GiB') in "
+                             "--cluster-config or in Dask's jobqueue configuration")
+    return kw
+
+
+def jobqueue_cluster(spec: EngineSpec):
+    """A dask-jobqueue cluster object for ``spec`` (not yet scaled: no job is submitted).  Raises
+    :class:`~dualscale.errors.ToolError` without dask-jobqueue, :class:`~dualscale.errors.InputError`
+    for settings it refuses."""
+    cls = _jobqueue_class(spec.cluster)
+    try:
+        return cls(**_jobqueue_kwargs(spec))
+    except (TypeError, ValueError) as e:
+        raise InputError(f"--cluster {spec.cluster}: dask-jobqueue refuses the settings ({e})") from None
+
+
+def job_script(spec: EngineSpec) -> str:
+    """The batch script a jobqueue cluster would submit for one job of ``spec`` (nothing is
+    submitted; the cluster's local scheduler is closed again)."""
+    require(f"--cluster {spec.cluster}")
+    if spec.cluster == "local" or spec.scheduler is not None:
+        raise InputError("a job script exists for job-queue clusters only (--cluster slurm, pbs, ...)")
+    cluster = jobqueue_cluster(spec)
+    try:
+        return cluster.job_script()
+    finally:
+        cluster.close()
+
+
+def in_worker(threads: int) -> None:
+    """Call first in a task: :func:`dualscale.threads.set_threads` with the worker's thread count
+    (a worker restarted after a crash starts with the libraries' defaults again, so every task
+    sets it; the call costs microseconds)."""
+    import torch  # noqa: F401 - loaded so that set_threads reaches it
+
+    from dualscale.threads import set_threads
+
+    set_threads(threads)
+
+
+@contextmanager
+def connect(spec: EngineSpec) -> Iterator[Any]:
+    """Open the cluster of ``spec`` and yield a :class:`distributed.Client` on it; closes the
+    cluster (not a scheduler given by address) on exit.  Raises
+    :class:`~dualscale.errors.ToolError` without the ``dask`` extra or when the scheduler cannot
+    be reached."""
+    require("--workers/--scheduler/--cluster" if spec.cluster == "local" else f"--cluster {spec.cluster}")
+    import dask
+    from distributed import Client, LocalCluster
+
+    cluster = None
+    with dask.config.set({"distributed.worker.daemon": False,  # a stage may start its own processes
+                          "distributed.logging.distributed": "error"}):
+        if spec.scheduler is not None:
+            try:
+                client = Client(spec.scheduler, timeout=CONNECT_TIMEOUT_S)
+            except (OSError, TimeoutError) as e:
+                raise ToolError(f"--scheduler {spec.scheduler}: no Dask scheduler answers there ({e})") from None
+        elif spec.cluster == "local":
+            cluster = LocalCluster(n_workers=spec.workers, threads_per_worker=spec.threads_per_worker,
+                                   processes=True, dashboard_address=":0",  # a free port: never 8787 taken
+                                   silence_logs=logging.ERROR)
+            client = Client(cluster)
+        else:
+            cluster = jobqueue_cluster(spec)
+            cluster.scale(spec.workers)
+            client = Client(cluster)
+        try:
+            yield client
+        finally:
+            client.close()
+            if cluster is not None:
+                cluster.close()

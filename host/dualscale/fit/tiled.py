@@ -1,0 +1,225 @@
+"""The per-pixel fit in tiles, as Dask tasks (issue 16; ``dualscale fit --workers N``).
+
+The model has no spatial coupling (supplementary Sec. 4: every texel's SVBSDF is fitted to its
+own pixel's observations), so the LM presets fit each pixel as its own problem
+(:mod:`.lm`).  The map is cut into ``tile x tile`` pixel tiles; each tile's observations go to
+a worker as one task, which runs :func:`.core.fit_observations` on them and returns the tile's
+maps; the driver stitches them into the full maps and computes the report figures
+(:func:`.core.fit_losses`) on the whole map, as the single-process fit does.
+
+**Same result.**  Everything a tile's fit computes is per pixel: the start (photometric stereo,
+the grid start), the LM step, the L1 reweighting, the median likelihood scale, the shadow test,
+the accept test.  What is not is done once, by the driver, on the whole map, before the tiles:
+
+- the component decision (:func:`.select.select_components`, on a sample of pixels), so every
+  tile fits the same model;
+- a preset's coarse level (``coarse-to-fine``): the coarse fit and its upsampling look across
+  tile borders, so the driver runs them and each tile starts from its crop of the result;
+- the bright-albedo check of :func:`.init.check_albedo_range` (a share of all pixels).
+
+The stitched maps equal the single-process fit's bit for bit (``tests/fit/test_tiled.py`` checks
+every LM preset); the loss history, a report only, is the pixel-weighted mean of the tiles'.
+
+**Adam presets** (``paper``, ``adam-fast``) are refused: their loss is the mean over the whole
+map (and its valid samples), and Adam's step depends on the gradient's scale through its
+``eps``, so a tile's steps would differ from the whole map's (docs/SCALE.md).
+
+**Faults.**  A tile's task holds its data (no scattered futures), so when the worker running it
+dies the scheduler reruns it on another worker (``distributed.scheduler.allowed-failures``).
+**Resuming.**  Each finished tile is saved at once to ``state/<y0>_<x0>.pt`` with the fit's
+fingerprint; a rerun submits only the tiles not yet saved.  **Memory and data movement.**  At
+most ``2 x workers`` tiles are in flight; a task carries its tile's images (``K x tile^2 x 3``
+float32) and returns its maps (``tile^2 x ~20`` float32).
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from dualscale.bsdf import Components, MaterialMaps
+from dualscale.errors import FormatError, InputError
+from dualscale.formats.atomic import remove_file
+from dualscale.formats.torchfile import load_torch, save_torch
+from dualscale.progress import Progress, tracker
+
+from .checkpoint import fingerprint
+from .core import FitResult, coarse_start, fit_losses, fit_observations, stride_leds
+from .init import check_albedo_range, photometric_stereo
+from .observations import Observations
+from .presets import Preset
+
+#: default tile side in pixels (docs/SCALE.md: the size that amortises Dask's per-task overhead)
+TILE = 128
+#: tiles in flight per worker (bounds the driver's and the workers' memory)
+INFLIGHT_PER_WORKER = 2
+
+
+def tiles(shape: tuple[int, int], tile: int) -> list[tuple[int, int, int, int]]:
+    """``(y0, y1, x0, x1)`` of the ``tile x tile`` tiles covering a ``(H, W)`` map, row by row;
+    the last row and column are cut short.  Raises :class:`~dualscale.errors.InputError` for a
+    tile side below 1."""
+    if isinstance(tile, bool) or not isinstance(tile, int) or tile < 1:
+        raise InputError(f"--tile-px must be a whole number >= 1, got {tile!r}")
+    h, w = shape
+    return [(y, min(y + tile, h), x, min(x + tile, w)) for y in range(0, h, tile) for x in range(0, w, tile)]
+
+
+def check_tileable(preset: Preset) -> None:
+    """Raise :class:`~dualscale.errors.InputError` for a preset whose fit couples the pixels (the
+    Adam presets: module doc)."""
+    if preset.optimizer != "lm":
+        raise InputError(f"--workers: preset {preset.name!r} ({preset.optimizer}) fits the whole map with one "
+                         "mean loss, so it cannot be split into tiles with the same result; use an LM preset "
+                         "(standard, draft, coarse-to-fine) or run it in one process (docs/SCALE.md)")
+
+
+def fit_tile(obs: Observations, preset: Preset, comps: Components, init: dict[str, Tensor] | None, seed: int,
+             threads: int) -> dict[str, Any]:
+    """The task: fit one tile's observations (``fit_observations`` with no held-out lights, no
+    checkpoint) on ``threads`` threads; returns ``{"maps": {name: (h, w, C) float32},
+    "history": [(iteration, step, mean cost)], "pixels": h * w}``."""
+    from dualscale.engine import in_worker
+
+    in_worker(threads)
+    with warnings.catch_warnings():  # the driver checks the albedo range on the whole map
+        warnings.filterwarnings("ignore", message=r".*Lambertian albedo", category=RuntimeWarning)
+        res = fit_observations(obs, preset, comps, seed=seed, init=init)
+    return {"maps": dict(res.maps.items()), "history": list(res.history), "pixels": obs.shape[0] * obs.shape[1]}
+
+
+def _fingerprint(obs: Observations, preset: Preset, comps: Components, seed: int, tile: int) -> str:
+    sample = obs.images.flatten()[:: max(1, obs.images.numel() // 4096)]
+    valid = torch.zeros(1) if obs.valid is None else obs.valid.sum(dim=(1, 2))
+    return fingerprint(kind="tiled fit", preset=asdict(preset), comps=asdict(comps), seed=seed, tile=tile,
+                       ids=obs.led_ids, sample=sample, sums=obs.images.sum(dim=(1, 2, 3)), valid=valid,
+                       shape=list(obs.shape), back=obs.backlight if obs.backlight is not None else torch.zeros(1))
+
+
+def _tile_path(state: Path, box: tuple[int, int, int, int]) -> Path:
+    return state / f"{box[0]:05d}_{box[2]:05d}.pt"
+
+
+def _load_done(state: Path | None, key: str, boxes: list[tuple[int, int, int, int]]) -> dict[tuple, dict]:
+    """The tiles saved by an earlier run of the same fit; a tile of another fit is refused."""
+    done: dict[tuple, dict] = {}
+    if state is None or not state.is_dir():
+        return done
+    for box in boxes:
+        p = _tile_path(state, box)
+        if not p.is_file():
+            continue
+        rec = load_torch(p, "fit tile", "delete the tiles folder or pass --restart", weights_only=False)
+        if not isinstance(rec, dict) or rec.get("fingerprint") != key or tuple(rec.get("box", ())) != box:
+            raise FormatError(f"{p}: a tile of a different fit (data, preset, components or tile size changed); "
+                              "delete the folder or pass --restart")
+        done[box] = rec
+    return done
+
+
+def _crop_init(init: dict[str, Tensor] | None, box: tuple[int, int, int, int]) -> dict[str, Tensor] | None:
+    if init is None:
+        return None
+    y0, y1, x0, x1 = box
+    return {k: v[y0:y1, x0:x1].clone() for k, v in init.items()}
+
+
+def _stitch(shape: tuple[int, int], parts: dict[tuple, dict]) -> MaterialMaps:
+    first = next(iter(parts.values()))["maps"]
+    full = {k: torch.empty((*shape, v.shape[-1]), dtype=v.dtype) for k, v in first.items()}
+    for (y0, y1, x0, x1), rec in parts.items():
+        for k, v in rec["maps"].items():
+            full[k][y0:y1, x0:x1] = v
+    return MaterialMaps(**full)
+
+
+def _history(parts: dict[tuple, dict]) -> list[tuple[int, str, float]]:
+    """Per iteration, the pixel-weighted mean of the tiles' mean costs."""
+    recs = list(parts.values())
+    total = sum(r["pixels"] for r in recs)
+    out = []
+    for i, (done, step, _) in enumerate(recs[0]["history"]):
+        out.append((done, step, sum(r["history"][i][2] * r["pixels"] for r in recs) / total))
+    return out
+
+
+def fit_tiled(obs: Observations, preset: Preset, comps: Components, client, *,
+              held_out: Observations | None = None, tile: int = TILE, threads: int = 1, seed: int = 0,
+              state: str | Path | None = None, progress: Progress = None) -> tuple[FitResult, dict[str, Any]]:
+    """:func:`.core.fit_observations` of ``obs`` with ``preset`` and ``comps``, as one Dask task
+    per ``tile x tile`` pixel tile on ``client`` (a :class:`distributed.Client`), each worker
+    using ``threads`` threads; ``state``: folder of the finished tiles (resuming: module doc);
+    ``progress`` counts tiles.  Returns the :class:`.core.FitResult` of the whole map (its
+    ``seconds`` is the wall time here) and a record for ``fit.json``: ``{"tile_px", "tiles",
+    "resumed_tiles", "workers"}``.
+
+    Raises :class:`~dualscale.errors.InputError` for an Adam preset (:func:`check_tileable`) or a
+    bad tile side, :class:`~dualscale.errors.FormatError` for a saved tile of another fit; a
+    task's own error is raised here as it was raised in the worker."""
+    from distributed import as_completed
+
+    check_tileable(preset)
+    t0 = time.perf_counter()
+    boxes = tiles(obs.shape, tile)
+    strided = stride_leds(obs, preset.led_stride)
+    key = _fingerprint(strided, preset, comps, seed, tile)
+    state = None if state is None else Path(state)
+    parts = _load_done(state, key, boxes)
+    resumed = len(parts)
+    init = coarse_start(strided, preset, comps, seed) if preset.coarse_factor > 1 and len(parts) < len(boxes) else None
+    if preset.coarse_factor <= 1:  # else start_from_coarse ran the check already, on the whole map
+        check_albedo_range(strided, photometric_stereo(strided)[1])
+    todo = [b for b in boxes if b not in parts]
+    n_workers = max(1, len(client.scheduler_info(n_workers=-1).get("workers", {})))
+    limit = INFLIGHT_PER_WORKER * n_workers
+
+    def submit(box):
+        y0, y1, x0, x1 = box
+        return client.submit(fit_tile, strided.crop(y0, y1, x0, x1), preset, comps, _crop_init(init, box), seed,
+                             threads, key=f"dualscale-fit-tile-{key}-{y0}-{x0}", pure=False)
+
+    with tracker(progress, len(boxes), f"fit[{preset.name}] tiles", unit="tile") as bar:
+        bar.update(resumed)
+        queue = list(todo)
+        futures = {}
+        for box in queue[:limit]:
+            futures[submit(box)] = box
+        queue = queue[limit:]
+        pending = as_completed(list(futures))
+        for fut in pending:
+            box = futures.pop(fut)
+            rec = fut.result()
+            fut.release()
+            rec["box"] = box
+            if state is not None:
+                save_torch(_tile_path(state, box), {**rec, "fingerprint": key})
+            parts[box] = rec
+            bar.update(1, f"tile {box[0]},{box[2]}")
+            if queue:
+                nxt = queue.pop(0)
+                f = submit(nxt)
+                futures[f] = nxt
+                pending.add(f)
+    maps = _stitch(obs.shape, {b: parts[b] for b in boxes})
+    res = FitResult(maps, comps, preset, preset.total, time.perf_counter() - t0,
+                    fit_losses(maps, comps, strided, held_out), _history({b: parts[b] for b in boxes}))
+    return res, {"tile_px": tile, "tiles": len(boxes), "resumed_tiles": resumed, "workers": n_workers}
+
+
+def clear_state(state: str | Path) -> None:
+    """Remove the finished tiles of a completed fit (and the folder when it is empty)."""
+    state = Path(state)
+    if not state.is_dir():
+        return
+    for p in state.glob("*.pt"):
+        remove_file(p)
+    try:
+        state.rmdir()
+    except OSError:
+        pass

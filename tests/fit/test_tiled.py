@@ -1,0 +1,182 @@
+"""The tiled fit on a local Dask cluster (issue 16): the same maps as one process, bit for bit;
+a worker killed mid-tile is survived; finished tiles are resumed; what cannot be tiled is
+refused."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import threading
+import time
+from dataclasses import replace
+
+import pytest
+import torch
+
+pytest.importorskip("distributed", reason="the dask extra is not installed (pip install 'dualscale[dask]')")
+
+from dualscale.engine import EngineSpec, connect  # noqa: E402
+from dualscale.errors import FormatError, InputError, ToolError  # noqa: E402
+from dualscale.fit.core import fit_observations  # noqa: E402
+from dualscale.fit.observations import load_observations  # noqa: E402
+from dualscale.fit.params import fit_components  # noqa: E402
+from dualscale.fit.presets import get_preset  # noqa: E402
+from dualscale.fit.tiled import fit_tiled, tiles  # noqa: E402
+
+
+
+@pytest.fixture(scope="module")
+def client():
+    with connect(EngineSpec(workers=2)) as c:
+        yield c
+
+
+def synth(root, material, size, extra=()):
+    from dualscale.cli import main
+
+    assert main(["synth", material, "-o", str(root), "--size", str(size), "--texel-um", "9", "--dataset",
+                 "--no-previews", "--no-progress", *extra]) == 0
+    return root
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    base = tmp_path_factory.mktemp("tiled")
+    out = {}
+    out["twill"] = load_observations(synth(base / "twill", "twill", 24, extra=("--lights", "mod3")) / "micro")
+    # translucent, with cast shadows and samples set aside (as clipping would): back-lit image and
+    # valid masks
+    sheer = load_observations(synth(base / "sheer", "sheer", 20, extra=("--lights", "mod3", "--shadows")) / "micro")
+    assert sheer.backlight is not None
+    g = torch.Generator().manual_seed(1)
+    out["sheer"] = replace(sheer, valid=torch.rand(sheer.images.shape[:3], generator=g) > 0.1,
+                           back_valid=torch.rand(sheer.shape, generator=g) > 0.1)
+    return out
+
+
+def _equal(a, b) -> None:
+    for (k, v), (k2, w) in zip(a, b, strict=True):
+        assert k == k2
+        assert torch.equal(v, w), f"{k}: max |diff| {(v - w).abs().max().item()}"
+
+
+def test_tiles_cover_the_map_once():
+    boxes = tiles((10, 7), 4)
+    cover = torch.zeros(10, 7, dtype=torch.int32)
+    for y0, y1, x0, x1 in boxes:
+        cover[y0:y1, x0:x1] += 1
+    assert bool((cover == 1).all()) and len(boxes) == 6
+    with pytest.raises(InputError, match="tile-px"):
+        tiles((10, 7), 0)
+
+
+@pytest.mark.parametrize("name,preset,comps", [
+    ("twill", "standard", fit_components(True, False, False)),
+    ("twill", "coarse-to-fine", fit_components(True, False, True)),
+    ("sheer", "draft", fit_components(False, True, False)),
+])
+def test_tiled_fit_equals_the_single_process_fit_bit_for_bit(client, data, name, preset, comps):
+    obs = data[name]
+    p = get_preset(preset)
+    one = fit_observations(obs, p, comps)
+    tiled, info = fit_tiled(obs, p, comps, client, tile=7)  # edge tiles cut short
+    assert info["tiles"] == len(tiles(obs.shape, 7)) and info["workers"] == 2
+    _equal(one.maps.items(), tiled.maps.items())
+    assert tiled.losses == one.losses
+    assert [h[:2] for h in tiled.history] == [h[:2] for h in one.history]
+
+
+def test_adam_presets_are_refused(client, data):
+    with pytest.raises(InputError, match="mean loss"):
+        fit_tiled(data["twill"], get_preset("adam-fast"), fit_components(True, True, False), client)
+
+
+def test_finished_tiles_are_resumed_and_foreign_ones_refused(client, data, tmp_path):
+    obs, comps, p = data["twill"], fit_components(True, True, False), get_preset("draft")
+    state = tmp_path / "tiles"
+    seen = []
+
+    def stop_after_two(done, total, what):
+        seen.append(done)
+        if done == 2:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        fit_tiled(obs, p, comps, client, tile=12, state=state, progress=stop_after_two)
+    assert len(list(state.glob("*.pt"))) == 2
+    res, info = fit_tiled(obs, p, comps, client, tile=12, state=state)
+    assert info["resumed_tiles"] == 2 and info["tiles"] == 4
+    _equal(fit_observations(obs, p, comps).maps.items(), res.maps.items())
+    with pytest.raises(FormatError, match="different fit"):
+        fit_tiled(obs, replace(p, shadow_ratio=0.3), comps, client, tile=12, state=state)
+
+
+def test_a_worker_killed_mid_tile_is_survived(data, tmp_path):
+    """SIGKILL the worker process that is fitting a tile: the scheduler reruns the tile on the
+    other worker (or the nanny's restarted one), and the maps are still the single-process fit's."""
+    obs, comps, p = data["twill"], fit_components(True, False, False), get_preset("standard")
+    with connect(EngineSpec(workers=2)) as c:
+        pids = c.run(os.getpid)
+        out: dict = {}
+
+        def run():
+            try:
+                out["res"] = fit_tiled(obs, p, comps, c, tile=12)
+            except BaseException as e:  # noqa: BLE001 - reported below
+                out["error"] = e
+
+        t = threading.Thread(target=run)
+        t.start()
+        killed = None
+        deadline = time.monotonic() + 120
+        while killed is None and time.monotonic() < deadline and t.is_alive():
+            busy = [w for w, keys in c.processing().items() if any("fit-tile" in str(k) for k in keys)]
+            if busy:
+                killed = pids[busy[0]]
+                os.kill(killed, signal.SIGKILL)
+            else:
+                time.sleep(0.02)
+        t.join(300)
+        assert killed is not None, "no worker was seen fitting a tile"
+        assert "error" not in out, out.get("error")
+        assert killed not in c.run(os.getpid).values()  # the killed process is gone (restarted by its nanny)
+    res, info = out["res"]
+    _equal(fit_observations(obs, p, comps).maps.items(), res.maps.items())
+
+
+def test_fit_cli_with_workers_and_with_a_scheduler_address(client, datasets, tmp_path, capsys):
+    from dualscale.cli import main
+    from dualscale.formats.maps import load_maps
+
+    ds = datasets("twill", 16) / "micro"
+    common = ["--preset", "draft", "--anisotropy", "on", "--tint", "off", "--transmittance", "off",
+              "--no-previews", "--no-progress", "--threads", "1"]
+    assert main(["fit", str(ds), "-o", str(tmp_path / "one"), *common]) == 0
+    assert main(["fit", str(ds), "-o", str(tmp_path / "two"), *common, "--workers", "2", "--tile-px", "8"]) == 0
+    assert "tiled on local (2 workers x 1 thread): 4 tiles of 8 px" in capsys.readouterr().out
+    addr = client.scheduler.address
+    assert main(["fit", str(ds), "-o", str(tmp_path / "addr"), *common, "--scheduler", addr]) == 0
+    one, _ = load_maps(tmp_path / "one")
+    for run in ("two", "addr"):
+        other, _ = load_maps(tmp_path / run)
+        _equal(one.items(), other.items())
+        rec = json.loads((tmp_path / run / "fit.json").read_text())
+        assert rec["tiled"]["tiles"] >= 1 and not (tmp_path / run / "tiles").exists()
+    assert json.loads((tmp_path / "addr" / "fit.json").read_text())["tiled"]["engine"] == f"scheduler {addr}"
+
+
+def test_fit_cli_refuses_what_it_cannot_tile(datasets, tmp_path, capsys, monkeypatch):
+    from dualscale.cli import main
+
+    ds = datasets("twill", 16) / "micro"
+    assert main(["fit", str(ds), "-o", str(tmp_path / "a"), "--preset", "paper", "--workers", "2"]) == 2
+    assert "mean loss" in capsys.readouterr().err
+    assert main(["fit", str(ds), "-o", str(tmp_path / "b"), "--workers", "2", "--tile-px", "0"]) == 2
+    assert main(["fit", str(ds), "-o", str(tmp_path / "c"), "--workers", "0"]) == 2
+    import dualscale.engine as engine
+
+    monkeypatch.setattr(engine, "available", lambda: False)
+    assert main(["fit", str(ds), "-o", str(tmp_path / "d"), "--workers", "2"]) == ToolError.exit_code
+    assert "pip install 'dualscale[dask]'" in capsys.readouterr().err
+    assert not any((tmp_path / x).exists() for x in "abcd")
