@@ -91,6 +91,7 @@ class DigitizeOptions:
     export: tuple[str, ...] = ("exr", "mtlx", "gltf", "glb", "u3m")
     tile: bool = False
     name: str | None = None
+    engine: Any = None  # a dualscale.engine.EngineSpec: the fit stage runs in tiles on that cluster
 
     def __post_init__(self) -> None:
         self.input, self.run = Path(self.input), Path(self.run)
@@ -110,6 +111,11 @@ class DigitizeOptions:
             check_name(self.name)
         if self.until is not None and self.until not in STAGES:
             raise InputError(f"--until {self.until!r}: choose one of {', '.join(STAGES)}")
+        if self.engine is not None:
+            from dualscale.fit.presets import get_preset
+            from dualscale.fit.tiled import check_tileable
+
+            check_tileable(get_preset(QUALITIES[self.quality].fit_preset))
 
 
 @dataclass
@@ -320,7 +326,8 @@ class Digitizer:
         obs = load_observations(self.dataset)
         res, extra = fit_dataset(self.dataset, work / "maps", self.quality.fit_preset,
                                  holdout_every=self.quality.holdout_every, progress=self.opts.progress,
-                                 seed=self.opts.seed, obs=obs, checkpoint_every=CHECKPOINT_EVERY)
+                                 seed=self.opts.seed, obs=obs, checkpoint_every=CHECKPOINT_EVERY,
+                                 engine=self.opts.engine)
         train, held = split_holdout(obs, self.quality.holdout_every)
         write_exr(work / "residual.exr", residual_map(res.maps, res.comps, train).numpy()[..., None], ("Y",))
         summary: dict[str, Any] = {
@@ -473,7 +480,9 @@ class Digitizer:
 
 
 def _options_json(o: DigitizeOptions) -> dict[str, Any]:
-    return {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(o).items() if k not in ("run",)}
+    out = {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(o).items() if k not in ("run", "engine")}
+    out["engine"] = None if o.engine is None else o.engine.describe
+    return out
 
 
 @dataclass

@@ -141,3 +141,31 @@ def test_outputs_get_the_usual_file_mode(sample, tmp_path):
     for f in (run / "run.json", run / "stages" / "calibrate.json", run / "calibrate" / "dataset" / "manifest.json"):
         assert f.stat().st_mode & 0o777 == 0o644, f
     assert (run / "calibrate").stat().st_mode & 0o777 == 0o755
+
+
+def test_digitize_fits_in_tiles_on_workers_with_the_same_maps(sample, tmp_path, capsys):
+    """``--workers 2``: the fit stage runs in tiles on a local Dask cluster (issue 16); its maps
+    are the in-process stage's bit for bit, so its record is the same and a rerun without
+    ``--workers`` skips it."""
+    pytest.importorskip("distributed", reason="the dask extra is not installed")
+    from dualscale.formats.maps import load_maps
+
+    one, two = tmp_path / "one", tmp_path / "two"
+    assert _digitize(sample, one, "--until", "fit") == 0
+    assert _digitize(sample, two, "--until", "fit", "--workers", "2") == 0
+    fit = json.loads((two / "fit" / "maps" / "fit.json").read_text())
+    assert fit["tiled"]["engine"].startswith("local (2 workers") and fit["tiled"]["tiles"] >= 1
+    a, _ = load_maps(one / "fit" / "maps")
+    b, _ = load_maps(two / "fit" / "maps")
+    import torch
+
+    for (k, v), (_, w) in zip(a.items(), b.items(), strict=True):
+        assert torch.equal(v, w), k
+    assert _records(one)["fit"]["params"] == _records(two)["fit"]["params"]
+    capsys.readouterr()
+    assert _digitize(sample, two, "--until", "fit") == 0
+    out = capsys.readouterr().out
+    assert "fit        up to date" in out and "calibrate  up to date" in out, out
+    assert main(["digitize", str(sample / "micro"), "-o", str(tmp_path / "paper"), "--quality", "paper",
+                 "--workers", "2", "--no-progress"]) == 2
+    assert "mean loss" in capsys.readouterr().err and not (tmp_path / "paper").exists()

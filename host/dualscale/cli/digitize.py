@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from .choices import QUALITIES, STAGES
-from .common import add_output, add_work_options, apply_threads, output_folder, want_progress
+from .common import add_engine_options, add_output, add_work_options, apply_threads, engine_spec, output_folder, want_progress
 
 
 def _line(st) -> str:
@@ -37,6 +37,7 @@ def cmd_digitize(a: argparse.Namespace) -> int:
     opts = DigitizeOptions(input=inp, run=a.output, calibration=a.calibration, guidance=a.guidance,
                            guidance_transfer=a.transfer, guidance_texel_mm=a.guidance_texel_mm, quality=a.quality,
                            until=a.until, threads=apply_threads(a), progress=want_progress(a), seed=a.seed,
+                           engine=engine_spec(a),
                            export=tuple(parse_formats(a.export, '--export')), tile=a.tile, name=a.name)
     def start() -> None:
         print(f"digitize {opts.input} -> {opts.run} (quality {opts.quality})", flush=True)
@@ -110,4 +111,6 @@ def register(sub) -> None:
 
     add_capture_options(d)
     add_work_options(d)
+    add_engine_options(d, "run the fit stage in pixel tiles on N local Dask worker processes (the same maps; "
+                          "draft and standard quality; default: one process; docs/SCALE.md)")
     d.set_defaults(fn=cmd_digitize)

@@ -1,0 +1,105 @@
+"""dualscale.engine and the cluster options (issue 16): what is refused, the job script
+dask-jobqueue makes for SLURM (nothing is submitted: no batch system here), a scheduler that
+does not answer."""
+
+from __future__ import annotations
+
+import argparse
+
+import pytest
+
+from dualscale.engine import EngineSpec, read_config
+from dualscale.errors import InputError, ToolError
+
+
+def _args(*argv: str) -> argparse.Namespace:
+    from dualscale.cli.common import add_engine_options
+
+    p = argparse.ArgumentParser()
+    add_engine_options(p, "workers")
+    return p.parse_args(list(argv))
+
+
+def test_spec_refuses_what_it_cannot_use(tmp_path):
+    for bad in (0, -1, 1.5, True):
+        with pytest.raises(InputError, match="--workers"):
+            EngineSpec(workers=bad)
+    with pytest.raises(InputError, match="--cluster 'k8s'"):
+        EngineSpec(cluster="k8s")
+    with pytest.raises(InputError, match="no such file"):
+        EngineSpec(cluster="slurm", config=tmp_path / "missing.yaml")
+    with pytest.raises(InputError, match="job-queue"):
+        EngineSpec(workers=2, config=__file__)
+    assert EngineSpec(workers=2).describe == "local (2 workers x 1 thread)"
+    assert EngineSpec(scheduler="tcp://h:8786").describe == "scheduler tcp://h:8786"
+
+
+def test_engine_options_map_to_a_spec_or_to_in_process():
+    from dualscale.cli.common import engine_spec
+
+    assert engine_spec(_args()) is None and engine_spec(_args("--workers", "1")) is None
+    pytest.importorskip("distributed", reason="the dask extra is not installed")
+    assert engine_spec(_args("--workers", "3")) == EngineSpec(workers=3)
+    assert engine_spec(_args("--scheduler", "tcp://x:1")).scheduler == "tcp://x:1"
+    with pytest.raises(InputError, match="at least 1"):
+        engine_spec(_args("--workers", "0"))
+    with pytest.raises(InputError, match="job-queue"):
+        engine_spec(_args("--cluster-config", __file__))
+
+
+def test_without_the_extra_a_cluster_is_a_missing_tool(monkeypatch):
+    import dualscale.engine as engine
+    from dualscale.cli.common import engine_spec
+
+    monkeypatch.setattr(engine, "available", lambda: False)
+    assert engine_spec(_args()) is None  # in-process, as without the extra
+    with pytest.raises(ToolError, match=r"pip install 'dualscale\[dask\]'"):
+        engine_spec(_args("--workers", "2"))
+
+
+def test_cluster_config_is_a_mapping(tmp_path):
+    p = tmp_path / "c.yaml"
+    p.write_text("slurm:\n  memory: 8GiB\n  queue: short\n")
+    assert read_config(p) == {"memory": "8GiB", "queue": "short"}
+    p.write_text("- a\n- b\n")
+    with pytest.raises(InputError, match="mapping"):
+        read_config(p)
+    p.write_text("memory: [unclosed\n")
+    with pytest.raises(InputError, match="not readable YAML"):
+        read_config(p)
+
+
+def test_slurm_job_script_from_a_small_config(tmp_path):
+    """dask-jobqueue's own SLURMCluster writes the script (not submitted)."""
+    pytest.importorskip("dask_jobqueue", reason="the dask extra is not installed")
+    from dualscale.engine import job_script
+
+    cfg = tmp_path / "slurm.yaml"
+    cfg.write_text("memory: 6GiB\nqueue: fabrics\nwalltime: '02:00:00'\naccount: lab42\n"
+                   "job_extra_directives: ['--exclusive']\n")
+    script = job_script(EngineSpec(workers=4, cluster="slurm", config=cfg))
+    for line in ("#SBATCH -p fabrics", "#SBATCH -A lab42", "#SBATCH -t 02:00:00", "#SBATCH --exclusive",
+                 "#SBATCH -n 1", "--nthreads 1"):
+        assert line in script, script
+    assert "--memory-limit 6.00GiB" in script or "6.00GiB" in script
+    cfg.write_text("queue: fabrics\n")
+    with pytest.raises(InputError, match="memory per job"):
+        job_script(EngineSpec(cluster="slurm", config=cfg))
+    cfg.write_text("memory: 1GiB\nno_such_setting: 3\n")
+    with pytest.raises(InputError, match="refuses the settings"):
+        job_script(EngineSpec(cluster="slurm", config=cfg))
+
+
+def test_a_scheduler_that_does_not_answer_is_a_clear_error(monkeypatch):
+    pytest.importorskip("distributed", reason="the dask extra is not installed")
+    import socket
+
+    import dualscale.engine as engine
+
+    with socket.socket() as s:  # a port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    monkeypatch.setattr(engine, "CONNECT_TIMEOUT_S", 2)
+    with pytest.raises(ToolError, match=f"--scheduler tcp://127.0.0.1:{port}: no Dask scheduler"):
+        with engine.connect(EngineSpec(scheduler=f"tcp://127.0.0.1:{port}")):
+            pass
