@@ -112,5 +112,5 @@ def register(sub) -> None:
     add_capture_options(d)
     add_work_options(d)
     add_engine_options(d, "run the fit stage in pixel tiles on N local Dask worker processes (the same maps; "
-                          "draft and standard quality; default: one process; docs/SCALE.md)")
+                          "default: one process; docs/SCALE.md)")
     d.set_defaults(fn=cmd_digitize)

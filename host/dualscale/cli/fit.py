@@ -119,7 +119,7 @@ def register(subparsers) -> None:
     f.add_argument("--seed", type=int, default=0)
     f.add_argument("--no-previews", action="store_true")
     add_work_options(f)
-    add_engine_options(f, "fit in pixel tiles on N local Dask worker processes, one thread each (LM presets; "
+    add_engine_options(f, "fit in pixel tiles on N local Dask worker processes, one thread each ("
                           "the same maps as one process; default: one process)")
     f.add_argument("--tile-px", type=int, default=128, metavar="PX",
                    help="side of a tile with --workers/--scheduler/--cluster (default 128; docs/SCALE.md)")

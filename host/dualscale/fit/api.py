@@ -39,7 +39,7 @@ def fit_dataset(dataset: str | Path, out: str | Path, preset: str | Preset = "st
     recorded).  The maps carry the dataset's texel size.
 
     ``engine``: fit in ``tile_px`` pixel tiles on that Dask cluster (:mod:`.tiled`; the same
-    maps as in-process; LM presets only); finished tiles are kept in ``out/tiles/`` until the
+    maps as in-process); finished tiles are kept in ``out/tiles/`` until the
     fit completes, so an interrupted tiled fit resumes.  ``fit.json`` then records the engine,
     the tiling and the workers.
     """

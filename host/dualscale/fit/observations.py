@@ -43,6 +43,32 @@ from dualscale.errors import InputError
 from dualscale.formats.dataset import Dataset, read_dataset, resolve_root
 
 
+@dataclass(frozen=True)
+class WholeMap:
+    """Sample counts of the whole map that a tile was cut from (:mod:`.tiled`): the Adam loss
+    is a mean over the whole map, so a tile divides its sum by these counts and its pixels get
+    the whole map's gradients.  ``pixels``: ``H * W``; ``counts``: ``(N,)`` float64 valid samples
+    per image (``None``: every sample valid); ``back``: valid back-lit pixels (``None``: all)."""
+
+    pixels: int
+    counts: Tensor | None = None
+    back: float | None = None
+
+    @classmethod
+    def of(cls, obs: "Observations") -> "WholeMap":
+        h, w = obs.shape
+        counts = None if obs.valid is None else obs.valid.sum(dim=(1, 2)).to(torch.float64)
+        back = None if obs.back_valid is None else float(obs.back_valid.sum())
+        return cls(h * w, counts, back)
+
+    def led_samples(self, n: int) -> float:
+        """Valid LED samples (pixels) over the ``n`` images of the (selected) observations."""
+        return float(self.pixels * n) if self.counts is None else float(self.counts.sum())
+
+    def back_samples(self) -> float:
+        return float(self.pixels) if self.back is None else self.back
+
+
 @dataclass
 class Observations:
     """LED images ``(N, H, W, 3)`` with directions ``(N, 3)`` and weights ``(N,)``, plus an
@@ -62,6 +88,7 @@ class Observations:
     view: Tensor | None = None
     valid: Tensor | None = None
     back_valid: Tensor | None = None
+    whole: WholeMap | None = None  # set on a tile of a tiled Adam fit (WholeMap)
 
     def __post_init__(self) -> None:
         if self.view is None:
@@ -106,7 +133,9 @@ class Observations:
         idx = torch.as_tensor(index, dtype=torch.long)
         return replace(self, images=self.images[idx], dirs=self.dirs[idx], w_s=self.w_s[idx], w_p=self.w_p[idx],
                        w_d=self.w_d[idx], led_ids=self.led_ids[idx],
-                       valid=None if self.valid is None else self.valid[idx])
+                       valid=None if self.valid is None else self.valid[idx],
+                       whole=self.whole if self.whole is None or self.whole.counts is None
+                       else replace(self.whole, counts=self.whole.counts[idx]))
 
     def select_leds(self, leds: set[int] | list[int], keep: bool = True) -> "Observations":
         """Images of the given LED ids (``keep=False``: all the others)."""

@@ -17,7 +17,7 @@ from dualscale.bsdf import Components
 
 from . import fused
 from .loop import Loop
-from .observations import Observations
+from .observations import Observations, WholeMap
 from .params import project, to_maps
 from .render import render_back, render_leds
 
@@ -28,30 +28,41 @@ def l1_loss(params: dict[str, Tensor], fixed: dict[str, Tensor], comps: Componen
     maps = to_maps(params, fixed)
     r = (render_leds(maps, comps, obs) - images).abs()
     h, w = obs.shape
+    whole = obs.whole
     if obs.valid is None and obs.back_valid is None:
         err = r.sum()
         if back is not None:
             err = err + back_weight * (render_back(maps, comps, obs) - back).abs().sum()
-        return err / (h * w * 3 * (obs.n + (back_weight if back is not None else 0.0)))
+        hw = h * w if whole is None else whole.pixels
+        return err / (hw * 3 * (obs.n + (back_weight if back is not None else 0.0)))
     v = obs.valid.to(r.dtype) if obs.valid is not None else torch.ones(r.shape[:3], dtype=r.dtype)
-    err, count = (r * v.unsqueeze(-1)).sum(), 3.0 * v.sum()
+    vs = v.sum() if whole is None else torch.tensor(whole.led_samples(obs.n), dtype=r.dtype)
+    err, count = (r * v.unsqueeze(-1)).sum(), 3.0 * vs
     if back is not None:
         bv = (obs.back_valid if obs.back_valid is not None else torch.ones((h, w), dtype=torch.bool)).to(r.dtype)
         err = err + back_weight * ((render_back(maps, comps, obs) - back).abs() * bv.unsqueeze(-1)).sum()
-        count = count + back_weight * 3.0 * bv.sum()
+        bs = bv.sum() if whole is None else torch.tensor(whole.back_samples(), dtype=r.dtype)
+        count = count + back_weight * 3.0 * bs
     return err / count.clamp(min=1.0)
 
 
 def fused_l1_loss(params: dict[str, Tensor], fixed: dict[str, Tensor], prob: fused.Problem,
-                  back_weight: float) -> Tensor:
+                  back_weight: float, whole: WholeMap | None = None) -> Tensor:
     """:func:`l1_loss` through the fused kernel (:class:`.fused.Residuals`: numba renders, the
-    gradient by its analytic derivatives); ``prob`` holds the step's (or batch's) images."""
+    gradient by its analytic derivatives); ``prob`` holds the step's (or batch's) images;
+    ``whole``: the whole map's counts when ``prob`` is a tile's (its ``n`` images)."""
     names = tuple(params)
     r = fused.Residuals.apply(torch.cat([params[k] for k in names], -1), prob, names, fixed)
     c = torch.from_numpy(prob.row_weights(back_weight)).to(r.dtype).expand_as(r)
     if prob.valid.shape[0]:
         c = c * torch.from_numpy(prob.valid).to(r.dtype).reshape(r.shape)
-    return (r.abs() * c).sum() / c.sum().clamp(min=1.0)
+    if whole is None:
+        den = c.sum()
+    else:  # the sum of c over the whole map: 1 per valid LED row, back_weight per valid back-lit row
+        n_led = prob.rows.shape[1] // 3
+        back = back_weight * 3.0 * whole.back_samples() if prob.k > prob.rows.shape[1] else 0.0
+        den = torch.tensor(3.0 * whole.led_samples(n_led) + back, dtype=r.dtype)
+    return (r.abs() * c).sum() / den.clamp(min=1.0)
 
 
 def _problem(data, o: Observations, imgs: Tensor, comps: Components, full: bool) -> fused.Problem:
@@ -83,7 +94,7 @@ def run_adam(params: dict[str, Tensor], comps: Components, obs: Observations, lo
             opt.zero_grad(set_to_none=True)
             if preset.kernel == "fused":
                 prob = _problem(data, o, imgs, comps, o is data.obs)
-                loss = fused_l1_loss({k: params[k] for k in free}, fixed, prob, preset.back_weight)
+                loss = fused_l1_loss({k: params[k] for k in free}, fixed, prob, preset.back_weight, o.whole)
             else:
                 loss = l1_loss({k: params[k] for k in free}, fixed, comps, o, imgs, data.back, preset.back_weight)
             loss.backward()

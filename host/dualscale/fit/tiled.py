@@ -18,11 +18,25 @@ the accept test.  What is not is done once, by the driver, on the whole map, bef
 - the bright-albedo check of :func:`.init.check_albedo_range` (a share of all pixels).
 
 The stitched maps equal the single-process fit's bit for bit (``tests/fit/test_tiled.py`` checks
-every LM preset); the loss history, a report only, is the pixel-weighted mean of the tiles'.
+every preset); the loss history, a report only, is assembled from the tiles' (:func:`_history`).
 
-**Adam presets** (``paper``, ``adam-fast``) are refused: their loss is the mean over the whole
-map (and its valid samples), and Adam's step depends on the gradient's scale through its
-``eps``, so a tile's steps would differ from the whole map's (docs/SCALE.md).
+**Adam presets** (``paper``, ``adam-fast``) fit every pixel with one optimiser whose loss is
+the *mean* over the whole map's valid samples; Adam's step depends on the gradient's scale
+(through its ``eps``), so a tile must use the whole map's mean, not its own.  Each tile's
+observations carry the whole map's sample counts (:class:`.observations.WholeMap`), by which
+the loss divides its sum: every pixel then gets the same gradient as in the whole-map fit, and
+the light batches, drawn from the same seeded generator, are the same in every tile.  The
+counts are exact integers, so the maps are bit for bit the same while the whole map's float32
+sum of its valid samples is exact (fewer than 2^24 = 16.7 million samples: a 512^2 map with 64
+images); above that the single-process mean rounds its denominator and the tiles' (exact) one
+can differ from it in the last bit (docs/SCALE.md).
+
+**Kernels.**  Tiles run the fused kernel only (every built-in preset's default but
+``standard-compiled``).  The eager and compiled reference kernels go through torch's CPU
+kernels, which may round a pixel's float32 result differently with the size of the tensor it
+sits in (vectorised body or tail, matrix-product blocking); the LM presets' forward differences
+then amplify one unit in the last place into the step (measured: maps 5e-6 to 1e-5 apart after
+a short fit), so they are refused rather than merely close (:func:`check_tileable`).
 
 **Faults.**  A tile's task holds its data (no scattered futures), so when the worker running it
 dies the scheduler reruns it on another worker (``distributed.scheduler.allowed-failures``).
@@ -36,7 +50,7 @@ from __future__ import annotations
 
 import time
 import warnings
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
@@ -52,7 +66,7 @@ from dualscale.progress import Progress, tracker
 from .checkpoint import fingerprint
 from .core import FitResult, coarse_start, fit_losses, fit_observations, stride_leds
 from .init import check_albedo_range, photometric_stereo
-from .observations import Observations
+from .observations import Observations, WholeMap
 from .presets import Preset
 
 #: default tile side in pixels (docs/SCALE.md: the size that amortises Dask's per-task overhead)
@@ -72,12 +86,12 @@ def tiles(shape: tuple[int, int], tile: int) -> list[tuple[int, int, int, int]]:
 
 
 def check_tileable(preset: Preset) -> None:
-    """Raise :class:`~dualscale.errors.InputError` for a preset whose fit couples the pixels (the
-    Adam presets: module doc)."""
-    if preset.optimizer != "lm":
-        raise InputError(f"--workers: preset {preset.name!r} ({preset.optimizer}) fits the whole map with one "
-                         "mean loss, so it cannot be split into tiles with the same result; use an LM preset "
-                         "(standard, draft, coarse-to-fine) or run it in one process (docs/SCALE.md)")
+    """Raise :class:`~dualscale.errors.InputError` unless ``preset`` runs the fused kernel (module
+    doc: only it gives the single-process maps bit for bit)."""
+    if preset.kernel != "fused":
+        raise InputError(f"--workers: the {preset.kernel} kernel (preset {preset.name}) rounds a pixel differently "
+                         "with the tile's size, so its tiles would not reproduce the one-process maps; the tiled "
+                         "fit runs --kernel fused (the presets' default) (docs/SCALE.md)")
 
 
 def fit_tile(obs: Observations, preset: Preset, comps: Components, init: dict[str, Tensor] | None, seed: int,
@@ -139,13 +153,15 @@ def _stitch(shape: tuple[int, int], parts: dict[tuple, dict]) -> MaterialMaps:
     return MaterialMaps(**full)
 
 
-def _history(parts: dict[tuple, dict]) -> list[tuple[int, str, float]]:
-    """Per iteration, the pixel-weighted mean of the tiles' mean costs."""
+def _history(parts: dict[tuple, dict], mean_over_whole: bool) -> list[tuple[int, str, float]]:
+    """Per iteration, the whole map's loss: the sum of the tiles' losses when each is already
+    divided by the whole map's counts (Adam), else the pixel-weighted mean of their mean costs."""
     recs = list(parts.values())
-    total = sum(r["pixels"] for r in recs)
+    total = 1.0 if mean_over_whole else sum(r["pixels"] for r in recs)
     out = []
     for i, (done, step, _) in enumerate(recs[0]["history"]):
-        out.append((done, step, sum(r["history"][i][2] * r["pixels"] for r in recs) / total))
+        out.append((done, step, sum(r["history"][i][2] * (1.0 if mean_over_whole else r["pixels"])
+                                    for r in recs) / total))
     return out
 
 
@@ -159,8 +175,9 @@ def fit_tiled(obs: Observations, preset: Preset, comps: Components, client, *,
     ``seconds`` is the wall time here) and a record for ``fit.json``: ``{"tile_px", "tiles",
     "resumed_tiles", "workers"}``.
 
-    Raises :class:`~dualscale.errors.InputError` for an Adam preset (:func:`check_tileable`) or a
-    bad tile side, :class:`~dualscale.errors.FormatError` for a saved tile of another fit; a
+    Raises :class:`~dualscale.errors.InputError` for a kernel other than the fused one
+    (:func:`check_tileable`) or a bad tile side,
+    :class:`~dualscale.errors.FormatError` for a saved tile of another fit; a
     task's own error is raised here as it was raised in the worker."""
     from distributed import as_completed
 
@@ -168,6 +185,9 @@ def fit_tiled(obs: Observations, preset: Preset, comps: Components, client, *,
     t0 = time.perf_counter()
     boxes = tiles(obs.shape, tile)
     strided = stride_leds(obs, preset.led_stride)
+    adam = preset.optimizer == "adam"
+    if adam:  # each tile divides by the whole map's sample counts (module doc)
+        strided = replace(strided, whole=WholeMap.of(strided))
     key = _fingerprint(strided, preset, comps, seed, tile)
     state = None if state is None else Path(state)
     parts = _load_done(state, key, boxes)
@@ -208,7 +228,7 @@ def fit_tiled(obs: Observations, preset: Preset, comps: Components, client, *,
                 pending.add(f)
     maps = _stitch(obs.shape, {b: parts[b] for b in boxes})
     res = FitResult(maps, comps, preset, preset.total, time.perf_counter() - t0,
-                    fit_losses(maps, comps, strided, held_out), _history({b: parts[b] for b in boxes}))
+                    fit_losses(maps, comps, strided, held_out), _history({b: parts[b] for b in boxes}, adam))
     return res, {"tile_px": tile, "tiles": len(boxes), "resumed_tiles": resumed, "workers": n_workers}
 
 
