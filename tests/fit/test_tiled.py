@@ -92,6 +92,18 @@ def test_tiled_fit_equals_the_single_process_fit_bit_for_bit(client, data, name,
     assert [h[2] for h in tiled.history] == pytest.approx([h[2] for h in one.history], rel=1e-5)
 
 
+def test_a_task_ships_its_tile_not_the_whole_map(data):
+    """A crop is a view; pickled as is, it would carry the whole map's images to every task."""
+    import pickle
+
+    from dualscale.fit.tiled import _own
+
+    obs = data["sheer"]
+    whole = len(pickle.dumps(obs))
+    tile = len(pickle.dumps(_own(obs.crop(0, 5, 0, 5))))
+    assert tile < whole / 10, (tile, whole)
+
+
 @pytest.mark.parametrize("kernel", ["eager", "compiled"])
 def test_reference_kernels_are_refused(client, data, kernel):
     """Their tiles would differ from the one-process fit in the last bits (module doc of

@@ -137,6 +137,16 @@ def _load_done(state: Path | None, key: str, boxes: list[tuple[int, int, int, in
     return done
 
 
+def _own(obs: Observations) -> Observations:
+    """``obs`` with every per-pixel tensor copied into storage of its own: a crop is a view, and
+    pickling a view ships its whole base storage (the whole map's images) with every task."""
+    def own(t):
+        return None if t is None else t.clone()
+
+    return replace(obs, images=own(obs.images), backlight=own(obs.backlight), valid=own(obs.valid),
+                   back_valid=own(obs.back_valid), view=own(obs.view))
+
+
 def _crop_init(init: dict[str, Tensor] | None, box: tuple[int, int, int, int]) -> dict[str, Tensor] | None:
     if init is None:
         return None
@@ -201,7 +211,7 @@ def fit_tiled(obs: Observations, preset: Preset, comps: Components, client, *,
 
     def submit(box):
         y0, y1, x0, x1 = box
-        return client.submit(fit_tile, strided.crop(y0, y1, x0, x1), preset, comps, _crop_init(init, box), seed,
+        return client.submit(fit_tile, _own(strided.crop(y0, y1, x0, x1)), preset, comps, _crop_init(init, box), seed,
                              threads, key=f"dualscale-fit-tile-{key}-{y0}-{x0}", pure=False)
 
     with tracker(progress, len(boxes), f"fit[{preset.name}] tiles", unit="tile") as bar:
