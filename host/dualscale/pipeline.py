@@ -456,27 +456,45 @@ class Digitizer:
         index = write_run_report(self.run, out=work)
         return {"index": str(Path("report") / index.relative_to(work))}
 
-    def digitize(self, on_stage: Callable[[StageResult], None] | None = None) -> RunResult:
-        """Run (or skip) every stage up to ``until``; returns what each did."""
+    def begin(self) -> list[str]:
+        """Create the run folder and write its ``run.json``; returns the names of the stages to
+        run (up to ``until``), in order.  Then call :meth:`stage` for each, then :meth:`end`
+        (what :meth:`digitize` does; ``dualscale batch`` calls them one stage per task)."""
         self.run.mkdir(parents=True, exist_ok=True)
         names = list(STAGES if self.opts.until is None else STAGES[:STAGES.index(self.opts.until) + 1])
         write_run(self.run, {"input": str(self.opts.input), "options": _options_json(self.opts),
                              "stages": names})
+        return names
+
+    def stage(self, name: str) -> StageResult:
+        """Run (or skip, when up to date) the stage ``name`` of :data:`STAGES`; the stages before
+        it must have finished (their records are its inputs)."""
+        if name not in STAGES:
+            raise InputError(f"stage {name!r}: choose one of {', '.join(STAGES)}")
+        return getattr(self, name)()
+
+    def end(self) -> None:
+        """Remove the run's ``work/`` folder once every stage has moved its work out of it."""
+        work = self.run / "work"
+        if work.is_dir() and not any(work.iterdir()):
+            work.rmdir()
+
+    def digitize(self, on_stage: Callable[[StageResult], None] | None = None) -> RunResult:
+        """Run (or skip) every stage up to ``until``; returns what each did."""
+        names = self.begin()
         result = RunResult(self.run)
         bar = _Progress(names, self.opts.progress)
         try:
             for i, name in enumerate(names, 1):
                 bar.start(name, i, len(names))
-                st = getattr(self, name)()
+                st = self.stage(name)
                 result.stages.append(st)
                 bar.done(name)
                 if on_stage is not None:
                     on_stage(st)
         finally:
             bar.close()
-        work = self.run / "work"
-        if work.is_dir() and not any(work.iterdir()):
-            work.rmdir()
+        self.end()
         return result
 
 
