@@ -146,6 +146,9 @@ def build_parser() -> argparse.ArgumentParser:
     from .digitize import register as register_digitize
 
     register_digitize(sub)
+    from .batch import register as register_batch
+
+    register_batch(sub)
     from .lights import register as register_lights
 
     register_lights(sub)
