@@ -136,9 +136,10 @@ def test_a_rerun_skips_every_finished_stage(cluster_run, batch_list):
     assert table[0]["up_to_date"] == ";".join(STAGES)
 
 
-def test_in_process_gives_the_same_results(cluster_run, batch_list, tmp_path):
+def test_in_process_gives_the_same_results(cluster_run, batch_list, sample, tmp_path, capsys):
     """``--workers 1``: no Dask; the same stages, records and maps (bit for bit), the same summary
-    figures; ``--progress`` counts samples x stages."""
+    figures; ``--progress`` counts samples x stages; and a sample's folder is the run folder of
+    ``digitize`` with the row's options."""
     import torch
 
     from dualscale.formats.maps import load_maps
@@ -162,6 +163,12 @@ def test_in_process_gives_the_same_results(cluster_run, batch_list, tmp_path):
             if r1 is not None:
                 assert r1["params"] == r2["params"] and r1["outputs"] == r2["outputs"]
     assert one["coarse"]["error"].split(":")[0] == two["coarse"]["error"].split(":")[0] == "InputError"
+    # a sample's run folder is digitize's: the same command finds every stage up to date
+    capsys.readouterr()
+    assert main(["digitize", str(sample / "micro"), "-o", str(out / "a"), "--quality", "draft", "--export", "exr,gltf",
+                 "--seed", "0", "--name", "a", "--threads", "1", "--no-progress"]) == 0
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("  ")]
+    assert len(lines) == len(STAGES) and all(ln.split(None, 1)[1].startswith("up to date") for ln in lines), lines
     for name in GOOD:
         m1, _ = load_maps(out / name / "fit" / "maps")
         m2, _ = load_maps(cluster_run["out"] / name / "fit" / "maps")
