@@ -373,13 +373,13 @@ def _quiet_exit() -> None:
 
 
 def stage_task(sample: Sample, outdir: str, stage: str, threads: int | None,
-               previous: dict[str, Any] | None = None, worker: bool = False) -> dict[str, Any]:
+               previous: dict[str, Any] | None = None, quiet_exit: bool = False) -> dict[str, Any]:
     """The task of one stage of one sample: :func:`dualscale.engine.in_worker` (``threads``
     threads; ``None``: leave them), then :class:`~dualscale.pipeline.Digitizer` of the sample
     and its stage ``stage`` (:meth:`~dualscale.pipeline.Digitizer.begin` before the first,
     :meth:`~dualscale.pipeline.Digitizer.end` after the last).  ``previous``: what the task of
-    the stage before returned; when it did not finish, this stage is ``not run``; ``worker``:
-    the task runs in a Dask worker process (:func:`_quiet_exit`).
+    the stage before returned; when it did not finish, this stage is ``not run``;
+    ``quiet_exit``: the task runs in a worker process of our own local cluster (:func:`_quiet_exit`).
 
     Returns ``{"stage", "status": "done" | "up to date" | "failed" | "not run", "seconds"
     (this task's wall time), "record_seconds" (the stage's time in its record), "warnings",
@@ -387,7 +387,7 @@ def stage_task(sample: Sample, outdir: str, stage: str, threads: int | None,
     ``"traceback"``.  Never raises for the stage's own errors (they are the result)."""
     if previous is not None and previous.get("status") not in ("done", "up to date"):
         return {"stage": stage, "status": "not run", "seconds": None}
-    if worker:
+    if quiet_exit:
         _quiet_exit()
     t0 = time.perf_counter()
     try:
@@ -457,12 +457,15 @@ def _settle(result: SampleResult) -> None:
 
 
 def run_batch(samples: list[Sample], outdir: str | Path, *, client: Any = None, threads: int | None = None,
-              progress: Any = None, on_sample: Callable[[SampleResult], None] | None = None) -> list[SampleResult]:
+              progress: Any = None, on_sample: Callable[[SampleResult], None] | None = None,
+              quiet_exit: bool = False) -> list[SampleResult]:
     """Digitize every sample into ``OUTDIR/<name>/`` (module docstring): on ``client`` (a
     :class:`distributed.Client`), one task per stage chained per sample, or in this process
     when ``client`` is None.  ``threads``: each task's thread count (None: leave them);
     ``progress`` (:mod:`dualscale.progress`) counts stages over all samples; ``on_sample`` is
-    called as each sample ends.  Returns one :class:`SampleResult` per sample, in list order.
+    called as each sample ends; ``quiet_exit``: the client's workers are processes of a local
+    cluster opened for this batch, which may end without the interpreter's teardown
+    (:func:`_quiet_exit`; never for workers someone else runs).  Returns one :class:`SampleResult` per sample, in list order.
     A stage's error is its sample's result; only Ctrl-C (and errors of the cluster connection)
     stop the batch."""
     from dualscale.progress import tracker
@@ -494,7 +497,7 @@ def run_batch(samples: list[Sample], outdir: str | Path, *, client: Any = None, 
             for s in samples:
                 prev = None
                 for stage in STAGES:
-                    prev = client.submit(stage_task, s, outdir, stage, threads, prev, True, pure=False,
+                    prev = client.submit(stage_task, s, outdir, stage, threads, prev, quiet_exit, pure=False,
                                          key=f"dualscale-batch-{token}-{s.name}-{stage}")
                     futures[prev] = (s.name, stage)
             for fut in as_completed(list(futures)):

@@ -176,6 +176,28 @@ def test_in_process_gives_the_same_results(cluster_run, batch_list, sample, tmp_
         assert a1.keys() == a2.keys() and all(torch.equal(a1[k], a2[k]) for k in a1), name
 
 
+def test_batch_runs_on_a_local_cluster_by_default():
+    """``--workers`` unset: the usable cores (a cluster when more than one), at most one worker per
+    sample; ``--workers 1`` or a single sample: in this process; ``--threads N``: per worker."""
+    import argparse
+
+    pytest.importorskip("distributed", reason="the dask extra is not installed")
+    from dualscale.cli.batch import choose_engine
+    from dualscale.threads import usable_cores
+
+    def spec(samples, **kw):
+        a = argparse.Namespace(**{"workers": None, "scheduler": None, "cluster": "local", "cluster_config": None,
+                                  "threads": None, **kw})
+        return choose_engine(a, samples)
+
+    n = usable_cores()
+    s = spec(50)
+    assert (s is None) if n == 1 else (s.workers == n and s.threads_per_worker == 1 and s.cluster == "local")
+    assert spec(50, workers=1) is None and spec(1, workers=4) is None
+    assert spec(3, workers=8).workers == 3 and spec(3, workers=2, threads=2).threads_per_worker == 2
+    assert spec(3, scheduler="tcp://127.0.0.1:1").scheduler == "tcp://127.0.0.1:1"
+
+
 def test_run_batch_reports_progress_and_each_sample_as_it_ends(cluster_run, batch_list):
     """The library call in this process on the finished batch: the progress callable sees every
     stage of every sample once, ``on_sample`` each sample once, in list order here."""

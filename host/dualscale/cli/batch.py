@@ -69,7 +69,8 @@ def cmd_batch(a: argparse.Namespace) -> int:
             ctx = connect(spec)
         with ctx as client:
             results = run_batch(samples, out, client=client, threads=threads, progress=want_progress(a),
-                                on_sample=ended)
+                                on_sample=ended, quiet_exit=spec is not None and spec.scheduler is None
+                                and spec.cluster == "local")
         doc = write_summary(results, out, list_path=a.list, engine="in-process" if spec is None else spec.describe,
                             seconds=time.perf_counter() - t0)
     print(table(doc))
