@@ -448,7 +448,7 @@ def hms(s: float) -> str:
 
 def tables(rep: dict) -> str:
     ip = rep["in_process"]
-    base = ip["whole"][min(ip["whole"])]["median_s"]
+    base = next(iter(ip["whole"].values()))["median_s"]  # the first --threads count
     out = [f"Date {rep['date']}; machine: {rep['machine']}; Python {rep['python']}, dask {rep['dask']}; "
            f"load average (1/5/15 min) at the start {rep['load_start']}, at the end {rep['load_end']}. "
            f"Dataset: `dualscale synth {MATERIAL} --size {rep['size']} --dataset --lights {rep['lights']}` "
@@ -459,6 +459,7 @@ def tables(rep: dict) -> str:
            "| run | cluster start [s] | fit [s] | speed-up | bit-identical to 1 process | runs [s] | load at the end |",
            "|---|---:|---:|---:|---|---|---|"]
     for n, r in ip["whole"].items():
+        n = int(n)  # a key read back from --json is text
         out.append(f"| in-process, {n} thread{'s' if n > 1 else ''} | - | {r['median_s']:.2f} | "
                    f"{base / r['median_s']:.2f} | {'yes' if r['equal_to_first'] else 'no (%.2g)' % r['max_diff']} | "
                    f"{', '.join(f'{t:.2f}' for t in r['times_s'])} | {r['load']} |")
@@ -502,17 +503,19 @@ def tables(rep: dict) -> str:
                 f"in-process fit of a tile costs {1e3 * a:.1f} ms per call + {1e3 * b:.3f} ms per pixel "
                 f"(least squares over crops of {', '.join(str(c['side']) for c in ip['crops'])} px at 1 thread: "
                 + ", ".join(f"{c['side']} px {c['median_s']:.3f} s" for c in ip["crops"]) + "). Efficiency = "
-                "1-thread in-process time / (workers x wall); overhead = the payload round trip (no-op + "
-                "payload) over the tile's own fit:", "",
+                "1-thread in-process time / (workers x wall); a tile's overhead = the fit's fixed cost per call + "
+                "the Dask round trip of its payload (above), as a share of the tile's whole time (fixed + pixels + "
+                "round trip):", "",
                 "| tile [px] | tiles | wall [s] | speed-up vs 1 thread | efficiency | tile's fit [s] | "
-                "overhead / fit | bit-identical | load |", "|---:|---:|---:|---:|---:|---:|---:|---|---|"]
+                "Dask round trip [ms] | overhead share | bit-identical | load |",
+                "|---:|---:|---:|---:|---:|---:|---:|---:|---|---|"]
         pay = {p["tile"]: p for p in big["payload"]}
         for r in big["sweep"]:
             fit_t = a + b * r["tile"] ** 2
-            ov = pay[r["tile"]]["roundtrip_s"] if r["tile"] in pay else float("nan")
+            rt = pay[r["tile"]]["roundtrip_s"] if r["tile"] in pay else float("nan")
             out.append(f"| {r['tile']} | {r['tiles']} | {r['median_s']:.2f} | {base / r['median_s']:.2f} | "
-                       f"{base / (big['workers'] * r['median_s']):.2f} | {fit_t:.3f} | {100 * ov / fit_t:.1f} % | "
-                       f"{'yes' if r['equal'] else 'NO'} | {r['load']} |")
+                       f"{base / (big['workers'] * r['median_s']):.2f} | {fit_t:.3f} | {1e3 * rt:.1f} | "
+                       f"{100 * (a + rt) / (fit_t + rt):.1f} % | {'yes' if r['equal'] else 'NO'} | {r['load']} |")
         out += ["", f"Driver work on the whole map (1 thread, {rep['size']}²): the albedo check "
                 f"{ip['driver_albedo_check_s']:.2f} s, the report's losses {ip['driver_losses_s']:.2f} s; "
                 f"component selection (a sample of pixels, not in the timings above) {ip['selection_s']:.1f} s. "
