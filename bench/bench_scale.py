@@ -8,7 +8,7 @@ amortises it, and the extrapolation to a 4096² micro map and a 500-material lib
         [--noop-tasks 2000] [--json out.json]
 
 The dataset is ``dualscale synth twill --size SIZE --dataset --lights LIGHTS`` (renderer radiance,
-9 um texels is not used: the synth default texel), loaded with ``load_observations``; the
+synth's default 1.8 um texels), loaded with ``load_observations``; the
 components are fixed (opaque, anisotropic, tinted: twill's) so that selection stays out of the
 timings (it is timed apart, as a driver cost); preset ``standard`` (fused kernel); no held-out
 lights.  Every time is the median of ``--repeats`` runs unless a table says otherwise.
@@ -27,8 +27,8 @@ lights.  Every time is the median of ``--repeats`` runs unless a table says othe
 - **Extrapolation**: from the measured costs (module ``extrapolate``; the assumptions are printed
   with the table).
 
-``--quick`` (about 2 min here): a 64² map, tiles 16,32,64, 500 no-op tasks.  ``make bench``
-runs it with no arguments (about 5 min on the 2-core VM when quiet).  The in-process synth
+``--quick`` (about 1.5 min here): a 64² map, tiles 16,32,64, 500 no-op tasks.  ``make bench``
+runs it with no arguments (4 min on the shared 2-core VM at load 1-2).  The in-process synth
 command sets the thread count globally; the script sets it back after it.
 """
 
