@@ -247,13 +247,18 @@ def tiled(obs, preset, comps, ref, workers: int, tile: int, repeats: int, sweep:
     cfg = {f"distributed.nanny.pre-spawn-environ.{TRIM}": None} if unset_trim else {}
     # a local cluster's nannies live in this process and copy their pre-spawn environment into
     # os.environ before spawning a worker, so an earlier cluster's value would be inherited
-    saved = os.environ.get(TRIM)
+    import dualscale.engine as engine
+
+    saved, saved_user = os.environ.get(TRIM), engine._USER_MALLOC_TRIM
     if unset_trim:
         os.environ.pop(TRIM, None)
+    else:  # Dask's default, as a user who sets it gets it (engine.connect unsets it otherwise)
+        os.environ[TRIM] = engine._USER_MALLOC_TRIM = "65536"
     try:
         return _tiled(out, cfg, obs, preset, comps, ref, workers, tile, repeats, sweep, noop_tasks, channels,
                       unset_trim)
     finally:
+        engine._USER_MALLOC_TRIM = saved_user
         if saved is None:
             os.environ.pop(TRIM, None)
         else:

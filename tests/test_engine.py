@@ -103,3 +103,19 @@ def test_a_scheduler_that_does_not_answer_is_a_clear_error(monkeypatch):
     with pytest.raises(ToolError, match=f"--scheduler tcp://127.0.0.1:{port}: no Dask scheduler"):
         with engine.connect(EngineSpec(scheduler=f"tcp://127.0.0.1:{port}")):
             pass
+
+
+def test_local_workers_do_not_trim_malloc_early(monkeypatch):
+    """Dask's nanny sets MALLOC_TRIM_THRESHOLD_=65536 in workers (and in the process that starts
+    them): measured 1.4-1.5x slower tile fits (docs/SCALE.md). Our local cluster leaves it unset,
+    also for a second cluster in the same process."""
+    pytest.importorskip("distributed", reason="the dask extra is not installed")
+    import os
+
+    import dualscale.engine as engine
+
+    monkeypatch.setattr(engine, "_USER_MALLOC_TRIM", None)
+    for _ in range(2):
+        with engine.connect(EngineSpec(workers=1)) as c:
+            assert c.submit(os.environ.get, "MALLOC_TRIM_THRESHOLD_", pure=False).result() is None
+    assert "MALLOC_TRIM_THRESHOLD_" not in os.environ

@@ -11,9 +11,10 @@ stages that can use one (the tiled fit, :mod:`dualscale.fit.tiled`; the batch,
   machine, each with ``threads_per_worker`` threads (1 by default).  Every worker runs
   :func:`dualscale.threads.set_threads` at the start of each task (:func:`in_worker`), so
   torch, numba and OpenCV each use that many threads: N workers x 1 thread fill N cores without
-  oversubscription.  Killed worker processes are restarted by their nanny, and the scheduler
-  reruns the tasks they held on another worker (up to ``distributed.scheduler.allowed-failures``
-  times, 3 by default).
+  oversubscription.  The workers do not get Dask's ``MALLOC_TRIM_THRESHOLD_`` (it made the
+  fit 1.4-1.5x slower in a worker; :data:`MALLOC_TRIM`).  Killed worker processes are
+  restarted by their nanny, and the scheduler reruns the tasks they held on another worker
+  (up to ``distributed.scheduler.allowed-failures`` times, 3 by default).
 - ``--scheduler ADDRESS`` (``tcp://host:8786``): an existing scheduler and its workers, started
   by whoever runs the cluster (``dask scheduler`` / ``dask worker``, a Kubernetes operator ...).
   The workers need dualscale and its dependencies installed, the same version.
@@ -35,6 +36,7 @@ Bottom layer: imports nothing of dualscale but :mod:`dualscale.errors` and
 from __future__ import annotations
 
 import logging
+import os
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -48,6 +50,11 @@ CLUSTERS: dict[str, str] = {"local": "LocalCluster", "slurm": "SLURMCluster", "p
 EXTRA = "pip install 'dualscale[dask]'"
 #: seconds to wait for a scheduler given by address, and for a cluster's first worker
 CONNECT_TIMEOUT_S = 30
+#: Dask's nannies start workers with ``MALLOC_TRIM_THRESHOLD_=65536`` (return freed memory to the
+#: system early): every tile fit then page-faults its scratch arrays back in, 1.4-1.5x slower than
+#: in-process (docs/SCALE.md).  The local cluster does not set it; a value the user set is kept.
+MALLOC_TRIM = "MALLOC_TRIM_THRESHOLD_"
+_USER_MALLOC_TRIM = os.environ.get(MALLOC_TRIM)
 
 
 @dataclass(frozen=True)
@@ -196,7 +203,9 @@ def connect(spec: EngineSpec) -> Iterator[Any]:
     from distributed import Client, LocalCluster
 
     cluster = None
+    local_env = {} if _USER_MALLOC_TRIM is not None else {f"distributed.nanny.pre-spawn-environ.{MALLOC_TRIM}": None}
     with dask.config.set({"distributed.worker.daemon": False,  # a stage may start its own processes
+                          **local_env,
                           "distributed.logging.distributed": "error"}):
         if spec.scheduler is not None:
             try:
@@ -204,6 +213,8 @@ def connect(spec: EngineSpec) -> Iterator[Any]:
             except (OSError, TimeoutError) as e:
                 raise ToolError(f"--scheduler {spec.scheduler}: no Dask scheduler answers there ({e})") from None
         elif spec.cluster == "local":
+            if _USER_MALLOC_TRIM is None:  # the nanny copies it into this process's environment
+                os.environ.pop(MALLOC_TRIM, None)
             cluster = LocalCluster(n_workers=spec.workers, threads_per_worker=spec.threads_per_worker,
                                    processes=True, dashboard_address=":0",  # a free port: never 8787 taken
                                    silence_logs=logging.ERROR)

@@ -121,8 +121,8 @@ def register(subparsers) -> None:
     add_work_options(f)
     add_engine_options(f, "fit in pixel tiles on N local Dask worker processes, one thread each ("
                           "the same maps as one process; default: one process)")
-    f.add_argument("--tile-px", type=int, default=128, metavar="PX",
-                   help="side of a tile with --workers/--scheduler/--cluster (default 128; docs/SCALE.md)")
+    f.add_argument("--tile-px", type=int, default=64, metavar="PX",
+                   help="side of a tile with --workers/--scheduler/--cluster (default 64; docs/SCALE.md)")
     f.set_defaults(fn=cmd_fit)
 
     s = subparsers.add_parser("study", help="studies of the micro fit")
