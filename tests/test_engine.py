@@ -45,6 +45,40 @@ def test_engine_options_map_to_a_spec_or_to_in_process():
         engine_spec(_args("--workers", "0"))
     with pytest.raises(InputError, match="job-queue"):
         engine_spec(_args("--cluster-config", __file__))
+    for other in (("--workers", "2"), ("--cluster", "slurm")):
+        with pytest.raises(InputError, match="choose one"):
+            engine_spec(_args("--scheduler", "tcp://x:1", *other))
+
+
+def test_a_batch_system_without_its_submit_command_is_refused_before_any_work(tmp_path, monkeypatch):
+    """dask-jobqueue would log tracebacks and wait for ever for workers that never come."""
+    pytest.importorskip("dask_jobqueue", reason="the dask extra is not installed")
+    from dualscale.cli.common import engine_spec
+
+    cfg = tmp_path / "slurm.yaml"
+    cfg.write_text("memory: 2GiB\n")
+    monkeypatch.setenv("PATH", str(tmp_path))  # no sbatch, no qsub
+    with pytest.raises(ToolError, match="`sbatch` is not on PATH"):
+        engine_spec(_args("--cluster", "slurm", "--cluster-config", str(cfg)))
+    with pytest.raises(ToolError, match="`qsub` is not on PATH"):
+        engine_spec(_args("--cluster", "pbs", "--cluster-config", str(cfg)))
+    (tmp_path / "sbatch").write_text("#!/bin/sh\nexit 0\n")
+    (tmp_path / "sbatch").chmod(0o755)
+    assert engine_spec(_args("--cluster", "slurm", "--cluster-config", str(cfg))).cluster == "slurm"
+
+
+def test_local_workers_leave_ctrl_c_to_the_command():
+    """Ctrl-C reaches the whole process group: the workers ignore it (no traceback from each),
+    and the command stops them; this process's own handler is restored."""
+    pytest.importorskip("distributed", reason="the dask extra is not installed")
+    import signal
+
+    from dualscale.engine import connect
+
+    before = signal.getsignal(signal.SIGINT)
+    with connect(EngineSpec(workers=1)) as c:
+        assert list(c.run(lambda: signal.getsignal(signal.SIGINT) == signal.SIG_IGN).values()) == [True]
+        assert signal.getsignal(signal.SIGINT) is before
 
 
 def test_without_the_extra_a_cluster_is_a_missing_tool(monkeypatch):

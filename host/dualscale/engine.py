@@ -157,6 +157,21 @@ def _jobqueue_kwargs(spec: EngineSpec) -> dict[str, Any]:
     return kw
 
 
+def check_jobqueue(spec: EngineSpec, submit: bool = True) -> None:
+    """Before any work: the jobqueue class exists, its settings are complete and (``submit``)
+    its submit command (``sbatch``, ``qsub``, ...) is on ``PATH`` -- without it dask-jobqueue
+    logs tracebacks and waits for workers for ever.  Raises :class:`~dualscale.errors.ToolError`
+    or :class:`~dualscale.errors.InputError`."""
+    import shutil
+
+    cls = _jobqueue_class(spec.cluster)
+    _jobqueue_kwargs(spec)
+    cmd = cls.job_cls.submit_command
+    if submit and shutil.which(cmd) is None:
+        raise ToolError(f"--cluster {spec.cluster}: `{cmd}` is not on PATH; run dualscale where the batch system's "
+                        "commands are (a login node), or use --scheduler ADDRESS")
+
+
 def jobqueue_cluster(spec: EngineSpec):
     """A dask-jobqueue cluster object for ``spec`` (not yet scaled: no job is submitted).  Raises
     :class:`~dualscale.errors.ToolError` without dask-jobqueue, :class:`~dualscale.errors.InputError`
@@ -193,6 +208,25 @@ def in_worker(threads: int) -> None:
 
 
 @contextmanager
+def _workers_ignore_sigint() -> Iterator[None]:
+    """Spawn the local workers with SIGINT ignored (an ignored signal stays ignored across
+    ``exec``, and Python then installs no handler): Ctrl-C in a terminal reaches the whole
+    process group, and the workers would each print a ``KeyboardInterrupt`` traceback; this
+    process handles it and closes them (exit 130, one line)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
+
+
+@contextmanager
 def connect(spec: EngineSpec) -> Iterator[Any]:
     """Open the cluster of ``spec`` and yield a :class:`distributed.Client` on it; closes the
     cluster (not a scheduler given by address) on exit.  Raises
@@ -215,11 +249,13 @@ def connect(spec: EngineSpec) -> Iterator[Any]:
         elif spec.cluster == "local":
             if _USER_MALLOC_TRIM is None:  # the nanny copies it into this process's environment
                 os.environ.pop(MALLOC_TRIM, None)
-            cluster = LocalCluster(n_workers=spec.workers, threads_per_worker=spec.threads_per_worker,
-                                   processes=True, dashboard_address=":0",  # a free port: never 8787 taken
-                                   silence_logs=logging.ERROR)
+            with _workers_ignore_sigint():
+                cluster = LocalCluster(n_workers=spec.workers, threads_per_worker=spec.threads_per_worker,
+                                       processes=True, dashboard_address=":0",  # a free port: never 8787 taken
+                                       silence_logs=logging.ERROR)
             client = Client(cluster)
         else:
+            check_jobqueue(spec)
             cluster = jobqueue_cluster(spec)
             cluster.scale(spec.workers)
             client = Client(cluster)

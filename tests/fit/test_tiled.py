@@ -175,7 +175,8 @@ def test_fit_cli_with_workers_and_with_a_scheduler_address(client, datasets, tmp
               "--no-previews", "--no-progress", "--threads", "1"]
     assert main(["fit", str(ds), "-o", str(tmp_path / "one"), *common]) == 0
     assert main(["fit", str(ds), "-o", str(tmp_path / "two"), *common, "--workers", "2", "--tile-px", "8"]) == 0
-    assert "tiled on local (2 workers x 1 thread): 4 tiles of 8 px" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "(kernel fused, tiled on local (2 workers x 1 thread))" in out and "tiles: 4 of 8 px on 2 workers" in out
     addr = client.scheduler.address
     assert main(["fit", str(ds), "-o", str(tmp_path / "addr"), *common, "--scheduler", addr]) == 0
     one, _ = load_maps(tmp_path / "one")

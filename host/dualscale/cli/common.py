@@ -223,9 +223,10 @@ def want_progress(args: argparse.Namespace) -> bool:
     return sys.stderr.isatty() if p is None else bool(p)
 
 
-def add_engine_options(parser: argparse.ArgumentParser, workers_help: str, default_workers: int | None = None) -> None:
+def add_engine_options(parser: argparse.ArgumentParser, workers_help: str, default_workers: int | None = None):
     """Add ``--workers N``, ``--scheduler ADDRESS``, ``--cluster KIND`` and ``--cluster-config
-    FILE`` (:mod:`dualscale.engine`; they need the ``dask`` extra)."""
+    FILE`` (:mod:`dualscale.engine`; they need the ``dask`` extra); returns their argument group
+    (for a command's own cluster options)."""
     from dualscale.engine import CLUSTERS
 
     g = parser.add_argument_group("cluster (Dask; pip install 'dualscale[dask]')")
@@ -238,6 +239,7 @@ def add_engine_options(parser: argparse.ArgumentParser, workers_help: str, defau
     g.add_argument("--cluster-config", default=None, metavar="YAML",
                    help="dask-jobqueue settings for --cluster slurm/pbs/...: memory, cores, queue, walltime, "
                         "account, job_extra_directives (docs/SCALE.md)")
+    return g
 
 
 def engine_spec(args: argparse.Namespace):
@@ -251,6 +253,9 @@ def engine_spec(args: argparse.Namespace):
     cluster, config = getattr(args, "cluster", "local"), getattr(args, "cluster_config", None)
     if workers is not None and workers < 1:
         raise InputError(f"--workers must be at least 1, got {workers}")
+    if scheduler is not None and (cluster != "local" or (workers or 1) > 1 or config is not None):
+        raise InputError("--scheduler ADDRESS uses that scheduler's workers: leave out --workers, --cluster and "
+                         "--cluster-config (choose one)")
     if scheduler is None and cluster == "local" and (workers is None or workers <= 1):
         if config is not None:
             raise InputError("--cluster-config is for a job-queue cluster (--cluster slurm, pbs, ...)")
@@ -258,4 +263,8 @@ def engine_spec(args: argparse.Namespace):
     spec = EngineSpec(workers=workers or 1, scheduler=scheduler, cluster=cluster,
                       config=None if config is None else Path(config))
     require("--scheduler" if scheduler else (f"--cluster {cluster}" if cluster != "local" else "--workers"))
+    if cluster != "local":  # a typo in the settings, or no sbatch here: say so before any work
+        from dualscale.engine import check_jobqueue
+
+        check_jobqueue(spec)
     return spec

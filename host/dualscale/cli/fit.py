@@ -44,13 +44,15 @@ def cmd_fit(args: argparse.Namespace) -> int:
                                  restart=args.restart, stop_after=args.stop_after, seed=args.seed,
                                  previews=not args.no_previews, gt=args.gt, engine=engine, tile_px=args.tile_px)
     c = res.comps
-    print(f"preset {res.preset.name} (kernel {res.preset.kernel}, {extra['threads']} thread"
-          f"{'' if extra['threads'] == 1 else 's'}): {res.iterations} iterations in {res.seconds:.1f} s; components: "
+    where = (f"tiled on {extra['tiled']['engine']}" if "tiled" in extra else
+             f"{extra['threads']} thread{'' if extra['threads'] == 1 else 's'}")
+    print(f"preset {res.preset.name} (kernel {res.preset.kernel}, {where}): {res.iterations} iterations in "
+          f"{res.seconds:.1f} s; components: "
           f"{'translucent' if not c.opaque else 'opaque'}, {'isotropic' if c.isotropic else 'anisotropic'}, "
           f"{'tinted' if c.tinted else 'untinted'}")
     if "tiled" in extra:
         t = extra["tiled"]
-        print(f"tiled on {t['engine']}: {t['tiles']} tiles of {t['tile_px']} px"
+        print(f"tiles: {t['tiles']} of {t['tile_px']} px on {t['workers']} worker{'' if t['workers'] == 1 else 's'}"
               + (f" ({t['resumed_tiles']} done before)" if t["resumed_tiles"] else ""))
     print("losses: " + ", ".join(f"{k}={v:.4g}" for k, v in res.losses.items()))
     if "ground_truth" in extra:
@@ -119,9 +121,9 @@ def register(subparsers) -> None:
     f.add_argument("--seed", type=int, default=0)
     f.add_argument("--no-previews", action="store_true")
     add_work_options(f)
-    add_engine_options(f, "fit in pixel tiles on N local Dask worker processes, one thread each ("
-                          "the same maps as one process; default: one process)")
-    f.add_argument("--tile-px", type=int, default=64, metavar="PX",
+    g = add_engine_options(f, "fit in pixel tiles on N local Dask worker processes, one thread each ("
+                              "the same maps as one process; default: one process)")
+    g.add_argument("--tile-px", type=int, default=64, metavar="PX",
                    help="side of a tile with --workers/--scheduler/--cluster (default 64; docs/SCALE.md)")
     f.set_defaults(fn=cmd_fit)
 
