@@ -102,6 +102,16 @@ class Interrupted(DualscaleError, RuntimeError):
     exit_code = 130
 
 
+def one_line(e: BaseException) -> str:
+    """The error's message on one line, as the command line prints it (an ``OSError`` that is
+    not one of ours as 'reason: file'; lines joined with '; ')."""
+    if isinstance(e, OSError) and not isinstance(e, DualscaleError) and e.strerror:
+        msg = f"{e.strerror}: {e.filename}" if e.filename is not None else e.strerror
+    else:
+        msg = str(e) or type(e).__name__
+    return "; ".join(ln.strip() for ln in msg.splitlines() if ln.strip())
+
+
 EXIT_CODES = {"ok": 0, "check_failed": 1, "input": InputError.exit_code, "rig": RigError.exit_code,
               "tool": ToolError.exit_code, "internal": DualscaleError.exit_code,
               "interrupted": Interrupted.exit_code}

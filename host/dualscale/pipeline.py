@@ -118,7 +118,6 @@ class DigitizeOptions:
             check_tileable(get_preset(QUALITIES[self.quality].fit_preset))
 
 
-
 @dataclass
 class StageResult:
     """What one stage did: its record and whether it was skipped (up to date)."""

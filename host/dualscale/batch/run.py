@@ -11,22 +11,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
+from dualscale.errors import one_line
 from dualscale.pipeline import STAGES
 
 from .samples import Sample
 
 
-def _one_line(e: BaseException) -> str:
-    if isinstance(e, OSError) and e.strerror:
-        msg = f"{e.strerror}: {e.filename}" if e.filename is not None else e.strerror
-    else:
-        msg = str(e) or type(e).__name__
-    return "; ".join(ln.strip() for ln in msg.splitlines() if ln.strip())
-
-
 def _failed(stage: str, e: BaseException, seconds: float | None) -> dict[str, Any]:
     return {"stage": stage, "status": "failed", "seconds": seconds, "error_type": type(e).__name__,
-            "error": _one_line(e), "traceback": "".join(traceback.format_exception(e)[-8:])}
+            "error": one_line(e), "traceback": "".join(traceback.format_exception(e)[-8:])}
 
 
 _QUIET_EXIT = False

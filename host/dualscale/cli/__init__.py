@@ -15,7 +15,7 @@ import signal
 import sys
 import time
 
-from dualscale.errors import EXIT_CODES, DualscaleError
+from dualscale.errors import EXIT_CODES, DualscaleError, one_line
 
 
 def cmd_sim(a: argparse.Namespace) -> int:
@@ -183,15 +183,6 @@ def exit_code(e: BaseException) -> int:
     return EXIT_CODES["internal"]
 
 
-def _one_line(e: BaseException) -> str:
-    """The error's message on one line (an ``OSError`` as 'reason: file')."""
-    if isinstance(e, OSError) and not isinstance(e, DualscaleError) and e.strerror:
-        msg = f"{e.strerror}: {e.filename}" if e.filename is not None else e.strerror
-    else:
-        msg = str(e) or type(e).__name__
-    return "; ".join(ln.strip() for ln in msg.splitlines() if ln.strip())
-
-
 def main(argv: list[str] | None = None) -> int:
     """Run ``dualscale ARGV`` and return its exit code; every error becomes one line on stderr
     and the code of :func:`exit_code` (no traceback; ``DUALSCALE_DEBUG=1`` re-raises)."""
@@ -208,7 +199,7 @@ def main(argv: list[str] | None = None) -> int:
     import warnings
 
     def one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
-        print(f"dualscale {cmd}: warning: {_one_line(message) if isinstance(message, BaseException) else message}",
+        print(f"dualscale {cmd}: warning: {one_line(message) if isinstance(message, BaseException) else message}",
               file=sys.stderr)
 
     shown, warnings.showwarning = warnings.showwarning, one_line_warning
@@ -222,14 +213,14 @@ def main(argv: list[str] | None = None) -> int:
             restore = signal.signal(signal.SIGINT, signal.SIG_IGN)  # (ValueError: not the main thread)
         code = exit_code(e)
         if code == EXIT_CODES["interrupted"]:
-            msg = _one_line(e) if str(e) else "interrupted"
+            msg = one_line(e) if str(e) else "interrupted"
             how = getattr(args, "resume_hint", "run the same command again to resume")
             print(f"dualscale {cmd}: {msg}; {how}", file=sys.stderr)
         elif code == EXIT_CODES["internal"] and not isinstance(e, DualscaleError):
-            print(f"dualscale {cmd}: internal error: {type(e).__name__}: {_one_line(e)} "
+            print(f"dualscale {cmd}: internal error: {type(e).__name__}: {one_line(e)} "
                   "(rerun with DUALSCALE_DEBUG=1 for the traceback, and please report it)", file=sys.stderr)
         else:
-            print(f"dualscale {cmd}: error: {_one_line(e)}", file=sys.stderr)
+            print(f"dualscale {cmd}: error: {one_line(e)}", file=sys.stderr)
         return code
     finally:
         warnings.showwarning = shown

@@ -19,7 +19,7 @@ from .metrics import map_errors
 from .observations import load_observations
 from .presets import Preset, get_preset
 from .select import select_components
-from .tiled import TILE, check_tileable, clear_state, fit_tiled, tiles
+from .tiled import TILE, check_tile, check_tileable, clear_state, fit_tiled
 
 
 def fit_dataset(dataset: str | Path, out: str | Path, preset: str | Preset = "standard",
@@ -46,7 +46,7 @@ def fit_dataset(dataset: str | Path, out: str | Path, preset: str | Preset = "st
     p = get_preset(preset) if isinstance(preset, str) else preset
     if engine is not None:
         check_tileable(p)
-        tiles((1, 1), tile_px)  # refuse a bad tile side before any work
+        check_tile(tile_px)  # before any work
     obs = load_observations(dataset) if obs is None else obs
     train, held = split_holdout(obs, holdout_every)
     out = Path(out)

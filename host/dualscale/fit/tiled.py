@@ -76,12 +76,17 @@ TILE = 64
 INFLIGHT_PER_WORKER = 2
 
 
+def check_tile(tile: int) -> None:
+    """Raise :class:`~dualscale.errors.InputError` unless ``tile`` is a whole number >= 1."""
+    if isinstance(tile, bool) or not isinstance(tile, int) or tile < 1:
+        raise InputError(f"--tile-px must be a whole number >= 1, got {tile!r}")
+
+
 def tiles(shape: tuple[int, int], tile: int) -> list[tuple[int, int, int, int]]:
     """``(y0, y1, x0, x1)`` of the ``tile x tile`` tiles covering a ``(H, W)`` map, row by row;
     the last row and column are cut short.  Raises :class:`~dualscale.errors.InputError` for a
-    tile side below 1."""
-    if isinstance(tile, bool) or not isinstance(tile, int) or tile < 1:
-        raise InputError(f"--tile-px must be a whole number >= 1, got {tile!r}")
+    tile side below 1 (:func:`check_tile`)."""
+    check_tile(tile)
     h, w = shape
     return [(y, min(y + tile, h), x, min(x + tile, w)) for y in range(0, h, tile) for x in range(0, w, tile)]
 
