@@ -5,8 +5,9 @@ Stages, in order (:data:`STAGES`; each imports only the stages before it):
 1. ``calibrate`` -- the units boundary: the input dataset (any documented units, colour space
    and exposure) becomes calibrated linear radiance through the calibration file
    (:func:`dualscale.calib.apply.to_radiance`; supplementary Sec. 2-3);
-2. ``fit`` -- the per-pixel SVBSDF fit of the micro capture, with component selection, held-out
-   lights, residual maps and held-out renders (Sec. 4-6);
+2. ``fit`` -- the per-pixel SVBSDF fit of the micro capture on every light, with component
+   selection, the residual map, a cross-validation pass over the lights on a pixel sample for the
+   held-out error, and re-renders of a few lights beside their captures (Sec. 4-6);
 3. ``flyouts`` -- fly-out fibres from the grazing lights and the fitted tangent (Sec. 4.1);
    skipped, with the reason, on data without the polarised grazing captures it needs;
 4. ``propagate`` -- train the U-Net on the micro capture and its fitted maps, locate the micro
@@ -52,13 +53,16 @@ _WEIGHTS = {"calibrate": 1.0, "fit": 10.0, "flyouts": 1.0, "propagate": 8.0, "ex
 @dataclass(frozen=True)
 class Quality:
     """Presets of every stage that belong together: the fit preset (``dualscale.fit.PRESETS``),
-    the propagation training preset (``dualscale.propagate.train.PRESETS``), every how-many-th
-    LED is held out to measure the fit, and whether fly-outs are detected."""
+    the propagation training preset (``dualscale.propagate.train.PRESETS``), the cross-validation
+    pass that measures the fit (``cv_pixels`` sample pixels, 0 = none; ``cv_folds`` as
+    ``dualscale fit --cv-folds``: the final maps are fitted on every light either way), and
+    whether fly-outs are detected."""
 
     name: str
     fit_preset: str
     propagate_preset: str
-    holdout_every: int = 8
+    cv_pixels: int = 2000
+    cv_folds: str = "auto"
     flyouts: bool = True
 
 
@@ -308,49 +312,64 @@ class Digitizer:
         return cal if (cal / "manifest.json").is_file() else self.opts.guidance
 
     def fit(self) -> StageResult:
-        params = {"preset": self.quality.fit_preset, "holdout_every": self.quality.holdout_every,
-                  "seed": self.opts.seed}
+        params = {"preset": self.quality.fit_preset, "cv_pixels": self.quality.cv_pixels,
+                  "cv_folds": self.quality.cv_folds, "seed": self.opts.seed}
         self._prev("calibrate")
         return self._stage("fit", {"dataset": tree_sha256(self.dataset)}, params, self._fit)
 
     def _fit(self, work: Path) -> dict[str, Any]:
-        import numpy as np
-
+        """The fit on every light (:func:`dualscale.fit.api.fit_dataset`, with its
+        cross-validation pass), the residual map over every image, and ``fit/heldout/``:
+        ``heldout.json`` (the cross-validated error of every light, and the re-renders) and the
+        capture/re-render EXR pairs of up to :data:`RENDERED_LIGHTS` lights, spread from the
+        largest to the smallest cross-validated error.  Those re-renders are of the final fit,
+        which was fitted on these captures too: they show what the maps reproduce, not a
+        prediction (the table's errors are the held-out ones)."""
         from dualscale.fit.api import fit_dataset
-        from dualscale.fit.core import split_holdout
         from dualscale.fit.observations import load_observations
-        from dualscale.fit.residuals import heldout_views, relative_l1, residual_map
+        from dualscale.fit.residuals import light_views, residual_map
         from dualscale.formats.atomic import write_json
         from dualscale.formats.exr import write_exr
 
         obs = load_observations(self.dataset)
         res, extra = fit_dataset(self.dataset, work / "maps", self.quality.fit_preset,
-                                 holdout_every=self.quality.holdout_every, progress=self.opts.progress,
-                                 seed=self.opts.seed, obs=obs, checkpoint_every=CHECKPOINT_EVERY,
-                                 engine=self.opts.engine)
-        train, held = split_holdout(obs, self.quality.holdout_every)
-        write_exr(work / "residual.exr", residual_map(res.maps, res.comps, train).numpy()[..., None], ("Y",))
+                                 cv_pixels=self.quality.cv_pixels, cv_folds=self.quality.cv_folds,
+                                 progress=self.opts.progress, seed=self.opts.seed, obs=obs,
+                                 checkpoint_every=CHECKPOINT_EVERY, engine=self.opts.engine)
+        write_exr(work / "residual.exr", residual_map(res.maps, res.comps, obs).numpy()[..., None], ("Y",))
+        lights = extra["lights"]
+        cv = extra["cross_validation"]
+        done = cv is not None and "skipped" not in cv
         summary: dict[str, Any] = {
             "preset": res.preset.name, "seconds": res.seconds, "components": asdict(res.comps),
-            "train_images": train.n, "heldout_images": 0 if held is None else held.n,
-            "heldout_relative_l1": None, "heldout_ssim": res.losses.get("heldout_ssim"),
+            "images": lights["images"], "train_images": lights["fitted_images"], "leds": lights["leds"],
+            "fitted_leds": lights["fitted_leds"],
+            "heldout_relative_l1": cv["relative_l1"] if done else None,
+            "heldout_baseline_relative_l1": cv["baseline_relative_l1"] if done else None,
+            "heldout_method": (f"{cv['scheme']} cross-validation over {cv['lights']} lights on {cv['pixels']} "
+                               "sample pixels" if done else
+                               "none (no cross-validation pass)" if cv is None else f"none ({cv['skipped']})"),
+            "cv_seconds": cv["seconds_ours"] + cv["seconds_baseline"] if done else None,
             "texel_mm": obs.pixel_mm, "size_px": list(obs.shape)}
-        if held is not None:
-            views = heldout_views(res.maps, res.comps, held)
-            lights = []
-            for v in views:
-                cap, ren = f"capture_{v.led_id:03d}.exr", f"render_{v.led_id:03d}.exr"
-                write_exr(work / "heldout" / cap, v.capture.numpy())
-                write_exr(work / "heldout" / ren, v.render.numpy())
-                lights.append({"led_id": v.led_id, "direction": v.direction, "capture": cap, "render": ren,
-                               "relative_l1": v.relative_l1})
-            write_json(work / "heldout" / "heldout.json", {"lights": lights})
-            from dualscale.fit.render import render_leds
-
-            pred = render_leds(res.maps.to(held.images.dtype), res.comps, held)
-            valid = getattr(held, "valid", None)
-            summary["heldout_relative_l1"] = relative_l1(pred, held.images.clamp(max=2.0), valid)
-            summary["heldout_per_light_median"] = float(np.median([v.relative_l1 for v in views]))
+        per_light = []
+        if done:
+            for i, lid in enumerate(cv["light_ids"]):
+                per_light.append({"led_id": lid, "direction": cv["directions"][i], "fold": cv["fold"][i],
+                                  "relative_l1": cv["ours"][i], "baseline_relative_l1": cv["baseline"][i]})
+        renders = []
+        for v in light_views(res.maps, res.comps, obs.select_leds(_rendered_lights(obs, per_light))):
+            cap, ren = f"capture_{v.led_id:03d}.exr", f"render_{v.led_id:03d}.exr"
+            write_exr(work / "heldout" / cap, v.capture.numpy())
+            write_exr(work / "heldout" / ren, v.render.numpy())
+            renders.append({"led_id": v.led_id, "direction": v.direction, "capture": cap, "render": ren,
+                            "relative_l1": v.relative_l1, "held_out": False})
+        doc = {"method": "cross-validation" if done else None, "heldout_method": summary["heldout_method"],
+               "relative_l1": summary["heldout_relative_l1"],
+               "baseline_relative_l1": summary["heldout_baseline_relative_l1"],
+               "scheme": cv["scheme"] if done else None, "folds": cv["fold_lights"] if done else [],
+               "pixels": cv["pixels"] if done else 0, "components_chosen": cv.get("components_chosen") if done else None,
+               "lights": per_light, "renders": renders}
+        write_json(work / "heldout" / "heldout.json", doc)
         return summary
 
     def flyouts(self) -> StageResult:
@@ -495,6 +514,24 @@ class Digitizer:
             bar.close()
         self.end()
         return result
+
+
+#: lights whose capture and re-render the fit stage writes for the report (fit/heldout/)
+RENDERED_LIGHTS = 8
+
+
+def _rendered_lights(obs: Any, per_light: list[dict[str, Any]]) -> list[int]:
+    """Up to :data:`RENDERED_LIGHTS` LED ids of ``obs``: spread evenly from the largest to the
+    smallest cross-validated error of ``per_light`` (lights without one last), or evenly over
+    the ids when there is no cross-validation."""
+    ids = sorted(set(obs.led_ids.tolist()))
+    if per_light:
+        err = {p["led_id"]: p["relative_l1"] for p in per_light}
+        ids = sorted(ids, key=lambda i: -err[i] if isinstance(err.get(i), (int, float)) else float("inf"))
+    if len(ids) <= RENDERED_LIGHTS:
+        return sorted(ids)
+    step = (len(ids) - 1) / (RENDERED_LIGHTS - 1)
+    return sorted({ids[round(k * step)] for k in range(RENDERED_LIGHTS)})
 
 
 def _options_json(o: DigitizeOptions) -> dict[str, Any]:

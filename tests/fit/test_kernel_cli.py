@@ -23,7 +23,7 @@ def test_contradictory_kernel_options_are_refused(datasets, tmp_path, capsys, ar
 def test_summary_and_record_name_kernel_and_threads(datasets, tmp_path, capsys):
     out = tmp_path / "fit"
     rc = main(["fit", str(datasets("leather")), "-o", str(out), "--preset", "draft", "--threads", "1",
-               "--holdout-every", "0", "--no-previews"])
+               "--cv-pixels", "0", "--no-previews"])
     assert rc == 0
     assert "(kernel fused, 1 thread)" in capsys.readouterr().out
     rep = json.loads((out / "fit.json").read_text())

@@ -93,7 +93,9 @@ def test_batch_on_a_local_cluster_runs_every_sample_and_reports_the_failing_one(
     for name in GOOD:
         r, fit = rows[name], _record(out, name, "fit")["summary"]
         assert all(r["stages"][s]["status"] == "done" and r["stages"][s]["seconds"] > 0 for s in STAGES)
-        assert r["heldout_ssim"] == fit["heldout_ssim"] and r["heldout_relative_l1"] == fit["heldout_relative_l1"]
+        assert r["heldout_relative_l1"] == fit["heldout_relative_l1"] is not None
+        assert r["heldout_baseline_relative_l1"] == fit["heldout_baseline_relative_l1"] is not None
+        assert "heldout_ssim" not in r and "cross-validation" in r["heldout_method"]
         comps = fit["components"]
         assert r["components"] == comps and r["components_text"] == ", ".join(
             ["opaque" if comps["opaque"] else "transmissive", "isotropic" if comps["isotropic"] else "anisotropic",
@@ -108,7 +110,7 @@ def test_batch_on_a_local_cluster_runs_every_sample_and_reports_the_failing_one(
     assert [(t["name"], t["status"], t["failed_stage"]) for t in table] == [
         ("a", "done", ""), ("b", "done", ""), ("coarse", "failed", "propagate")]
     assert "guidance pixels" in table[2]["error"] and table[2]["seconds_export"] == ""
-    assert float(table[0]["seconds_fit"]) > 0 and float(table[0]["heldout_ssim"]) == pytest.approx(rows["a"]["heldout_ssim"])
+    assert float(table[0]["seconds_fit"]) > 0 and float(table[0]["heldout_relative_l1"]) == pytest.approx(rows["a"]["heldout_relative_l1"])
     assert table[1]["exports"] == "b/export/micro/glb/b_micro.glb" and table[0]["up_to_date"] == ""
     # the HTML escapes what it shows (the folder's name holds '<i>&')
     html = (out / "summary.html").read_text()
@@ -152,7 +154,7 @@ def test_in_process_gives_the_same_results(cluster_run, batch_list, sample, tmp_
     one, two = _rows(_summary(out)), _rows(_summary(cluster_run["out"]))
     assert _summary(out)["engine"] == "in-process"
     for name in ("a", "b", "coarse"):
-        for key in ("status", "failed_stage", "components", "heldout_ssim", "heldout_relative_l1", "exports", "report"):
+        for key in ("status", "failed_stage", "components", "heldout_relative_l1", "heldout_baseline_relative_l1", "exports", "report"):
             assert one[name][key] == two[name][key], (name, key)
         ran = {"up to date": "done"}  # the cluster's summary may be its rerun's
         assert [one[name]["stages"][s]["status"] for s in STAGES] == \

@@ -38,7 +38,19 @@ def test_digitize_runs_every_stage_and_records_it(sample, tmp_path, capsys):
         assert all((run / p).is_file() for p in r["outputs"])
     assert recs["fit"]["params"]["preset"] == "draft"
     fit = recs["fit"]["summary"]
-    assert 0 < fit["heldout_relative_l1"] < 0.2 and fit["heldout_images"] > 0
+    assert 0 < fit["heldout_relative_l1"] < 0.2 and 0 < fit["heldout_baseline_relative_l1"]
+    # the maps are fitted on every light (32 LEDs x P0/P90); the held-out figure is cross-validated
+    assert fit["images"] == fit["train_images"] == 64 and fit["leds"] == fit["fitted_leds"] == 32
+    assert recs["fit"]["params"]["cv_pixels"] == 2000 and recs["fit"]["params"]["cv_folds"] == "auto"
+    assert fit["heldout_method"] == "8-fold cross-validation over 32 lights on 1024 sample pixels"
+    fit_json = json.loads((run / "fit" / "maps" / "fit.json").read_text())
+    assert fit_json["lights"]["fitted_images"] == fit_json["lights"]["images"] == 64
+    ho = json.loads((run / "fit" / "heldout" / "heldout.json").read_text())
+    assert sorted(l["led_id"] for l in ho["lights"]) == list(range(0, 127, 4))  # every light has its error
+    assert all(0 < l["relative_l1"] < 0.5 and 0 <= l["fold"] < 8 for l in ho["lights"])
+    assert sorted(i for f in ho["folds"] for i in f) == list(range(0, 127, 4)) and len(ho["folds"]) == 8
+    assert len(ho["renders"]) == 8 and not any(r["held_out"] for r in ho["renders"])
+    assert all((run / "fit" / "heldout" / r[k]).is_file() for r in ho["renders"] for k in ("capture", "render"))
     assert (run / "fit" / "maps" / "material.json").is_file() and (run / "fit" / "residual.exr").is_file()
     assert json.loads((run / "fit" / "maps" / "material.json").read_text())["texel_mm"] == pytest.approx(0.009)
     assert (run / "export" / "micro" / "maps" / "albedo.exr").is_file()
@@ -53,6 +65,7 @@ def test_digitize_runs_every_stage_and_records_it(sample, tmp_path, capsys):
     assert not (run / "work").exists() or not any((run / "work").iterdir())
     out = capsys.readouterr().out
     assert str(run / "report" / "index.html") in out and str(run / "export") in out
+    assert "maps fitted on 64 of 64 images; held-out relative L1" in out and "8-fold cross-validation" in out
 
 
 def test_rerun_skips_unchanged_stages_and_redoes_changed_ones(sample, tmp_path, capsys):

@@ -24,7 +24,7 @@ from dualscale.cli import main
 from tests.units.conftest import small_dataset
 
 ROOT = Path(__file__).resolve().parents[2]
-FIT = ["--preset", "draft", "--threads", "1", "--holdout-every", "0", "--no-previews"]
+FIT = ["--preset", "draft", "--threads", "1", "--cv-pixels", "0", "--no-previews"]
 
 
 def _files(root: Path) -> dict[str, int]:

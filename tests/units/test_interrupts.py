@@ -48,7 +48,7 @@ def _check(r: subprocess.CompletedProcess, cmd: str) -> None:
 def test_ctrl_c_in_fit(tmp_path):
     ds = small_dataset(tmp_path / "ds", size=48, leds=tuple(range(0, 127, 6)))
     out = tmp_path / "out"
-    r = _interrupt(["fit", str(ds), "-o", str(out), "--preset", "paper", "--threads", "1", "--holdout-every", "0"],
+    r = _interrupt(["fit", str(ds), "-o", str(out), "--preset", "paper", "--threads", "1", "--cv-pixels", "0"],
                    out / ".dualscale-output.json")
     _check(r, "fit")
 

@@ -57,7 +57,9 @@ def sample_row(r: SampleResult) -> dict[str, Any]:
                        "record_seconds": x.get("record_seconds"), "warnings": len(x.get("warnings") or [])}
                    for s, x in r.stages.items()},
         "components": fit.get("components"), "components_text": components_text(fit.get("components")),
-        "heldout_ssim": fit.get("heldout_ssim"), "heldout_relative_l1": fit.get("heldout_relative_l1"),
+        "heldout_relative_l1": fit.get("heldout_relative_l1"),
+        "heldout_baseline_relative_l1": fit.get("heldout_baseline_relative_l1"),
+        "heldout_method": fit.get("heldout_method"),
         "propagate": None if not prop or "skipped" in prop else {
             "in_field_l1_mean": (sum(in_field.values()) / len(in_field)) if in_field else None,
             "registration_ncc": reg.get("score"), "registration_method": reg.get("method")},
@@ -67,7 +69,8 @@ def sample_row(r: SampleResult) -> dict[str, Any]:
 
 
 CSV_COLUMNS = ("name", "status", "failed_stage", "error", "seconds", *(f"seconds_{s}" for s in STAGES), "up_to_date",
-               "components", "heldout_ssim", "heldout_relative_l1", "propagate_in_field_l1", "registration_ncc",
+               "components", "heldout_relative_l1", "heldout_baseline_relative_l1", "propagate_in_field_l1",
+               "registration_ncc",
                "exports", "report")
 
 
@@ -84,7 +87,7 @@ def _csv(rows: list[dict[str, Any]]) -> str:
         w.writerow([r["name"], r["status"], r["failed_stage"] or "", r["error"] or "", num(r["seconds"]),
                     *(num(r["stages"][s]["seconds"]) for s in STAGES),
                     ";".join(s for s in STAGES if r["stages"][s]["status"] == "up to date"),
-                    r["components_text"] or "", num(r["heldout_ssim"]), num(r["heldout_relative_l1"]),
+                    r["components_text"] or "", num(r["heldout_relative_l1"]), num(r["heldout_baseline_relative_l1"]),
                     num(p.get("in_field_l1_mean")), num(p.get("registration_ncc")),
                     ";".join(f for e in r["exports"].values() for f in e["files"].values()), r["report"] or ""])
     return buf.getvalue()
@@ -105,7 +108,8 @@ Times are each stage's wall time in this batch; an up-to-date stage was skipped 
 the time it took when it ran).</p>
 <table class="batch">
 <thead><tr><th>sample</th><th>status</th><th>quality</th>{% for s in stages %}<th class="num">{{ s }}</th>{% endfor %}
-<th class="num">total</th><th>components</th><th class="num">held-out SSIM</th><th class="num">held-out rel. L1</th>
+<th class="num">total</th><th>components</th><th class="num" title="cross-validated over the lights">held-out rel. L1</th>
+<th class="num" title="Lambertian photometric stereo on the same folds and pixels">baseline rel. L1</th>
 <th class="num">propagation in-field L1</th><th>exports</th></tr></thead>
 <tbody>
 {% for r in rows %}
@@ -128,8 +132,8 @@ the time it took when it ran).</p>
 {% endfor %}
 <td class="num">{{ r.seconds | dur }}</td>
 <td>{{ r.components_text or "—" }}</td>
-<td class="num">{{ r.heldout_ssim | num }}</td>
-<td class="num">{{ r.heldout_relative_l1 | num }}</td>
+<td class="num" title="{{ r.heldout_method or '' }}">{{ r.heldout_relative_l1 | num }}</td>
+<td class="num">{{ r.heldout_baseline_relative_l1 | num }}</td>
 <td class="num">{% if r.propagate %}{{ r.propagate.in_field_l1_mean | num }}{% else %}
 <span class="muted">{{ "skipped" if r.propagate_skipped else "—" }}</span>{% endif %}</td>
 <td>{% for scale, e in r.exports.items() %}
@@ -192,7 +196,7 @@ def table(doc: dict[str, Any]) -> str:
     """The short text table of a summary document, for the terminal."""
     rows = doc["samples"]
     w = max([6] + [len(r["name"]) for r in rows])
-    out = [f"{'sample':<{w}s}  {'status':<6s}  {'time':>10s}  {'components':<30s}  {'SSIM':>6s}  {'rel.L1':>7s}  "
+    out = [f"{'sample':<{w}s}  {'status':<6s}  {'time':>10s}  {'components':<30s}  {'CV L1':>7s}  {'PS L1':>7s}  "
            "exports"]
     for r in rows:
         t = f"{r['seconds']:.1f} s"
@@ -202,10 +206,10 @@ def table(doc: dict[str, Any]) -> str:
         up = sum(1 for s in r["stages"].values() if s["status"] == "up to date")
         if up == len(STAGES):
             t = "up to date"
-        ssim, rel = r["heldout_ssim"], r["heldout_relative_l1"]
+        rel, base = r["heldout_relative_l1"], r["heldout_baseline_relative_l1"]
         exports = "; ".join(f"{e['folder']} ({', '.join(e['files'])})" for e in r["exports"].values())
         out.append(f"{r['name']:<{w}s}  {'done':<6s}  {t:>10s}  {(r['components_text'] or '-'):<30s}  "
-                   f"{'-' if ssim is None else f'{ssim:.3f}':>6s}  {'-' if rel is None else f'{rel:.4f}':>7s}  "
+                   f"{'-' if rel is None else f'{rel:.4f}':>7s}  {'-' if base is None else f'{base:.4f}':>7s}  "
                    f"{exports}")
     return "\n".join(out)
 

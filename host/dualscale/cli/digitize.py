@@ -59,8 +59,8 @@ def cmd_digitize(a: argparse.Namespace) -> int:
     if fit is not None:
         s = fit["summary"]
         rel = s.get("heldout_relative_l1")
-        print(f"fit: preset {s['preset']}, held-out relative L1 "
-              f"{'n/a' if rel is None else f'{rel:.3f}'} over {s['heldout_images']} held-out images")
+        print(f"fit: preset {s['preset']}, maps fitted on {s.get('train_images')} of {s.get('images')} images; "
+              f"held-out relative L1 {'n/a' if rel is None else f'{rel:.3f}'}, {s.get('heldout_method', 'n/a')}")
     exp = res.record("export")
     if exp is not None:
         for scale, e in exp["summary"].get("exports", {}).items():

@@ -10,12 +10,16 @@ from .choices import FIT_KERNELS, FIT_PRESETS
 from .common import add_engine_options, add_output, add_work_options, apply_threads, engine_spec, output_folder, want_progress
 
 _SWITCH = {"auto": None, "on": True, "off": False}
+#: ``--cv-pixels`` default: :data:`dualscale.fit.holdout.CV_PIXELS` (a literal here, so that
+#: building the parser imports no torch; tests/fit/test_crossval.py checks they agree)
+CV_PIXELS = 2000
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
     from dualscale.fit.api import fit_dataset
+    from dualscale.fit.holdout import describe, parse_folds
     from dualscale.fit.presets import get_preset
 
     from dualscale.errors import InputError
@@ -36,10 +40,16 @@ def cmd_fit(args: argparse.Namespace) -> int:
         preset = replace(preset, kernel="compiled")
     if args.kernel is not None:
         preset = replace(preset, kernel=args.kernel)
+    try:
+        folds = parse_folds(args.cv_folds)
+    except ValueError as e:
+        raise InputError(f"--cv-folds: {e}") from None
+    if args.cv_pixels < 0:
+        raise InputError(f"--cv-pixels {args.cv_pixels}: give a count >= 0 (0 = no cross-validation pass)")
     overrides = {"transmittance": _SWITCH[args.transmittance], "anisotropy": _SWITCH[args.anisotropy],
                  "tint": _SWITCH[args.tint]}
     with output_folder(args, "fit", [args.dataset]):
-        res, extra = fit_dataset(args.dataset, args.output, preset, overrides, holdout_every=args.holdout_every,
+        res, extra = fit_dataset(args.dataset, args.output, preset, overrides, cv_pixels=args.cv_pixels, cv_folds=folds,
                                  progress=want_progress(args), checkpoint_every=args.checkpoint_every,
                                  restart=args.restart, stop_after=args.stop_after, seed=args.seed,
                                  previews=not args.no_previews, gt=args.gt, engine=engine, tile_px=args.tile_px)
@@ -54,7 +64,12 @@ def cmd_fit(args: argparse.Namespace) -> int:
         t = extra["tiled"]
         print(f"tiles: {t['tiles']} of {t['tile_px']} px on {t['workers']} worker{'' if t['workers'] == 1 else 's'}"
               + (f" ({t['resumed_tiles']} done before)" if t["resumed_tiles"] else ""))
-    print("losses: " + ", ".join(f"{k}={v:.4g}" for k, v in res.losses.items()))
+    lights = extra["lights"]
+    print(f"fitted on {lights['fitted_images']} of {lights['images']} images ({lights['fitted_leds']} of "
+          f"{lights['leds']} lights)" + ("" if lights["fitted_leds"] == lights["leds"] else
+                                         f"; the {res.preset.name} preset's led_stride thins the lights"))
+    print("losses on the fitted images: " + ", ".join(f"{k}={v:.4g}" for k, v in res.losses.items()))
+    print(describe(extra.get("cross_validation")))
     if "ground_truth" in extra:
         print("vs ground truth: " + ", ".join(f"{k}={v:.4g}" for k, v in extra["ground_truth"]["errors"].items()))
     print(f"wrote {Path(args.output) / 'fit.json'}")
@@ -111,8 +126,12 @@ def register(subparsers) -> None:
                         "forward differences for LM presets, autograd for Adam ones) or 'compiled' (LM presets only: "
                         "the reference through torch.compile) (docs/FITTING.md)")
     f.add_argument("--compile", action="store_true", help="the same as --kernel compiled")
-    f.add_argument("--holdout-every", type=int, default=8,
-                   help="hold out every N-th LED for the re-render SSIM report (0 = fit all)")
+    f.add_argument("--cv-pixels", type=int, default=CV_PIXELS, metavar="N",
+                   help="the maps are fitted on every light; the held-out error comes from a cross-validation "
+                        f"pass over the lights on N random sample pixels (default {CV_PIXELS}; 0 = no pass)")
+    f.add_argument("--cv-folds", default="auto", metavar="auto|loo|K",
+                   help="folds of that pass: 'loo' (leave-one-light-out), K (K folds, lights dealt round-robin in "
+                        "id order) or 'auto' (the default: loo for at most 16 lights, else 8 folds)")
     f.add_argument("--checkpoint-every", type=int, default=50, help="iterations between checkpoints")
     f.add_argument("--restart", action="store_true", help="ignore an existing checkpoint")
     f.add_argument("--stop-after", type=int, default=None, help=argparse.SUPPRESS)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -13,7 +14,9 @@ from dualscale.formats.versioned import read_json
 from dualscale.engine import EngineSpec, connect
 from dualscale.threads import effective_threads
 
-from .core import FitResult, fit_observations, split_holdout
+from .checkpoint import fingerprint
+from .core import FitResult, fit_observations, stride_leds
+from .holdout import CV_PIXELS, HoldoutReport, cross_validate, parse_folds
 from .io import save_fit
 from .metrics import map_errors
 from .observations import load_observations
@@ -23,37 +26,55 @@ from .tiled import TILE, check_tile, check_tileable, clear_state, fit_tiled
 
 
 def fit_dataset(dataset: str | Path, out: str | Path, preset: str | Preset = "standard",
-                overrides: dict[str, bool | None] | None = None, holdout_every: int = 8, progress: bool = False,
+                overrides: dict[str, bool | None] | None = None, cv_pixels: int = CV_PIXELS,
+                cv_folds: int | str = "auto", progress: bool = False,
                 checkpoint_every: int = 50, restart: bool = False, stop_after: int | None = None,
                 seed: int = 0, previews: bool = True, comps: Components | None = None,
                 gt: str | Path | None = None, obs=None, engine: EngineSpec | None = None,
                 tile_px: int = TILE) -> tuple[FitResult, dict]:
-    """Fit a photometric dataset and write the maps to ``out``.
+    """Fit a photometric dataset on **every** light and write the maps to ``out``.
 
-    Held-out LEDs (every ``holdout_every``-th, 0 = none) are kept out of the fit and used to
-    report re-render SSIM.  Components are chosen from the data unless ``comps`` is given or
-    ``overrides`` fixes them.  The checkpoint lives at ``out/checkpoint.pt`` and is removed
-    after a successful fit; ``restart`` discards an existing one.  ``gt``: a ground-truth maps
-    folder to score against (only when given: nothing beside the dataset is taken as ground
-    truth).  ``obs``: observations already loaded and calibrated (then ``dataset`` is only
-    recorded).  The maps carry the dataset's texel size.
+    The held-out figure comes from a separate cross-validation pass over the lights
+    (:func:`.holdout.cross_validate`) on ``cv_pixels`` random sample pixels (0: no pass):
+    ``cv_folds`` ``"auto"`` is leave-one-light-out for at most 16 distinct lights, else 8 folds
+    with the lights dealt round-robin in id order; ``"loo"`` or an int ``k >= 2`` choose.  The
+    pass uses the components chosen once on all lights and the preset (without a coarse level),
+    and runs in this process also when the fit is tiled.  Its report is ``extra
+    ["cross_validation"]`` (:meth:`.holdout.HoldoutReport.as_json` plus ``relative_l1``, the mean
+    over the lights, and ``images``), also written into ``fit.json``; while the fit is in progress
+    it is kept in ``out/crossval.json`` so a resumed fit does not redo it.  ``FitResult.losses``
+    are the final fit's re-render errors on the images it was fitted on (``train_*``).
+
+    Components are chosen from the data (all lights) unless ``comps`` is given or ``overrides``
+    fixes them.  The checkpoint lives at ``out/checkpoint.pt`` and is removed after a successful
+    fit; ``restart`` discards an existing one.  ``gt``: a ground-truth maps folder to score
+    against (only when given: nothing beside the dataset is taken as ground truth).  ``obs``:
+    observations already loaded and calibrated (then ``dataset`` is only recorded).  The maps
+    carry the dataset's texel size.  ``extra["lights"]``: ``images`` and ``leds`` given,
+    ``fitted_images`` and ``fitted_leds`` after the preset's ``led_stride`` (equal unless a
+    strided preset such as ``draft`` thins more than 32 LEDs).
 
     ``engine``: fit in ``tile_px`` pixel tiles on that Dask cluster (:mod:`.tiled`; the same
     maps as in-process); finished tiles are kept in ``out/tiles/`` until the
     fit completes, so an interrupted tiled fit resumes.  ``fit.json`` then records the engine,
-    the tiling and the workers.
+    the tiling and the workers.  Raises ``ValueError`` for a bad ``cv_folds`` or ``cv_pixels``
+    before any work.
     """
     p = get_preset(preset) if isinstance(preset, str) else preset
     if engine is not None:
         check_tileable(p)
         check_tile(tile_px)  # before any work
+    folds = parse_folds(cv_folds)
+    if cv_pixels < 0:
+        raise ValueError(f"cross-validation pixels {cv_pixels}: give a count >= 0 (0 = no cross-validation)")
     obs = load_observations(dataset) if obs is None else obs
-    train, held = split_holdout(obs, holdout_every)
     out = Path(out)
     ck = out / "checkpoint.pt"
     state = out / "tiles"
+    cv_path = out / "crossval.json"
     if restart:
         remove_file(ck)
+        remove_file(cv_path)
         clear_state(state)
     sel_path = out / "selection.json"
     if comps is None:
@@ -65,22 +86,25 @@ def fit_dataset(dataset: str | Path, out: str | Path, preset: str | Preset = "st
                 raise FormatError(f"{sel_path}: malformed component decision ({e}); delete it or pass "
                                   "--restart") from None
         else:
-            comps, sel = select_components(train, overrides, seed=seed)
+            comps, sel = select_components(obs, overrides, seed=seed)
             write_json(sel_path, sel)
     else:
         sel = {"method": "given by caller", "components": comps.__dict__}
+    cv = _cross_validation(obs, p, comps, cv_pixels, folds, seed, progress, cv_path) if cv_pixels else None
     tiled: dict[str, Any] = {}
     if engine is None:
-        res = fit_observations(train, p, comps, held_out=held, checkpoint=ck, checkpoint_every=checkpoint_every,
+        res = fit_observations(obs, p, comps, checkpoint=ck, checkpoint_every=checkpoint_every,
                                progress=progress, stop_after=stop_after, seed=seed)
     else:
         with connect(engine) as client:
-            res, tiled = fit_tiled(train, p, comps, client, held_out=held, tile=tile_px,
+            res, tiled = fit_tiled(obs, p, comps, client, tile=tile_px,
                                    threads=engine.threads_per_worker, seed=seed, state=state, progress=progress)
         tiled["engine"] = engine.describe
-    extra: dict[str, Any] = {"dataset": str(dataset), "lights": {"train_images": train.n,
-                                                                  "heldout_images": 0 if held is None else held.n},
-                             "threads": effective_threads()}
+    fitted = stride_leds(obs, p.led_stride)
+    extra: dict[str, Any] = {"dataset": str(dataset),
+                             "lights": {"images": obs.n, "leds": len(set(obs.led_ids.tolist())),
+                                        "fitted_images": fitted.n, "fitted_leds": len(set(fitted.led_ids.tolist()))},
+                             "cross_validation": cv, "threads": effective_threads()}
     if tiled:
         extra["tiled"] = tiled
     if gt is not None:
@@ -94,4 +118,34 @@ def fit_dataset(dataset: str | Path, out: str | Path, preset: str | Preset = "st
     remove_file(ck)
     clear_state(state)
     remove_file(sel_path)
+    remove_file(cv_path)
     return res, extra
+
+
+def _cross_validation(obs, preset: Preset, comps: Components, pixels: int, folds: int | str, seed: int,
+                      progress: bool, cache: Path) -> dict[str, Any]:
+    """The cross-validation record of :func:`fit_dataset` (its docstring), reused from ``cache``
+    when that holds the record of the same data, preset, components, seed, pixels and folds
+    (a resumed fit), else computed and written there.  With fewer than two distinct lights there
+    is nothing to hold out: ``{"skipped": reason}``."""
+    leds = len(set(obs.led_ids.tolist()))
+    if leds < 2:
+        return {"skipped": f"cross-validation over the lights needs at least two distinct lights; the dataset has "
+                           f"{leds}"}
+    key = fingerprint(preset=asdict(preset), comps=asdict(comps), seed=seed, pixels=pixels, folds=str(folds),
+                      ids=obs.led_ids, sums=obs.images.sum(dim=(1, 2, 3)),
+                      valid=obs.valid.sum(dim=(1, 2)) if obs.valid is not None else 0)
+    if cache.is_file():
+        try:
+            doc = read_json(cache)
+        except (OSError, ValueError, FormatError):
+            doc = None
+        if isinstance(doc, dict) and doc.get("key") == key and isinstance(doc.get("report"), dict):
+            return doc["report"]
+    rep: HoldoutReport = cross_validate(obs, preset, comps, pixels, folds, seed=seed, progress=progress)
+    doc = rep.as_json()
+    doc.update({"relative_l1": doc["ours_mean"], "baseline_relative_l1": doc["baseline_mean"],
+                "images": obs.n, "requested_pixels": pixels, "requested_folds": folds,
+                "components_chosen": "once, on all lights (the same components in every fold)"})
+    write_json(cache, {"key": key, "report": doc})
+    return doc

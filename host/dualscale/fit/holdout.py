@@ -1,29 +1,39 @@
-"""Leave-one-light-out evaluation: how well a fit predicts a light it never saw, beside the
+"""Cross-validation over the lights: how well a fit predicts lights it never saw, beside the
 classic Lambertian photometric-stereo baseline (:mod:`.lambertian`) computed on the same pixels
-in the same run.
+in the same run.  ``dualscale fit`` and the ``digitize`` fit stage report their held-out figure
+from :func:`cross_validate` while the final maps are fitted on every light (docs/FITTING.md,
+"Held-out lights").
 
-For every light ``k`` of the observations: fit on the others (component choice included, as
-``dualscale fit`` would make it, unless the components are given), render light ``k``, and
-score the prediction against its capture by the **relative L1**
+The distinct lights (LED ids) are split into folds (:func:`light_folds`): **leave-one-light-out**
+when there are at most :data:`LOO_MAX_LIGHTS` of them (a dozen photographs: every fold keeps all
+the other lights), else :data:`KFOLD` folds with the lights dealt round-robin in id order (LED ids
+run ring by ring, so every fold spans the rings and azimuths).  For every fold: fit on the other
+lights' images (component choice included, as ``dualscale fit`` would make it, when a chooser is
+given instead of fixed components), render the fold's lights, and score each light's prediction
+against its capture by the **relative L1**
 
     ``sum |prediction - capture| / sum capture``
 
 over the valid samples of the held-out image (inside the sample mask and not clipped:
-``Observations.valid``) and the three channels.  The baseline fits
-``a_c max(0, n . l)`` per pixel by least squares on the same training images and valid
-samples.  Both predictions are clamped like the fit's renders (at 2, :mod:`.render`).
+``Observations.valid``) and the three channels; a light with several images (P0 and P90) gets the
+mean over its images.  Every light is held out exactly once, so every light gets an error.  The
+baseline fits ``a_c max(0, n . l)`` per pixel by least squares on the same training images and
+valid samples.  Both predictions are clamped like the fit's renders (at 2, :mod:`.render`).
 
-Cost: one fit per light.  ``pixels`` limits the evaluation to a random subset of the sample's
+Cost: one fit per fold.  ``pixels`` limits the evaluation to a random subset of the sample's
 pixels (pixels are independent in the per-pixel fit, so this is an unbiased estimate of the
-mean over the mask, and both methods see the same subset); :func:`fit_sample` fits the whole
-mask once (only the pixels of the sample) for the maps.
+mean over the mask, and both methods and every fold see the same subset).  The subset is laid
+out as a ``1 x P`` row, so a preset's coarse level (box-averaging neighbours) has no meaning
+there and is dropped (:func:`pixel_preset`).  :func:`fit_sample` fits the whole mask once (only
+the pixels of the sample) for the maps.
 """
 
 from __future__ import annotations
 
+import math
 import time
-from dataclasses import asdict, dataclass, field
-from typing import Any, Callable
+from dataclasses import asdict, dataclass, field, replace
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import torch
@@ -36,6 +46,14 @@ from .lambertian import fit_lambertian, render_lambertian
 from .observations import Observations
 from .presets import Preset
 from .render import clamp_images, render_leds
+
+#: at most this many distinct lights: leave-one-light-out; more: :data:`KFOLD` folds
+LOO_MAX_LIGHTS = 16
+#: folds of the k-fold scheme (lights dealt round-robin in id order)
+KFOLD = 8
+#: pixels of the cross-validation sample of ``dualscale fit`` and ``digitize`` (docs/FITTING.md
+#: measures the cost: 8 folds of 2000 pixels are about 0.8 of a 128^2 fit's time)
+CV_PIXELS = 2000
 
 
 def relative_l1(pred: np.ndarray | Tensor, capture: np.ndarray | Tensor, valid: np.ndarray | Tensor | None) -> float:
@@ -73,11 +91,69 @@ def lambertian_prediction(train: Observations, held: Observations) -> np.ndarray
     return np.minimum(render_lambertian(model, held.dirs.double().numpy()), 2.0)
 
 
+def light_folds(light_ids: Sequence[int] | Tensor, folds: int | str = "auto") -> list[list[int]]:
+    """The folds of the distinct ids in ``light_ids``: lists of ids, every id in exactly one.
+
+    ``folds``: ``"loo"`` (one light per fold), ``"auto"`` (``"loo"`` for at most
+    :data:`LOO_MAX_LIGHTS` distinct lights, else :data:`KFOLD`), or an int ``k >= 2`` (``k``
+    folds, fold ``j`` holding the ``j``-th, ``(j + k)``-th, ... id in increasing order; ``k`` is
+    lowered to the number of lights).  Raises ``ValueError`` for fewer than two distinct lights
+    or an unknown ``folds``."""
+    ids = sorted({int(i) for i in (light_ids.tolist() if isinstance(light_ids, Tensor) else light_ids)})
+    if len(ids) < 2:
+        raise ValueError(f"cross-validation over the lights needs at least two distinct lights, got {len(ids)}")
+    k = parse_folds(folds)
+    if k == "auto":
+        k = len(ids) if len(ids) <= LOO_MAX_LIGHTS else KFOLD
+    elif k == "loo":
+        k = len(ids)
+    k = min(int(k), len(ids))
+    return [ids[j::k] for j in range(k)]
+
+
+def parse_folds(text: int | str) -> int | str:
+    """``"auto"``, ``"loo"`` or an int ``>= 2`` from a user's ``--cv-folds`` value; raises
+    ``ValueError`` otherwise."""
+    if isinstance(text, str) and text.strip().lower() in ("auto", "loo"):
+        return text.strip().lower()
+    try:
+        k = int(text)
+    except (TypeError, ValueError):
+        raise ValueError(f"cross-validation folds {text!r}: give auto, loo or a number of folds >= 2") from None
+    if k < 2:
+        raise ValueError(f"cross-validation folds {k}: a k-fold needs k >= 2 (or loo, or auto)")
+    return k
+
+
+def scheme_name(folds: list[list[int]]) -> str:
+    """``"leave-one-light-out"`` when every fold holds one light, else ``"K-fold"``."""
+    return "leave-one-light-out" if all(len(f) == 1 for f in folds) else f"{len(folds)}-fold"
+
+
+def pixel_preset(preset: Preset) -> Preset:
+    """``preset`` as fitted on a pixel sample laid out as a ``1 x P`` row: without its coarse
+    level (``coarse_factor`` 1), whose box average would blend unrelated pixels; everything
+    else unchanged."""
+    return preset if preset.coarse_factor <= 1 else replace(preset, coarse_factor=1)
+
+
+def _nanmean(x: Sequence[float]) -> float:
+    a = np.asarray(x, np.float64)
+    return float(np.nanmean(a)) if np.isfinite(a).any() else float("nan")
+
+
+def _json_float(x: float) -> float | None:
+    return float(x) if math.isfinite(float(x)) else None
+
+
 @dataclass
 class HoldoutReport:
-    """Per held-out light (``light_ids`` order): our relative L1 ``ours``, the baseline's
-    ``baseline``; ``pixels`` evaluated, ``seconds`` (ours, baseline) of wall time, the
-    ``components`` chosen in each fold."""
+    """Per held-out light (``light_ids`` order, increasing): our relative L1 ``ours``, the
+    baseline's ``baseline`` (``(L,)`` arrays, NaN for a light without a valid sample), its
+    direction ``directions`` (unit vectors, camera frame), its ``fold`` index; the ``folds``
+    (lists of light ids), ``pixels`` evaluated, ``seconds`` (ours, baseline) of wall time, the
+    ``components`` of each fold (one entry per fold, with its ``lights``), the preset's name
+    and the ``scheme`` (``"leave-one-light-out"`` or ``"K-fold"``)."""
 
     light_ids: list[int]
     ours: np.ndarray
@@ -86,40 +162,62 @@ class HoldoutReport:
     seconds: tuple[float, float]
     components: list[dict[str, Any]] = field(default_factory=list)
     preset: str = ""
+    folds: list[list[int]] = field(default_factory=list)
+    directions: list[list[float]] = field(default_factory=list)
+    scheme: str = "leave-one-light-out"
+
+    @property
+    def fold(self) -> list[int]:
+        """The fold index of every light (``light_ids`` order)."""
+        where = {lid: j for j, f in enumerate(self.folds) for lid in f}
+        return [where.get(lid, -1) for lid in self.light_ids]
 
     def summary(self) -> dict[str, Any]:
-        """Means, their ratio, and on how many lights ours is lower."""
-        mo, mb = float(np.mean(self.ours)), float(np.mean(self.baseline))
+        """Means over the lights (NaN ones left out), their ratio, on how many lights ours is
+        lower, and the scheme, folds, pixels, seconds and preset."""
+        mo, mb = _nanmean(self.ours), _nanmean(self.baseline)
         return {"ours_mean": mo, "baseline_mean": mb, "ratio": mo / mb if mb > 0 else float("nan"),
                 "wins": int((self.ours < self.baseline).sum()), "lights": len(self.light_ids),
                 "pixels": self.pixels, "seconds_ours": self.seconds[0], "seconds_baseline": self.seconds[1],
-                "preset": self.preset}
+                "preset": self.preset, "scheme": self.scheme, "folds": len(self.folds) or len(self.light_ids)}
 
     def as_json(self) -> dict[str, Any]:
-        return {**self.summary(), "light_ids": self.light_ids, "ours": [float(x) for x in self.ours],
-                "baseline": [float(x) for x in self.baseline], "components": self.components}
+        """:meth:`summary` plus the per-light lists (non-finite values as ``null``)."""
+        s = {k: (_json_float(v) if isinstance(v, float) else v) for k, v in self.summary().items()}
+        return {**s, "light_ids": self.light_ids, "ours": [_json_float(x) for x in self.ours],
+                "baseline": [_json_float(x) for x in self.baseline], "fold": self.fold,
+                "fold_lights": self.folds, "directions": self.directions, "components": self.components}
 
 
 Chooser = Callable[[Observations], Components]
 
 
-def leave_one_light_out(obs: Observations, preset: Preset, comps: Components | Chooser, pixels: int | None = 4000,
-                        seed: int = 0, progress: bool = False) -> HoldoutReport:
-    """Leave-one-light-out over the distinct lights of ``obs`` (module doc).  ``comps``: fixed
-    components, or a function of the training observations that chooses them (e.g.
+def cross_validate(obs: Observations, preset: Preset, comps: Components | Chooser, pixels: int | None = CV_PIXELS,
+                   folds: int | str = "auto", seed: int = 0, progress: bool = False) -> HoldoutReport:
+    """Cross-validation over the distinct lights of ``obs`` (module doc): ``folds`` as in
+    :func:`light_folds`, on at most ``pixels`` random pixels of the sample (``None`` or 0: all;
+    drawn with ``seed``), each fold fitted with :func:`pixel_preset` of ``preset``.  ``comps``:
+    fixed components (``dualscale fit`` passes the decision it made once on all lights), or a
+    function of the training observations that chooses them (e.g.
     ``lambda o: select_components(o, preset=preset)[0]``), called once per fold.  Raises
-    ``RuntimeError`` if a prediction is not finite (never expected)."""
+    ``ValueError`` for fewer than two distinct lights and ``RuntimeError`` if a prediction is not
+    finite (never expected)."""
     from tqdm import tqdm
 
     sub = obs.pixels(sample_pixels(obs, pixels, seed))
-    ids = sorted(set(sub.led_ids.tolist()))
-    ours, base, chosen = [], [], []
+    groups = light_folds(sub.led_ids, folds)
+    scheme = scheme_name(groups)
+    fit_preset = pixel_preset(preset)
+    ours: dict[int, float] = {}
+    base: dict[int, float] = {}
+    dirs: dict[int, list[float]] = {}
+    chosen = []
     t_ours = t_base = 0.0
-    for lid in tqdm(ids, desc=f"leave-one-light-out[{preset.name}]", disable=not progress, leave=False):
-        train, held = sub.select_leds({lid}, keep=False), sub.select_leds({lid}, keep=True)
+    for fold in tqdm(groups, desc=f"cross-validation[{scheme}, {preset.name}]", disable=not progress, leave=False):
+        train, held = sub.select_leds(set(fold), keep=False), sub.select_leds(set(fold), keep=True)
         t0 = time.perf_counter()
         c = comps if isinstance(comps, Components) else comps(train)
-        res = fit_observations(train, preset, c, seed=seed)
+        res = fit_observations(train, fit_preset, c, seed=seed)
         with torch.no_grad():
             pred = render_leds(res.maps.to(held.images.dtype), c, held)
         t_ours += time.perf_counter() - t0
@@ -127,15 +225,46 @@ def leave_one_light_out(obs: Observations, preset: Preset, comps: Components | C
         pb = lambertian_prediction(train, held)
         t_base += time.perf_counter() - t0
         if not (bool(torch.isfinite(pred).all()) and np.isfinite(pb).all()):
-            raise RuntimeError(f"leave-one-light-out: non-finite prediction of light {lid}")
+            raise RuntimeError(f"cross-validation: non-finite prediction of light(s) {fold}")
         cap = clamp_images(held.images)
-        v = None if held.valid is None else held.valid
-        ours.append(np.mean([relative_l1(pred[i], cap[i], None if v is None else v[i]) for i in range(held.n)]))
-        base.append(np.mean([relative_l1(pb[i].reshape(cap[i].shape), cap[i], None if v is None else v[i])
-                             for i in range(held.n)]))
-        chosen.append({"light": lid, **asdict(c)})
-    return HoldoutReport(ids, np.array(ours), np.array(base), int(sub.images.shape[2]), (t_ours, t_base), chosen,
-                         preset.name)
+        v = held.valid
+        ids = held.led_ids.tolist()
+        for lid in fold:
+            idx = [k for k, i in enumerate(ids) if i == lid]
+            ours[lid] = float(np.mean([relative_l1(pred[k], cap[k], None if v is None else v[k]) for k in idx]))
+            base[lid] = float(np.mean([relative_l1(pb[k].reshape(cap[k].shape), cap[k], None if v is None else v[k])
+                                       for k in idx]))
+            d = held.dirs[idx[0]].double()
+            dirs[lid] = [float(x) for x in d / d.norm().clamp_min(1e-12)]
+        chosen.append({"lights": list(fold), **asdict(c)})
+    light_ids = sorted(ours)
+    return HoldoutReport(light_ids, np.array([ours[i] for i in light_ids]), np.array([base[i] for i in light_ids]),
+                         int(sub.images.shape[2]), (t_ours, t_base), chosen, preset.name, groups,
+                         [dirs[i] for i in light_ids], scheme)
+
+
+def leave_one_light_out(obs: Observations, preset: Preset, comps: Components | Chooser, pixels: int | None = 4000,
+                        seed: int = 0, progress: bool = False) -> HoldoutReport:
+    """:func:`cross_validate` with one light per fold (``folds="loo"``), on at most ``pixels``
+    random sample pixels (4000 by default, as ``bench/bench_photos.py`` measures)."""
+    return cross_validate(obs, preset, comps, pixels, "loo", seed, progress)
+
+
+def describe(cv: dict[str, Any] | None) -> str:
+    """One line for a person: the cross-validated held-out figure of a ``fit_dataset`` record
+    ``cv`` (``extra["cross_validation"]``, ``fit.json``), with its scheme, lights and pixels, or
+    why there is none (``None``: the pass was not asked for)."""
+    if cv is None:
+        return "held-out error: not measured (--cv-pixels 0: no cross-validation pass)"
+    if "skipped" in cv:
+        return f"held-out error: not measured ({cv['skipped']})"
+
+    def num(x: Any) -> str:
+        return "n/a" if x is None or not math.isfinite(float(x)) else f"{float(x):.4g}"
+
+    return (f"held-out relative L1 {num(cv.get('relative_l1'))} (cross-validated, {cv.get('scheme')} over "
+            f"{cv.get('lights')} lights on {cv.get('pixels')} sample pixels; Lambertian baseline "
+            f"{num(cv.get('baseline_relative_l1'))}); no light is held out of the final maps")
 
 
 def fit_sample(obs: Observations, preset: Preset, comps: Components, seed: int = 0,

@@ -1,5 +1,6 @@
-"""What a fit leaves unexplained: per-pixel residual maps over the training lights and renders
-under held-out lights beside their captures (the evidence the digitize report shows).
+"""What a fit leaves unexplained: the per-pixel residual map over the lights it was fitted on and
+re-renders beside their captures (the evidence the digitize report shows; the held-out errors
+come from the cross-validation pass of :mod:`.holdout`).
 
 Conventions: images are linear radiance ``(N, H, W, 3)`` as in :mod:`.observations`, renders
 are clamped at 2 like the fit (:mod:`.render`, supplementary Sec. 4).  The relative L1 error of
@@ -50,9 +51,9 @@ def relative_l1(pred: Tensor, cap: Tensor, valid: Tensor | None = None) -> float
 
 
 @dataclass
-class HeldOutView:
-    """One held-out light: its LED id, direction ``(3,)``, capture and render ``(H, W, 3)``, and
-    the relative L1 error of the render."""
+class LightView:
+    """One light: its LED id, direction ``(3,)``, capture and render ``(H, W, 3)`` (linear
+    radiance, clamped at 2), and the relative L1 error of the render over the valid samples."""
 
     led_id: int
     direction: list[float]
@@ -61,17 +62,19 @@ class HeldOutView:
     relative_l1: float
 
 
-def heldout_views(maps: MaterialMaps, comps: Components, held: Observations) -> list[HeldOutView]:
-    """For every held-out LED, the image that passes the most specular (P0 when polarised)
-    beside its render."""
+def light_views(maps: MaterialMaps, comps: Components, held: Observations) -> list[LightView]:
+    """For every LED of ``held`` (increasing id), the image that passes the most specular (P0
+    when polarised) beside its render by ``maps``.  Whether the light was held out of the fit
+    that made ``maps`` is the caller's to say: the digitize fit stage renders lights of the
+    final fit, which saw them."""
     with torch.no_grad():
         pred = render_leds(maps.to(held.images.dtype), comps, held)
     cap = clamp_images(held.images)
     valid = _valid(held)
-    out: list[HeldOutView] = []
+    out: list[LightView] = []
     for led in sorted(set(held.led_ids.tolist())):
         idx = [k for k, i in enumerate(held.led_ids.tolist()) if i == led]
         k = max(idx, key=lambda j: float(held.w_s[j]))
-        out.append(HeldOutView(led, [float(x) for x in held.dirs[k]], cap[k], pred[k],
+        out.append(LightView(led, [float(x) for x in held.dirs[k]], cap[k], pred[k],
                                relative_l1(pred[k], cap[k], valid[k])))
     return out

@@ -294,8 +294,12 @@ def residual_figure(res, texel_mm: float | None = None):
     return fig, (cap + clip_note(r, "%")).strip()
 
 
-def heldout_figure(capture, render, *, title: str = "", texel_mm: float | None = None):
-    """Held-out capture | render under the same display exposure | luminance of |render − capture|."""
+def heldout_figure(capture, render, *, title: str = "", texel_mm: float | None = None,
+                   capture_title: str = "held-out capture", render_title: str = "render of the fit"):
+    """Capture | render under the same display exposure | luminance of |render − capture|
+    (``capture``, ``render``: ``(H, W, 3)`` linear radiance).  ``capture_title`` and
+    ``render_title`` label the first two panels: say whether the light was held out of the fit
+    that rendered it."""
     cap_a = np.asarray(capture, dtype=np.float64)[..., :3]
     ren_a = np.asarray(render, dtype=np.float64)[..., :3]
     ref = np.percentile(cap_a.max(-1), ROBUST_PCT) if cap_a.size else 1.0
@@ -303,7 +307,7 @@ def heldout_figure(capture, render, *, title: str = "", texel_mm: float | None =
     fig = figure(10.0, 3.3)
     axes = fig.subplots(1, 3)
     h, w = cap_a.shape[:2]
-    for ax, img, t in ((axes[0], cap_a, "held-out capture"), (axes[1], ren_a, "render of the fit")):
+    for ax, img, t in ((axes[0], cap_a, capture_title), (axes[1], ren_a, render_title)):
         ext = _frame(ax, h, w, texel_mm)
         ax.imshow(display_copy(srgb_encode(img * expo)), extent=ext)
         ax.set_title(t)
