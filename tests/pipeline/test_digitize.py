@@ -179,3 +179,32 @@ def test_digitize_fits_in_tiles_on_workers_with_the_same_maps(sample, tmp_path, 
     assert _digitize(sample, two, "--until", "fit") == 0
     out = capsys.readouterr().out
     assert "fit        up to date" in out and "calibrate  up to date" in out, out
+
+
+def test_digitize_a_dozen_photographs_fits_every_light_and_leaves_one_out(tmp_path, capsys):
+    """Imported photographs under 12 lights: the final maps are fitted on all 12, the held-out
+    error is leave-one-light-out over all 12 on the mask's pixels, and the capture/render pairs
+    are re-renders of training lights, black outside the mask (never fitted)."""
+    import numpy as np
+
+    from dualscale.formats.exr import read_exr
+    from tests.photos.photoset import lights_one_side, render_sphere
+
+    s = render_sphere(tmp_path / "ball", lights_one_side())
+    ds = tmp_path / "ds"
+    assert main(["import", str(s.folder), "--lights", str(s.lp), "-o", str(ds), "--transfer", "srgb",
+                 "--no-progress"]) == 0
+    run = tmp_path / "run"
+    assert main(["digitize", str(ds), "-o", str(run), "--until", "fit", *ARGS]) == 0
+    fit = _records(run)["fit"]["summary"]
+    assert fit["images"] == fit["train_images"] == 12 and fit["leds"] == fit["fitted_leds"] == 12
+    pixels = int(s.mask.sum())  # fewer than the 2000 of the sample: all of them
+    assert fit["heldout_method"] == f"leave-one-light-out cross-validation over 12 lights on {pixels} sample pixels"
+    assert 0 < fit["heldout_relative_l1"] < 0.1
+    ho = json.loads((run / "fit" / "heldout" / "heldout.json").read_text())
+    assert [l["led_id"] for l in ho["lights"]] == list(range(12)) and ho["folds"] == [[i] for i in range(12)]
+    assert [l["fold"] for l in ho["lights"]] == list(range(12))
+    assert len(ho["renders"]) == 8 and not any(r["held_out"] for r in ho["renders"])
+    ren = read_exr(run / "fit" / "heldout" / ho["renders"][0]["render"])
+    assert (ren[~s.mask] == 0).all() and (ren[s.mask].max(-1) > 0).mean() > 0.5
+    assert "maps fitted on 12 of 12 images" in capsys.readouterr().out

@@ -53,7 +53,9 @@ def relative_l1(pred: Tensor, cap: Tensor, valid: Tensor | None = None) -> float
 @dataclass
 class LightView:
     """One light: its LED id, direction ``(3,)``, capture and render ``(H, W, 3)`` (linear
-    radiance, clamped at 2), and the relative L1 error of the render over the valid samples."""
+    radiance, clamped at 2; pixels that were never fitted -- outside the sample mask -- are 0 in
+    both, since the maps there are start values), and the relative L1 error of the render over
+    the valid samples."""
 
     led_id: int
     direction: list[float]
@@ -71,6 +73,10 @@ def light_views(maps: MaterialMaps, comps: Components, held: Observations) -> li
         pred = render_leds(maps.to(held.images.dtype), comps, held)
     cap = clamp_images(held.images)
     valid = _valid(held)
+    fitted = held.fitted_pixels
+    if fitted is not None:
+        keep = fitted.unsqueeze(-1).to(cap.dtype)
+        pred, cap = pred * keep, cap * keep
     out: list[LightView] = []
     for led in sorted(set(held.led_ids.tolist())):
         idx = [k for k, i in enumerate(held.led_ids.tolist()) if i == led]

@@ -494,8 +494,11 @@ def _heldout(run: Path, doc: dict[str, Any], assets: Assets, texel_mm: float | N
             th.append(t)
             ph.append(p)
             err.append(100.0 * float(e) if isinstance(e, (int, float)) else float("nan"))
-        out["table"] = Table(["LED", "zenith angle θ", "azimuth φ", "fold", "held-out relative L1",
-                              "Lambertian baseline"], rows, {1, 2, 3, 4, 5})
+        header = ["LED", "zenith angle θ", "azimuth φ", "fold", "held-out relative L1", "Lambertian baseline"]
+        if all(len(f) == 1 for f in doc.get("folds") or [[0]]):  # leave-one-light-out: the fold is the light
+            header.pop(3)
+            rows = [r[:3] + r[4:] for r in rows]
+        out["table"] = Table(header, rows, set(range(1, len(header))))
         out["fold_table"] = len(rows) > MAX_OPEN_TABLE_ROWS
         if any(np.isfinite(err)):
             f, cap, _ = plots.hemisphere_figure([("held-out error per light", th, ph, err, None)],
