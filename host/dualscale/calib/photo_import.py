@@ -7,10 +7,17 @@ direction (+x image right, +y image up, +z towards the camera; unit, from the ob
 light).  Output: a dataset of one orthographic camera ``"photo"``, one unpolarised LED record
 per image (``analyzer_deg`` None), linear Rec.709 radiance.
 
-Radiometry.
-  * Integer images are decoded by the *stated* transfer function (``srgb``, ``linear``,
-    ``gamma:G``; :func:`dualscale.formats.photo.read_photo`); it is never guessed.  EXR is
-    linear already.
+Radiometry (:func:`radiometry`).
+  * Integer images are decoded by a camera response that is either **estimated from the
+    photographs** (``transfer="auto"``: :mod:`dualscale.calib.response`, stated as an estimate
+    with its uncertainty and evidence), taken from a matte reference sphere recorded in the
+    light file (``"lights"``), or **stated** (``srgb``, ``linear``, ``gamma:G``).  A stated or
+    recorded response is never taken on trust: it is checked against the photographs, and a
+    contradiction is a warning naming the estimate (refused with ``strict``).  Nothing is a
+    silent default: no transfer at all is refused.  EXR is linear already.
+  * The lights' relative intensities are the light file's when it gives them, else estimated
+    with the response (semi-calibrated photometric stereo; ``intensities=`` overrides:
+    :data:`INTENSITIES`).  Everything is recorded in ``extra.import.radiometry``.
   * ``saturation`` = 1.0 for integer images (the top code value decodes to 1.0): pixels with a
     channel at the top code are clipped and never fitted.  EXR images have no known clip level
     (``null``).
@@ -37,8 +44,9 @@ name).
 Refusals (nothing is written: the dataset is built in a temporary folder beside ``out`` and
 renamed into place): a light file that cannot be read (:class:`FormatError`) or has a light at
 or below the horizon (:class:`GeometryError`); images missing from the folder or not in the
-light file (:class:`FormatError`, naming them); integer images without a stated transfer
-(:class:`UnitsError`); images of different sizes, a mask of another size
+light file (:class:`FormatError`, naming them); integer images without a transfer
+(:class:`UnitsError`), too few lit pixels for ``auto`` (:class:`CalibrationError`), a
+contradicted transfer under ``strict`` (:class:`UnitsError`); images of different sizes, a mask of another size
 (:class:`GeometryError`); an output folder that exists and is not a dataset.
 """
 
@@ -54,13 +62,17 @@ import numpy as np
 from dualscale.errors import FormatError, GeometryError, InputError
 from dualscale.formats.atomic import atomic_dir
 from dualscale.formats.lightfile import LightRecord, read_lights
-from dualscale.formats.photo import SUFFIXES, Photo, read_mask, read_photo
+from dualscale.formats.photo import SUFFIXES, Codes, Photo, decode_codes, read_codes, read_mask
+from dualscale.formats.response import Response, response_from_json, stated_response
 
 #: the 99th percentile of the imported sample's Lambertian albedo (max channel) with ``scale="auto"``
 TARGET_ALBEDO = 0.8
 CAMERA = "photo"
 #: how light-file names are matched to the images (:func:`match_images`)
 MATCHES = ("auto", "name", "number")
+#: ``--intensities``: the file's when it has them else estimated (auto), always estimated, the
+#: file's (1 where absent), or all equal
+INTENSITIES = ("auto", "estimate", "file", "equal")
 
 
 @dataclass
@@ -79,6 +91,11 @@ class ImportReport:
     bits: int
     transfer: str | None
     notes: list[str] = field(default_factory=list)
+    response: Response | None = None
+    intensities: list[float] | None = None
+    intensities_source: str = "file"
+    warnings: list[str] = field(default_factory=list)
+    radiometry: dict | None = None
 
 
 def _base(name: str) -> str:
@@ -208,6 +225,97 @@ def light_scale(photos: list[Photo], dirs: np.ndarray, rel: np.ndarray, mask: np
     return p99 / target
 
 
+def _light_file_response(lights: Path) -> Response:
+    """The response a light file records (``source.response``, from a matte reference sphere:
+    ``dualscale lights sphere --matte``); :class:`FormatError` when it has none."""
+    from dualscale.formats.lightfile import read_lights_json
+
+    if lights.suffix.lower() != ".json":
+        raise FormatError(f"--transfer lights: {lights} is not our .json light file, which records the response "
+                          "of a matte reference sphere (dualscale lights sphere --matte)")
+    doc = read_lights_json(lights).source or {}
+    rad = doc.get("radiometry") or {}
+    if "response" not in rad:
+        raise FormatError(f"--transfer lights: {lights} records no response (make it with dualscale lights sphere "
+                          "CHROME --matte MATTE)")
+    return response_from_json(rad["response"], str(lights))
+
+
+def radiometry(codes: list[Codes], dirs: np.ndarray, rel: np.ndarray | None, mask: np.ndarray | None,
+               transfer: str | None, lights: Path, strict: bool = False, intensities: str = "auto"
+               ) -> tuple[Response | None, np.ndarray, str, dict, list[str], list[str]]:
+    """The response and the relative light intensities of integer photographs
+    (:mod:`dualscale.calib.response`): ``(response, rel (K,), intensities source, record,
+    notes, warnings)``.
+
+    ``transfer``: ``"auto"`` (estimated), ``"lights"`` (the light file's, from a matte
+    sphere) or a stated one; a stated or recorded response is checked against the data, and a
+    contradiction is a warning (a :class:`UnitsError` with ``strict``).  ``rel``: the light
+    file's relative intensities (None: it has none); ``intensities`` (:data:`INTENSITIES`)
+    says whether they are estimated.  Float (EXR) images are linear: nothing is estimated."""
+    from dualscale.calib.response import check_stated, estimate_response, estimate_intensities
+
+    notes: list[str] = []
+    warns: list[str] = []
+    if intensities not in INTENSITIES:
+        raise InputError(f"--intensities {intensities!r}: choose one of {', '.join(INTENSITIES)}")
+    K = len(codes)
+    if {c.bits for c in codes} == {32}:
+        if transfer not in (None, "linear"):
+            raise UnitsError("EXR images are linear already: drop --transfer or use --transfer linear")
+        return None, np.ones(K) if rel is None else rel, "file" if rel is not None else "equal", {}, notes, warns
+    if transfer is None:
+        raise UnitsError("the transfer function of display-encoded images must be stated or estimated: "
+                         "--transfer auto|srgb|linear|gamma:G (auto: estimated from the photographs)")
+    bits = max(c.bits for c in codes)
+    sel = np.flatnonzero(mask.ravel()) if mask is not None else np.arange(codes[0].code.shape[0] * codes[0].code.shape[1])
+    stack = np.stack([c.code.reshape(-1, 3)[sel] for c in codes]).astype(np.float64)   # (K, P, 3)
+    valid = ~np.stack([c.clipped.ravel()[sel] for c in codes])
+    want_e = intensities == "estimate" or (intensities == "auto" and rel is None)
+    given = None if want_e else (np.ones(K) if (rel is None or intensities == "equal") else rel)
+    e_src = "estimated" if want_e else ("equal" if given is not None and (rel is None or intensities == "equal")
+                                         else "file")
+    record: dict = {"transfer_requested": transfer}
+    if transfer == "auto":
+        est = estimate_response(stack, dirs, valid, bits=bits, intensities=given)
+        resp = est.response
+        record.update(est.record())
+        e = est.intensities if want_e else given
+        notes += est.notes
+        if want_e:
+            # the same estimate with equal lights: are the response and the intensities told apart?
+            eq = estimate_response(stack, dirs, valid, bits=bits, intensities=np.ones(K),
+                                   families=(resp.family,) if resp.family in ("gamma", "curve") else ("gamma",),
+                                   bootstrap=0)
+            from dualscale.calib.response import curve_distance
+
+            dist = curve_distance(eq.response, resp, est.code_range)
+            record["equal_intensities_response"] = eq.response.to_json()
+            record["equal_intensities_curve_distance"] = dist
+            if dist > 0.02:
+                notes.append(f"the response and the lights' intensities are partly confounded by this light layout: "
+                             f"with equal intensities the estimate is {eq.response.describe()} ({100 * dist:.1f} % of "
+                             "full scale apart); photograph a matte reference sphere to separate them")
+        return resp, np.asarray(e), e_src, record, notes, warns
+    resp = _light_file_response(lights) if transfer == "lights" else stated_response(transfer)
+    try:
+        est = estimate_response(stack, dirs, valid, bits=bits, intensities=given, bootstrap=4)
+    except InputError as exc:
+        notes.append(f"the response could not be checked against the photographs: {exc}")
+        return resp, np.ones(K) if given is None else given, "equal" if given is None else e_src, record, notes, warns
+    bad, msg, check = check_stated(est, resp, stack, dirs, valid, bits)
+    record["check"] = check
+    record["estimate"] = est.response.to_json()
+    if bad:
+        if strict:
+            raise UnitsError(msg + " (refused: --strict)")
+        warns.append(msg)
+    e = estimate_intensities(resp, stack, dirs, valid, bits) if want_e else given
+    record["response"] = resp.to_json()
+    record["intensities"] = {"values": np.round(e, 6).tolist(), "source": e_src, "normalisation": "geometric mean 1"}
+    return resp, np.asarray(e), e_src, record, notes, warns
+
+
 def _prepare_out(out: Path) -> None:
     if out.exists():
         if not out.is_dir():
@@ -219,13 +327,17 @@ def _prepare_out(out: Path) -> None:
 
 def import_photos(images: str | Path, lights: str | Path, out: str | Path, transfer: str | None,
                   mask: str | Path | None = "auto", texel_mm: float | None = None,
-                  scale: float | str = "auto", match: str = "auto", progress: bool = False) -> ImportReport:
+                  scale: float | str = "auto", match: str = "auto", progress: bool = False,
+                  intensities: str = "auto", strict: bool = False) -> ImportReport:
     """Import the photographs in folder ``images`` lit as ``lights`` says into the dataset
     folder ``out`` (module doc).  ``mask``: a mask image, ``"auto"`` (the folder's one image
     with ``mask`` in its name, if any) or ``None``/``"none"``; ``texel_mm``: the pixel pitch on
     the object (unknown: the camera's field is recorded as 1 mm per pixel and
     ``extra.texel_mm_known`` is false); ``scale``: ``"auto"`` or the light scale ``E``;
-    ``match``: how light-file names find the images (:func:`match_images`).
+    ``match``: how light-file names find the images (:func:`match_images`); ``transfer``:
+    ``"auto"`` (estimated from the photographs), ``"lights"`` (the light file's matte-sphere
+    response) or stated, checked against the data (:func:`radiometry`; ``strict`` refuses a
+    contradicted one); ``intensities``: :data:`INTENSITIES`.
     An existing dataset at ``out`` is replaced only once the new one is complete."""
     folder, out = Path(images), Path(out)
     if not folder.is_dir():
@@ -239,25 +351,29 @@ def import_photos(images: str | Path, lights: str | Path, out: str | Path, trans
     if not records:
         raise FormatError(f"{lights}: the light file lists no images")
     paths, mask_candidates, how = match_images(folder, records, match)
-    photos: list[Photo] = []
+    codes: list[Codes] = []
     from tqdm import tqdm
 
     for p in tqdm(paths, desc="import: reading", disable=not progress, leave=False):
-        photos.append(read_photo(p, transfer))
-    sizes = {ph.rgb.shape[:2] for ph in photos}
+        codes.append(read_codes(p))
+    sizes = {c.code.shape[:2] for c in codes}
     if len(sizes) != 1:
-        first = photos[0].rgb.shape[:2]
-        odd = [f"{p.name} ({ph.rgb.shape[1]}x{ph.rgb.shape[0]})" for p, ph in zip(paths, photos)
-               if ph.rgb.shape[:2] != first]
+        first = codes[0].code.shape[:2]
+        odd = [f"{p.name} ({c.code.shape[1]}x{c.code.shape[0]})" for p, c in zip(paths, codes)
+               if c.code.shape[:2] != first]
         raise GeometryError(f"{folder}: images of different sizes: {paths[0].name} is {first[1]}x{first[0]}, "
                             f"but {', '.join(odd)}")
-    h, w = photos[0].rgb.shape[:2]
+    h, w = codes[0].code.shape[:2]
     m, mask_src = _mask(folder, mask, mask_candidates, (h, w))
     dirs = np.array([r.direction for r in records], np.float64)
-    rel = np.array([1.0 if r.intensity is None else r.intensity for r in records], np.float64)
-    if (rel <= 0).any():
+    if any(r.intensity is not None and r.intensity <= 0 for r in records):
         bad = [r.file for r in records if r.intensity is not None and r.intensity <= 0]
         raise InputError(f"{lights}: lights {bad} have intensity 0; a dataset light needs intensity > 0")
+    file_rel = (None if all(r.intensity is None for r in records)
+                else np.array([1.0 if r.intensity is None else r.intensity for r in records], np.float64))
+    resp, rel, rel_src, rad_rec, rad_notes, rad_warns = radiometry(codes, dirs, file_rel, m, transfer, Path(lights),
+                                                                   strict, intensities)
+    photos = [decode_codes(c, resp if resp is not None else transfer, str(p)) for c, p in zip(codes, paths)]
     if scale == "auto":
         e = light_scale(photos, dirs, rel, m)
         source = (f"auto: 99th percentile of the Lambertian albedo (max channel) over the "
@@ -265,7 +381,7 @@ def import_photos(images: str | Path, lights: str | Path, out: str | Path, trans
     else:
         e, source = float(scale), "given (--scale)"
     is_float = {ph.bits == 32 for ph in photos}
-    notes = [] if how == "by name" else [f"images matched to the light file {how}"]
+    notes = ([] if how == "by name" else [f"images matched to the light file {how}"]) + rad_notes
     if texel_mm is None:
         notes.append("texel size unknown: the camera's field is recorded as 1 mm per pixel")
     clipped = [int((ph.clipped & m).sum()) if m is not None else int(ph.clipped.sum()) for ph in photos]
@@ -278,14 +394,17 @@ def import_photos(images: str | Path, lights: str | Path, out: str | Path, trans
     t = 1.0 if texel_mm is None else float(texel_mm)
     cam = Camera(CAMERA, "orthographic", w, h, (w * t, h * t), has_analyzer=False)
     report = ImportReport(out, [p.name for p in paths], (h, w), e, source, mask_src, clipped,
-                          max(ph.bits for ph in photos), None if is_float == {True} else transfer, notes)
+                          max(ph.bits for ph in photos), None if is_float == {True} else resp.transfer, notes,
+                          resp, [float(v) for v in rel], rel_src, rad_warns, rad_rec)
     extra = {"import": {"images": str(folder.resolve()), "lights": str(Path(lights).resolve()),
                         "sources": [{"id": k, "file": p.name, "light_file_name": r.file,
-                                     "relative_intensity": r.intensity}
+                                     "relative_intensity": r.intensity, "intensity_used": float(rel[k])}
                                     for k, (p, r) in enumerate(zip(paths, records))],
                         "light_scale": e, "light_scale_source": source, "target_albedo": TARGET_ALBEDO,
                         "texel_mm": texel_mm, "texel_mm_known": texel_mm is not None,
-                        "polarisation": "none (unpolarised lights, no analyser)", "notes": notes}}
+                        "polarisation": "none (unpolarised lights, no analyser)", "notes": notes,
+                        "radiometry": {**rad_rec, "warnings": rad_warns, "intensities_source": rel_src,
+                                       "used": None if resp is None else resp.describe()}}}
     with atomic_dir(out) as tmp:
         writer = DatasetWriter(tmp, units="relative_radiance", colour_space="linear_rec709",
                                dome={"source": str(lights), "polarizer": "none"}, extra=extra, mask=m,

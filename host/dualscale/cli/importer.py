@@ -5,6 +5,7 @@ docs/PHOTOS.md)."""
 from __future__ import annotations
 
 import argparse
+import sys
 
 from .common import add_output, add_work_options, apply_threads, output_folder, want_progress
 
@@ -24,10 +25,20 @@ def cmd_import(a: argparse.Namespace) -> int:
     apply_threads(a)
     with output_folder(a, "import", [a.images, a.lights]):
         rep = import_photos(a.images, a.lights, a.output, a.transfer, mask=a.mask, texel_mm=a.texel_mm,
-                            scale=a.scale, match=a.match, progress=want_progress(a))
+                            scale=a.scale, match=a.match, progress=want_progress(a), intensities=a.intensities,
+                            strict=a.strict)
     h, w = rep.size
     print(f"imported {len(rep.files)} images of {w}x{h} px ({rep.bits}-bit, transfer {rep.transfer or 'linear EXR'}) "
           f"into {rep.dataset}")
+    if rep.response is not None:
+        print(f"response: {rep.response.describe()}")
+        fits = (rep.response.evidence or {}).get("fits") or {}
+        if fits:
+            print("  consistency (lower is better): " + ", ".join(f"{k} {v['score']:.4f}" for k, v in fits.items()))
+    if rep.intensities is not None:
+        print(f"light intensities ({rep.intensities_source}): " + " ".join(f"{v:.3f}" for v in rep.intensities))
+    for wmsg in rep.warnings:
+        print(f"dualscale import: warning: {wmsg}", file=sys.stderr)
     print(f"mask: {rep.mask or 'none (every pixel is sample)'}; clipped pixels per image: {rep.clipped}")
     print(f"light scale E = {rep.scale:.4g} ({rep.scale_source})")
     for n in rep.notes:
@@ -42,8 +53,15 @@ def register(sub: argparse._SubParsersAction) -> None:
                                                     "16 bit, EXR)")
     p.add_argument("--lights", required=True, metavar="LIGHTS", help=".lp (RTI) or our .json light file")
     add_output(p, "dataset folder DATASET to write")
-    p.add_argument("--transfer", default=None, metavar="srgb|linear|gamma:G",
-                   help="transfer function of integer images (required for PNG/JPEG/TIFF; EXR is linear)")
+    p.add_argument("--transfer", default=None, metavar="auto|lights|srgb|linear|gamma:G",
+                   help="camera response of integer images (required for PNG/JPEG/TIFF; EXR is linear): auto = "
+                        "estimated from the photographs; lights = the matte sphere's, recorded in the light file; "
+                        "a stated one is checked against the data (a warning when they contradict it)")
+    p.add_argument("--strict", action="store_true",
+                   help="refuse (exit 2) a stated transfer that the photographs contradict, instead of warning")
+    p.add_argument("--intensities", choices=("auto", "estimate", "file", "equal"), default="auto",
+                   help="lights' relative intensities: auto = the light file's, else estimated from the "
+                        "photographs; estimate; file (1 where absent); equal")
     p.add_argument("--mask", default="auto", metavar="MASK|auto|none",
                    help="sample mask image (default auto: the folder's one '*mask*' image, if any)")
     p.add_argument("--texel-mm", type=float, default=None, metavar="T",

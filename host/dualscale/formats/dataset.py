@@ -127,6 +127,8 @@ def check_transfer(transfer: Any, where: str) -> str | None:
     """``None`` or a transfer function :func:`dualscale.formats.photo.parse_transfer` knows."""
     if transfer is None:
         return None
+    if str(transfer) == "curve":  # an estimated monotone curve, recorded in extra.import.radiometry
+        return "curve"
     from .photo import parse_transfer
 
     try:

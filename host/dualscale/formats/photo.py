@@ -19,12 +19,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from dualscale.errors import GeometryError, UnitsError
 
 from .exr import check_window, open_image
+
+if TYPE_CHECKING:
+    from .response import Response
 
 SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr")
 TRANSFERS = ("srgb", "linear", "gamma:G")
@@ -74,14 +78,20 @@ def decode(code: np.ndarray, transfer: str) -> np.ndarray:
     return np.asarray(colour.cctf_decoding(x, function="sRGB"), np.float64)
 
 
-def read_photo(path: str | Path, transfer: str | None, clip: float = 1.0) -> Photo:
-    """Read and linearise one photograph (see the module docstring).
+@dataclass(frozen=True)
+class Codes:
+    """A photograph's code values before decoding: ``code`` float32 ``(H, W, 3)`` normalised to
+    [0, 1] (integer images) or linear values (float images), ``clipped`` bool ``(H, W)``,
+    ``bits`` (8, 16, or 32 for float)."""
 
-    Greyscale images are expanded to RGB; an alpha channel is ignored.  Raises
-    ``FileNotFoundError``, ``OSError`` (unreadable), :class:`~dualscale.errors.UnitsError`
-    (transfer missing or not applicable), :class:`~dualscale.errors.GeometryError` (a shifted
-    data window), ``ValueError`` (non-finite pixels in a float image).
-    """
+    code: np.ndarray
+    clipped: np.ndarray
+    bits: int
+
+
+def read_codes(path: str | Path, clip: float = 1.0) -> Codes:
+    """Read one photograph's code values without decoding them (see :func:`read_photo`; the
+    same refusals, but no transfer is needed).  Greyscale is expanded to RGB, alpha ignored."""
     path = Path(path)
     if path.suffix.lower() not in SUFFIXES:
         raise UnitsError(f"{path}: unsupported image type {path.suffix!r} (use {', '.join(SUFFIXES)})")
@@ -103,18 +113,40 @@ def read_photo(path: str | Path, transfer: str | None, clip: float = 1.0) -> Pho
         data = np.repeat(data, 3, axis=-1)
     elif data.shape[-1] != 3:
         raise UnitsError(f"{path}: {data.shape[-1]} colour channels; need 1 (grey) or 3 (RGB)")
-    is_float = fmt in ("half", "float", "double")
-    if is_float:
-        if transfer is not None and parse_transfer(transfer)[0] != "linear":
-            raise UnitsError(f"{path}: a floating-point image is linear already; use --transfer linear")
+    if fmt in ("half", "float", "double"):
         if not np.isfinite(data).all():
             raise ValueError(f"{path}: {int((~np.isfinite(data)).any(-1).sum())} pixels are NaN or Inf")
-        clipped = (data >= clip).any(-1)
-        return Photo(data.astype(np.float32), clipped, 32, "linear")
+        return Codes(data, (data >= clip).any(-1), 32)
     bits = 16 if fmt in ("uint16", "int16") else 8
-    clipped = (data >= 1.0 - 0.5 / (2 ** bits - 1)).any(-1)
-    rgb = decode(data, transfer)  # type: ignore[arg-type]
-    return Photo(rgb.astype(np.float32), clipped, bits, str(transfer))
+    return Codes(data, (data >= 1.0 - 0.5 / (2 ** bits - 1)).any(-1), bits)
+
+
+def decode_codes(codes: Codes, transfer: "str | None | Response", where: str = "image") -> Photo:
+    """Linearise :func:`read_codes`'s result by ``transfer`` (a stated transfer string, or a
+    :class:`~dualscale.formats.response.Response`, e.g. estimated from the photographs);
+    float images must be ``linear`` (:class:`UnitsError` otherwise)."""
+    from .response import Response
+
+    if codes.bits == 32:
+        name = transfer.transfer if isinstance(transfer, Response) else transfer
+        if name is not None and parse_transfer(name)[0] != "linear":
+            raise UnitsError(f"{where}: a floating-point image is linear already; use --transfer linear")
+        return Photo(codes.code.astype(np.float32), codes.clipped, 32, "linear")
+    if isinstance(transfer, Response):
+        return Photo(transfer.inverse(codes.code).astype(np.float32), codes.clipped, codes.bits, transfer.transfer)
+    rgb = decode(codes.code, transfer)  # type: ignore[arg-type]
+    return Photo(rgb.astype(np.float32), codes.clipped, codes.bits, str(transfer))
+
+
+def read_photo(path: str | Path, transfer: "str | None | Response", clip: float = 1.0) -> Photo:
+    """Read and linearise one photograph (see the module docstring).
+
+    Greyscale images are expanded to RGB; an alpha channel is ignored.  Raises
+    ``FileNotFoundError``, ``OSError`` (unreadable), :class:`~dualscale.errors.UnitsError`
+    (transfer missing or not applicable), :class:`~dualscale.errors.GeometryError` (a shifted
+    data window), ``ValueError`` (non-finite pixels in a float image).
+    """
+    return decode_codes(read_codes(path, clip), transfer, str(path))
 
 
 def read_mask(path: str | Path, shape: tuple[int, int] | None = None) -> np.ndarray:
