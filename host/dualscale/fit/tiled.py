@@ -214,11 +214,14 @@ def fit_tiled(obs: Observations, preset: Preset, comps: Components, client, *,
     todo = [b for b in boxes if b not in parts]
     n_workers = max(1, len(client.scheduler_info(n_workers=-1).get("workers", {})))
     limit = INFLIGHT_PER_WORKER * n_workers
+    # the tiles hold the strided LEDs already: fit_observations must not stride them again (with
+    # 127 LEDs and draft's stride 2 it fitted 32 of the 64 in the tiles, 64 in one process)
+    tile_preset = replace(preset, led_stride=1)
 
     def submit(box):
         y0, y1, x0, x1 = box
-        return client.submit(fit_tile, _own(strided.crop(y0, y1, x0, x1)), preset, comps, _crop_init(init, box), seed,
-                             threads, key=f"dualscale-fit-tile-{key}-{y0}-{x0}", pure=False)
+        return client.submit(fit_tile, _own(strided.crop(y0, y1, x0, x1)), tile_preset, comps, _crop_init(init, box),
+                             seed, threads, key=f"dualscale-fit-tile-{key}-{y0}-{x0}", pure=False)
 
     with tracker(progress, len(boxes), f"fit[{preset.name}] tiles", unit="tile") as bar, warnings.catch_warnings():
         # a task carries its tile's images on purpose (module doc: a lost worker's task can rerun)
