@@ -8,17 +8,17 @@ from .fresnel import fresnel_dielectric, fresnel_p, fresnel_s, fresnel_weighted
 from .ggx import (ALPHA_MIN, ggx_alphas, ggx_d_aniso, ggx_d_iso, smith_g, smith_g1, smith_lambda,
                   smith_visibility)
 from .mapping import disc_to_square, normal_from_square, square_from_normal, square_to_disc, tangent_frame
-from .maps import (DEFAULT_IOR, MAP_CHANNELS, MAP_NAMES, Components, MaterialMaps, ior_from_map, map_from_ior,
-                   map_from_tangent_angle, tangent_angle_from_map, validate_maps)
+from .maps import (DEFAULT_IOR, DIFFUSE_MODELS, MAP_CHANNELS, MAP_NAMES, Components, MaterialMaps, ior_from_map,
+                   map_from_ior, map_from_tangent_angle, tangent_angle_from_map, validate_maps)
 from .model import evaluate, prepare
 from .reference import evaluate_reference
-from .terms import (chromaticity, diffuse, diffuse_base, retro_reflection, schlick_weight, specular_aniso,
-                    specular_iso, specular_tint, transmittance)
+from .terms import (chromaticity, diffuse, diffuse_base, diffuse_lambert, retro_reflection, schlick_weight,
+                    specular_aniso, specular_iso, specular_tint, transmittance)
 
 __all__ = [
-    "ALPHA_MIN", "DEFAULT_IOR", "MAP_CHANNELS", "MAP_NAMES", "Components", "MaterialMaps", "chromaticity",
-    "diffuse", "diffuse_base", "disc_to_square", "evaluate", "evaluate_reference", "fresnel_dielectric",
-    "fresnel_p", "fresnel_s", "fresnel_weighted", "ggx_alphas", "ggx_d_aniso", "ggx_d_iso", "ior_from_map",
+    "ALPHA_MIN", "DEFAULT_IOR", "DIFFUSE_MODELS", "MAP_CHANNELS", "MAP_NAMES", "Components", "MaterialMaps",
+    "chromaticity", "diffuse", "diffuse_base", "diffuse_lambert", "disc_to_square", "evaluate", "evaluate_reference",
+    "fresnel_dielectric", "fresnel_p", "fresnel_s", "fresnel_weighted", "ggx_alphas", "ggx_d_aniso", "ggx_d_iso", "ior_from_map",
     "map_from_ior", "map_from_tangent_angle", "normal_from_square", "prepare", "retro_reflection",
     "schlick_weight", "smith_g", "smith_g1", "smith_lambda", "smith_visibility", "specular_aniso",
     "specular_iso", "specular_tint", "square_from_normal", "square_to_disc", "tangent_angle_from_map",

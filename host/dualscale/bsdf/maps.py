@@ -34,6 +34,10 @@ MAP_CHANNELS: dict[str, int] = {
 MAP_NAMES: tuple[str, ...] = tuple(MAP_CHANNELS)
 IOR_MIN, IOR_MAX = 1.0, 3.0
 DEFAULT_IOR = 1.5
+#: the diffuse lobes :class:`Components` can ask for: ``"burley"`` is the paper's (supplementary
+#: Sec. 5: Burley's diffuse with its Schlick grazing factors plus the retro-reflection term, which
+#: reads the roughness map); ``"lambert"`` is ``b / pi``, no angular dependence and no roughness
+DIFFUSE_MODELS = ("burley", "lambert")
 
 
 def ior_from_map(value: Tensor | float) -> Tensor | float:
@@ -63,7 +67,9 @@ class Components:
     ``opaque``: no transmittance/opacity maps.  ``isotropic``: no anisotropy/tangent maps
     (and no tangent frame).  ``tinted``: a specular-tint map is used (else the specular lobe
     is white).  ``normal_mapped``: a normal map is used (else ``n = m``).  ``ior_mapped``: an
-    IOR map is used (else the constant ``ior``).
+    IOR map is used (else the constant ``ior``).  ``diffuse``: the diffuse lobe, one of
+    :data:`DIFFUSE_MODELS` (``"burley"``, the paper's, by default; ``"lambert"`` ignores the
+    roughness map in the diffuse term, which the specular lobe, when there is one, still reads).
     """
 
     opaque: bool = True
@@ -72,6 +78,16 @@ class Components:
     normal_mapped: bool = False
     ior_mapped: bool = False
     ior: float = DEFAULT_IOR
+    diffuse: str = "burley"
+
+    def __post_init__(self) -> None:
+        if self.diffuse not in DIFFUSE_MODELS:
+            raise ValueError(f"unknown diffuse model {self.diffuse!r}; choose from {DIFFUSE_MODELS}")
+
+    @property
+    def lambertian(self) -> bool:
+        """True when the diffuse lobe is Lambert's ``b / pi``."""
+        return self.diffuse == "lambert"
 
     def required_maps(self) -> tuple[str, ...]:
         names = ["albedo", "roughness"]

@@ -11,6 +11,9 @@ Reflection needs light and view above the sample (``m.l > 0``, ``m.v > 0``) and 
 micro facet; transmission needs them on opposite sides.  ``opacity`` scales the whole surface
 response (``1 - opacity`` is open area; the dome renderer adds light seen through it).
 
+The diffuse lobe is Burley's with retro-reflection (the paper's) or, for
+``Components(diffuse="lambert")``, Lambert's ``b / pi`` (:mod:`.terms`).
+
 Polarisation enters through per-light weights: the specular Fresnel factor is
 ``w_s R_s + w_p R_p`` and the diffuse lobes are scaled by ``diffuse_weight`` (see
 ``dualscale.sim.render`` for how LED polarisers and the analyser set them).
@@ -27,7 +30,7 @@ from .ggx import ggx_alphas, ggx_d_aniso, ggx_d_iso, smith_visibility
 from .fresnel import fresnel_weighted
 from .maps import Components, MaterialMaps, ior_from_map, tangent_angle_from_map, validate_maps
 from .mapping import tangent_frame
-from .terms import diffuse, specular_tint, transmittance
+from .terms import diffuse, diffuse_lambert, specular_tint, transmittance
 from .vec import check_finite
 
 Weight = Tensor | float
@@ -52,9 +55,10 @@ def _shade(l: Tensor, v: Tensor, w_s: Weight, w_p: Weight, w_d: Weight,
            albedo: Tensor, rough: Tensor, ax: Tensor, ay: Tensor,
            n: Tensor | None, t: Tensor | None, b: Tensor | None,
            eta: Tensor | float, tint: Tensor | None,
-           trans: Tensor | None, opacity: Tensor | None) -> Tensor:
+           trans: Tensor | None, opacity: Tensor | None, lambert: bool = False) -> Tensor:
     """Kernel for one chunk of lights.  ``l`` is ``(Lc, 1, 1, 3)``; per-pixel inputs are
-    ``(1, H, W, C)``; ``ax`` is ``ay`` when isotropic (then ``t``/``b`` are None)."""
+    ``(1, H, W, C)``; ``ax`` is ``ay`` when isotropic (then ``t``/``b`` are None); ``lambert``:
+    Lambert's diffuse instead of Burley's (:class:`~.maps.Components` ``diffuse``)."""
     lz_m = l[..., 2:3]
     vz_m = v[..., 2:3]
     if n is None:
@@ -78,7 +82,7 @@ def _shade(l: Tensor, v: Tensor, w_s: Weight, w_p: Weight, w_d: Weight,
     spec = d * vis * fresnel_weighted(cos_d, eta, w_s, w_p)
     if tint is not None:
         spec = spec * tint
-    lobe = diffuse(albedo, rough, cl, cv, clv) * w_d + spec
+    lobe = (diffuse_lambert(albedo, cl) if lambert else diffuse(albedo, rough, cl, cv, clv)) * w_d + spec
     front = (cl > 0) & (cv > 0) & (lz_m > 0) & (vz_m > 0)
     out = torch.where(front, lobe * torch.clamp(cl, min=0.0), torch.zeros_like(lobe))
     if trans is not None:
@@ -145,7 +149,7 @@ def prepare(maps: MaterialMaps, comps: Components) -> dict[str, Tensor | float |
     if not comps.opaque:
         trans, opacity = maps.transmittance, maps.opacity
     out = dict(albedo=maps.albedo, rough=rough, ax=ax, ay=ay, n=n, t=t, b=b, eta=eta, tint=tint,
-               trans=trans, opacity=opacity)
+               trans=trans, opacity=opacity, lambert=comps.lambertian)
     return {k: (val.unsqueeze(0) if isinstance(val, Tensor) else val) for k, val in out.items()}
 
 

@@ -13,7 +13,7 @@ from torch import Tensor
 
 from .ggx import ggx_alphas
 from .maps import Components, MaterialMaps, ior_from_map, tangent_angle_from_map
-from .terms import diffuse, specular_aniso, specular_tint, transmittance
+from .terms import diffuse, diffuse_lambert, specular_aniso, specular_tint, transmittance
 
 
 def evaluate_reference(maps: MaterialMaps, light_dirs: Tensor, view_dirs: Tensor, comps: Components | None = None, *,
@@ -58,7 +58,11 @@ def evaluate_reference(maps: MaterialMaps, light_dirs: Tensor, view_dirs: Tensor
     if comps.tinted:
         spec = spec * specular_tint(albedo, ex(maps.specular_tint))
     cl, cv = l_loc[..., 2:3], v_loc[..., 2:3]
-    diff = diffuse(albedo, rough, cl, cv, (l * v).sum(-1, keepdim=True)) * per_light(diffuse_weight)
+    if comps.lambertian:
+        diff = diffuse_lambert(albedo, cl)
+    else:
+        diff = diffuse(albedo, rough, cl, cv, (l * v).sum(-1, keepdim=True))
+    diff = diff * per_light(diffuse_weight)
     above = (l[..., 2:3] > 0) & (v[..., 2:3] > 0) & (cl > 0) & (cv > 0)
     out = torch.where(above, (diff + spec) * cl.clamp(min=0), torch.zeros_like(diff))
     if not comps.opaque:

@@ -51,6 +51,12 @@ def diffuse(albedo: Tensor, roughness: Tensor, cos_l: Tensor, cos_v: Tensor, cos
     return albedo * (INV_PI * ((1.0 - 0.5 * fl) * (1.0 - 0.5 * fv) + rr * (fl + fv + fl * fv * (rr - 1.0))))
 
 
+def diffuse_lambert(albedo: Tensor, cos_l: Tensor) -> Tensor:
+    """Lambert's diffuse ``b / pi``, broadcast against ``cos_l`` ``(..., 1)`` (the other
+    :func:`diffuse` arguments play no part): the ``Components(diffuse="lambert")`` lobe."""
+    return albedo * INV_PI * torch.ones_like(cos_l)
+
+
 def chromaticity(albedo: Tensor, eps: float = 1e-6) -> Tensor:
     """``chr(b) = b / max(b_r, b_g, b_b)``; black (max <= eps) gives white (1, 1, 1)."""
     m = albedo.amax(dim=-1, keepdim=True)

@@ -6,7 +6,8 @@ renders the whole stack with torch once per parameter channel (forward differenc
 module computes the same quantities with numba, pixel by pixel and light by light:
 
 * the model is the one of :func:`dualscale.bsdf.evaluate` on fit maps (supplementary Sec. 5:
-  Burley diffuse plus retro-reflection, anisotropic GGX with Heitz's Smith term, exact
+  Burley diffuse plus retro-reflection, or Lambert's ``b / pi`` for ``Components(diffuse=
+  "lambert")``, anisotropic GGX with Heitz's Smith term, exact
   Fresnel ``w_s R_s + w_p R_p``, specular tint, diffuse transmittance and opacity), over the
   normalised parameters of :mod:`.params` (the normal as a Fong square point, the tangent as
   ``phi / pi``, ``eta = 1 + 2 ior``), clamped at 2 like :func:`.render.render_leds`;
@@ -180,9 +181,10 @@ def _pixel_consts(xp, geo, al, eta, vx, vy, vz, iso, tinted, k):
 
 
 @njit(**JIT)
-def _render_lights(xp, geo, al, kc, L, vz, ws, wp, wd, iso, opaque, k0, k1, out):
+def _render_lights(xp, geo, al, kc, L, vz, ws, wp, wd, iso, opaque, lam, k0, k1, out):
     """Renders of lights ``k0:k1`` (``L (3, N)``) at one pixel into ``out[c, k - k0]`` (before the
-    clamp at 2).  One branch-free loop over the lights: LLVM vectorises it."""
+    clamp at 2); ``lam``: Lambert's diffuse instead of Burley's.  One branch-free loop over the
+    lights: LLVM vectorises it."""
     ax, ay = al[0], al[1]
     nx, ny, nz = geo[0], geo[1], geo[2]
     tx, ty, tz, bx, by, bz = geo[9], geo[10], geo[11], geo[12], geo[13], geo[14]
@@ -200,7 +202,7 @@ def _render_lights(xp, geo, al, kc, L, vz, ws, wp, wd, iso, opaque, k0, k1, out)
         len2 = max(2.0 + 2.0 * clv, 1e-12)
         inv_len = 1.0 / math.sqrt(len2)
         cos_d = 0.5 * len2 * inv_len
-        g = diffuse_d(cl, cv, clv, rough)[0]
+        g = INV_PI if lam else diffuse_d(cl, cv, clv, rough)[0]
         f = fresnel_weighted_d(cos_d, eta, ws[k], wp[k])[0]
         hz = (cl + cv) * inv_len
         if iso:
@@ -228,11 +230,12 @@ def _render_lights(xp, geo, al, kc, L, vz, ws, wp, wd, iso, opaque, k0, k1, out)
 
 
 @njit(inline="always", **JIT)
-def _light_basis(k, L, ws, wp, wd, pc, iso, opaque):
+def _light_basis(k, L, ws, wp, wd, pc, iso, opaque, lam):
     """The 12 shared rows of light ``k``'s Jacobian at one pixel (``pc``: the pixel's
     constants, :func:`_jacobian_lights`): ``clf wd G``, ``clf S``, ``clf wd dG/dr``, ``clf dS/dr``,
     ``clf dS/dan``, ``clf dS/dtau``, the normal's two (diffuse, specular) pairs, ``clf dS/deta``
-    and the transmission factor, where ``clf`` is ``n.l`` on the lit front and 0 elsewhere."""
+    and the transmission factor, where ``clf`` is ``n.l`` on the lit front and 0 elsewhere;
+    ``lam``: Lambert's diffuse ``G = 1/pi`` (no derivative) instead of Burley's."""
     (ax, ay, nx, ny, nz, tx, ty, tz, bx, by, bz, cv, vvx, vvy, a2v, dcv0,
      dcv1, dvx0, dvx1, dvx2, dvy0, dvy1, dvy2, dax_r, dax_an, day_r, day_an, eta, vx, vy, vz, rough, dn0x,
      dn0y, dn0z, dn1x, dn1y, dn1z, t0x, t0y, t0z, t1x, t1y, t1z, t2x, t2y, t2z, b0x, b0y, b0z, b1x, b1y,
@@ -246,7 +249,10 @@ def _light_basis(k, L, ws, wp, wd, pc, iso, opaque):
     len2 = max(2.0 + 2.0 * clv, 1e-12)
     inv_len = 1.0 / math.sqrt(len2)
     cos_d = 0.5 * len2 * inv_len
-    g, dg_cl, dg_cv, dg_r = diffuse_d(cl, cv, clv, rough)
+    if lam:
+        g, dg_cl, dg_cv, dg_r = INV_PI, 0.0, 0.0, 0.0
+    else:
+        g, dg_cl, dg_cv, dg_r = diffuse_d(cl, cv, clv, rough)
     f, df = fresnel_weighted_d(cos_d, eta, wsk, wpk)
     hz = (cl + cv) * inv_len
     # D, the Smith visibility V and S = D V F with their partials
@@ -303,7 +309,7 @@ def _light_basis(k, L, ws, wp, wd, pc, iso, opaque):
             fr * (dcl1 * sp + cl * ds1), clf * ds_eta, tr)
 
 @njit(inline="always", **JIT)
-def _basis_lights(xp, geo, al, kc, L, vz, ws, wp, wd, iso, opaque, k0, k1, bas):
+def _basis_lights(xp, geo, al, kc, L, vz, ws, wp, wd, iso, opaque, lam, k0, k1, bas):
     """The shared Jacobian rows ``bas[r, k - k0]`` (:func:`_light_basis`) of lights ``k0:k1`` at
     one pixel; every channel's render and Jacobian row is a combination of them
     (:func:`_coefficients`).  The light loops are branch-free and write 6 arrays each, so that
@@ -316,10 +322,10 @@ def _basis_lights(xp, geo, al, kc, L, vz, ws, wp, wd, iso, opaque, k0, k1, bas):
           geo[7], geo[8], geo[15], geo[16], geo[17], geo[18], geo[19], geo[20], geo[21], geo[22], geo[23], geo[33],
           geo[34], geo[35], geo[36], geo[37], geo[38], geo[39], geo[40], geo[41])
     for q in range(k1 - k0):
-        b = _light_basis(k0 + q, L, ws, wp, wd, pc, iso, opaque)
+        b = _light_basis(k0 + q, L, ws, wp, wd, pc, iso, opaque, lam)
         bas[0, q], bas[1, q], bas[2, q], bas[3, q], bas[4, q], bas[5, q] = b[0], b[1], b[2], b[3], b[4], b[5]
     for q in range(k1 - k0):
-        b = _light_basis(k0 + q, L, ws, wp, wd, pc, iso, opaque)
+        b = _light_basis(k0 + q, L, ws, wp, wd, pc, iso, opaque, lam)
         bas[6, q], bas[7, q], bas[8, q], bas[9, q], bas[10, q], bas[11, q] = b[6], b[7], b[8], b[9], b[10], b[11]
 
 
@@ -371,9 +377,9 @@ def _setup(x, p, view, flags, eta_const, geo, kc):
 def _pixel_residuals(p, x, view, L, w_s, w_p, w_d, images, back, back_wd, flags, eta_const, row, geo, kc, o):
     """Residuals of pixel ``p`` (render clamped at 2 - image) into ``row (K,)``."""
     n = L.shape[1]
-    iso, opaque = flags[0] != 0, flags[2] != 0
+    iso, opaque, lam = flags[0] != 0, flags[2] != 0, flags[5] != 0
     al = _setup(x, p, view, flags, eta_const, geo, kc)
-    _render_lights(x[p], geo, al, kc, L, view[p, 2], w_s, w_p, w_d, iso, opaque, 0, n, o)
+    _render_lights(x[p], geo, al, kc, L, view[p, 2], w_s, w_p, w_d, iso, opaque, lam, 0, n, o)
     for k in range(n):
         for c in range(3):
             row[3 * k + c] = min(o[c, k], CLAMP) - images[p, 3 * k + c]
@@ -389,7 +395,7 @@ def residual_rows(x, view, L, w_s, w_p, w_d, images, back, back_wd, flags, eta_c
     """``out (npix, K)`` = render clamped at 2 - image, for every pixel (``x (npix, 14)`` full
     vectors, ``view (npix, 3)``, light directions ``L (3, N)``, weights ``(N,)``, ``images
     (npix, 3N)``, ``back (npix, 3)`` or empty; ``flags`` = (iso, tinted, opaque, normal_mapped,
-    ior_mapped))."""
+    ior_mapped, lambert))."""
     for p in prange(x.shape[0]):
         row = np.empty(out.shape[1])
         geo, kc, o = np.empty(51), np.empty(NCONST), np.empty((3, L.shape[1]))
@@ -598,7 +604,7 @@ def normal_equations(x, cols, view, L, w_s, w_p, w_d, back, back_wd, flags, eta_
     normal equations at once.  Rows with ``sw == 0`` and rows whose render is clamped (> 2)
     contribute nothing (zero derivative)."""
     npix, n, P = x.shape[0], L.shape[1], cols.shape[0]
-    iso, opaque = flags[0] != 0, flags[2] != 0
+    iso, opaque, lam = flags[0] != 0, flags[2] != 0, flags[5] != 0
     has_back = back.shape[0] == npix
     for p in prange(npix):
         geo, kc, al, xp, op, rows, coef = _pixel_start(x, p, view, flags, eta_const, cols)
@@ -609,7 +615,7 @@ def normal_equations(x, cols, view, L, w_s, w_p, w_d, back, back_wd, flags, eta_
         for k0 in range(0, n, LIGHT_BLOCK):
             k1 = min(n, k0 + LIGHT_BLOCK)
             b = k1 - k0
-            _basis_lights(xp, geo, al, kc, L, view[p, 2], w_s, w_p, w_d, iso, opaque, k0, k1, bas)
+            _basis_lights(xp, geo, al, kc, L, view[p, 2], w_s, w_p, w_d, iso, opaque, lam, k0, k1, bas)
             _block_weights(xp, kc, bas, opaque, op, sw, p, k0, b, wv)
             for c in range(3):
                 for q in range(b):
@@ -647,7 +653,7 @@ def vector_jacobian(x, cols, view, L, w_s, w_p, w_d, back, back_wd, flags, eta_c
     the residuals is ``grad (npix, K)`` (reverse mode for Adam, :class:`Residuals`); clamped
     renders (> 2) pass no gradient, as in torch's ``clamp``."""
     npix, n, P = x.shape[0], L.shape[1], cols.shape[0]
-    iso, opaque = flags[0] != 0, flags[2] != 0
+    iso, opaque, lam = flags[0] != 0, flags[2] != 0, flags[5] != 0
     has_back = back.shape[0] == npix
     for p in prange(npix):
         geo, kc, al, xp, op, rows, coef = _pixel_start(x, p, view, flags, eta_const, cols)
@@ -656,7 +662,7 @@ def vector_jacobian(x, cols, view, L, w_s, w_p, w_d, back, back_wd, flags, eta_c
         for k0 in range(0, n, LIGHT_BLOCK):
             k1 = min(n, k0 + LIGHT_BLOCK)
             b = k1 - k0
-            _basis_lights(xp, geo, al, kc, L, view[p, 2], w_s, w_p, w_d, iso, opaque, k0, k1, bas)
+            _basis_lights(xp, geo, al, kc, L, view[p, 2], w_s, w_p, w_d, iso, opaque, lam, k0, k1, bas)
             _block_weights(xp, kc, bas, opaque, op, grad, p, k0, b, wv)
             for i in range(P):
                 for c in range(3):
@@ -746,9 +752,9 @@ def full_vectors(x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor]) ->
 
 
 def flags_of(comps: Components) -> np.ndarray:
-    """Kernel flags ``(iso, tinted, opaque, normal_mapped, ior_mapped)``."""
-    return np.array([comps.isotropic, comps.tinted, comps.opaque, comps.normal_mapped, comps.ior_mapped],
-                    dtype=np.int64)
+    """Kernel flags ``(iso, tinted, opaque, normal_mapped, ior_mapped, lambert)``."""
+    return np.array([comps.isotropic, comps.tinted, comps.opaque, comps.normal_mapped, comps.ior_mapped,
+                     comps.lambertian], dtype=np.int64)
 
 
 class Problem:
