@@ -39,7 +39,11 @@ class FitResult:
 
 def split_holdout(obs: Observations, every: int = 8, offset: int = 3) -> tuple[Observations, Observations | None]:
     """``(train, held_out)``: every ``every``-th distinct LED (from ``offset``) is held out, with
-    all its analyser images.  LED ids run ring by ring, so the held-out LEDs span all rings."""
+    all its analyser images; ``held_out`` is ``None`` when ``every <= 0`` or nothing (or
+    everything) would be held out.  LED ids run ring by ring, so the held-out LEDs span all rings.
+    Used by the component selection's validation, the light-subset study and the benchmarks;
+    ``fit_dataset`` holds no light out of the final maps (its held-out figure is the
+    cross-validation of :mod:`.holdout`)."""
     if every <= 0:
         return obs, None
     ids = sorted(set(obs.led_ids.tolist()))
@@ -127,8 +131,9 @@ def coarse_start(obs: Observations, preset: Preset, comps: Components, seed: int
 def fit_losses(maps: MaterialMaps, comps: Components, obs: Observations,
                held_out: Observations | None = None) -> dict[str, float]:
     """The fit's report figures: ``train_*`` (re-render errors on ``obs``, the fitted images)
-    and, with held-out lights, ``heldout_*`` and ``heldout_ssim``.  Raises ``RuntimeError`` for
-    non-finite maps (guarded by the optimisers; must never happen)."""
+    and, with ``held_out`` lights (the study and the benchmarks pass them; ``fit_dataset`` does
+    not), ``heldout_*`` and ``heldout_ssim``.  Raises ``RuntimeError`` for non-finite maps
+    (guarded by the optimisers; must never happen)."""
     losses = {f"train_{k}": v for k, v in image_losses(maps, comps, obs).items()}
     if held_out is not None and held_out.n:
         losses.update({f"heldout_{k}": v for k, v in image_losses(maps, comps, held_out).items()})
