@@ -409,3 +409,46 @@ def estimate_intensities(resp: Response, codes: np.ndarray, dirs: np.ndarray, va
         d.scale = _robust_scale(r, d.m, d.q)
         W = _cauchy_w(r, d.m, d.scale)
     return np.asarray(e)
+
+
+# -- a matte reference sphere ---------------------------------------------------------------------
+
+#: the part of the matte sphere's disc used (fraction of the radius): the limb is left out,
+#: where the outline's error moves the normals most and the lights graze
+MATTE_RADIUS = 0.92
+
+
+def matte_sphere_normals(mask: np.ndarray, max_rms_px: float = 1.0, source: str = "matte sphere mask"
+                         ) -> tuple[np.ndarray, np.ndarray, Any]:
+    """``(inside (H, W) bool, normals (H, W, 3), sphere)``: the matte sphere's disc fitted to
+    its ``mask`` (:func:`dualscale.calib.lightsphere.sphere_from_mask`), the pixels within
+    :data:`MATTE_RADIUS` of its radius and their unit normals (orthographic camera, the
+    camera frame of :mod:`dualscale.calib.lightsphere`).  Raises :class:`CalibrationError`
+    when the mask does not fit a circle (outline RMS above ``max_rms_px``)."""
+    from dualscale.calib.lightsphere import LightSphereError, sphere_from_mask
+
+    try:
+        sph = sphere_from_mask(mask, source, max_rms_px=max_rms_px)
+    except LightSphereError as e:
+        raise CalibrationError(f"{e}: a matte reference sphere's mask must be its disc") from e
+    h, w = np.asarray(mask).shape[:2]
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    nx, ny = (xx - sph.cx) / sph.r, (sph.cy - yy) / sph.r
+    rho2 = nx * nx + ny * ny
+    inside = (rho2 < MATTE_RADIUS ** 2) & (np.asarray(mask) > 0)
+    n = np.stack([nx, ny, np.sqrt(np.clip(1.0 - rho2, 0.0, 1.0))], -1)
+    return inside, n, sph
+
+
+def estimate_from_matte_sphere(codes: np.ndarray, mask: np.ndarray, dirs: np.ndarray, bits: int,
+                               clipped: np.ndarray | None = None, **kw: Any) -> tuple[ResponseEstimate, Any]:
+    """The response and the lights' relative intensities from photographs of a **matte
+    reference sphere** under the same lights: ``codes`` ``(K, H, W, 3)`` normalised code
+    values, ``mask`` ``(H, W)`` the sphere's mask (:func:`matte_sphere_normals`), ``dirs``
+    ``(K, 3)`` the lights (e.g. from the chrome sphere), ``clipped`` ``(K, H, W)``.  The
+    normals are known, so only each pixel's albedo is free (:func:`estimate_response` with
+    ``normals``).  Returns ``(estimate, sphere)``; the estimate's source is ``"target"``."""
+    inside, n, sph = matte_sphere_normals(mask)
+    c = np.asarray(codes)[:, inside].astype(np.float64)
+    valid = None if clipped is None else ~np.asarray(clipped)[:, inside]
+    return estimate_response(c, dirs, valid, bits=bits, normals=n[inside], **kw), sph

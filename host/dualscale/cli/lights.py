@@ -47,10 +47,20 @@ def cmd_lights_sphere(a: argparse.Namespace) -> int:
     if bad:
         raise FormatError(f"{folder}: image names {bad} contain whitespace or '#', which a .lp file cannot "
                           "carry; rename them (nothing written)")
-    json_path.parent.mkdir(parents=True, exist_ok=True)
     records = res.to_records()
+    source = res.source()
+    matte = _matte(a, folder, records) if a.matte else None
+    if matte is not None:
+        from dataclasses import replace
+
+        est, sph = matte
+        records = [replace(r, intensity=float(e)) for r, e in zip(records, est.intensities)]
+        source["radiometry"] = {**est.record(), "matte_sphere": {
+            "folder": str(Path(a.matte).resolve()), "centre_px": [sph.cx, sph.cy], "radius_px": sph.r,
+            "outline_rms_px": sph.fit_rms_px}}
+    json_path.parent.mkdir(parents=True, exist_ok=True)
     write_lp(lp_path, records)
-    write_lights_json(json_path, records, res.source())
+    write_lights_json(json_path, records, source)
     s = res.sphere
     print(f"sphere: centre ({s.cx:.2f}, {s.cy:.2f}) px, radius {s.r:.2f} px, outline fit RMS {s.fit_rms_px:.2f} px "
           f"({s.source})")
@@ -61,8 +71,52 @@ def cmd_lights_sphere(a: argparse.Namespace) -> int:
         print(f"{f:<{w}}  {d[0]:7.4f} {d[1]:7.4f} {d[2]:7.4f}  {el:8.2f}  {r:9.3f}  {g:6.3f}  {c:5.2f}")
     for n in res.notes:
         print(f"note: {n}")
+    if matte is not None:
+        est, sph = matte
+        print(f"matte sphere: centre ({sph.cx:.2f}, {sph.cy:.2f}) px, radius {sph.r:.2f} px, outline fit RMS "
+              f"{sph.fit_rms_px:.2f} px")
+        print(f"response: {est.response.describe()}")
+        print("light intensities (relative, geometric mean 1): " + " ".join(f"{v:.3f}" for v in est.intensities))
+        for n in est.notes:
+            print(f"note: {n}")
+        print(f"wrote the response and the intensities into {json_path} (the .lp format carries neither); "
+              f"import with --lights {json_path.name} --transfer lights")
     print(f"wrote {json_path} and {lp_path}")
     return 0
+
+
+def _matte(a: argparse.Namespace, chrome: Path, records: list):
+    """The matte reference sphere's response and intensities: its photos in ``--matte DIR``
+    matched to the chrome photos' lights (by name, else by the numbers in the names), its mask
+    ``--matte-mask`` or DIR's one ``*mask*`` image (required)."""
+    from dualscale.calib.photo_import import match_images
+    from dualscale.calib.response import estimate_from_matte_sphere
+    from dualscale.formats.photo import read_codes, read_mask
+
+    folder = Path(a.matte)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"--matte {folder}: not a folder")
+    paths, masks, _ = match_images(folder, records)
+    if a.matte_mask:
+        mpath = Path(a.matte_mask)
+    elif len(masks) == 1:
+        mpath = masks[0]
+    else:
+        raise FormatError(f"--matte {folder}: {'no' if not masks else 'several'} '*mask*' images; the matte sphere "
+                          "needs its mask (--matte-mask MASK)")
+    codes = [read_codes(p) for p in paths]
+    if any(c.bits == 32 for c in codes):
+        raise FormatError(f"--matte {folder}: the matte sphere's photos must be the camera's integer images (PNG, "
+                          "JPEG, TIFF), shot as the object's are: a float image carries no camera response")
+    shape = codes[0].code.shape[:2]
+    if any(c.code.shape[:2] != shape for c in codes):
+        raise GeometryError(f"--matte {folder}: images of different sizes")
+    mask = read_mask(mpath, shape)
+    import numpy as np
+
+    dirs = np.array([r.direction for r in records])
+    return estimate_from_matte_sphere(np.stack([c.code for c in codes]), mask, dirs, max(c.bits for c in codes),
+                                      np.stack([c.clipped for c in codes]))
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -76,6 +130,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--mask", metavar="MASK|auto", default=None,
                    help="the sphere's mask image, or 'auto' to find the sphere without one "
                         "(default: DIR's one '*mask*' image, else auto)")
+    s.add_argument("--matte", metavar="MATTE_DIR", default=None,
+                   help="photos of a matte (diffuse white or grey) sphere under the same lights: the camera "
+                        "response and the lights' relative intensities come from it (docs/PHOTOS.md)")
+    s.add_argument("--matte-mask", metavar="MASK", default=None,
+                   help="the matte sphere's mask (default: MATTE_DIR's one '*mask*' image)")
     s.add_argument("--pattern", default=None, help="glob of the photos in DIR (default: every image without "
                                                    "'mask' in its name)")
     s.set_defaults(fn=cmd_lights_sphere)

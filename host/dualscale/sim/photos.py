@@ -123,7 +123,7 @@ def render_photos(shape: str = "sphere", dirs: np.ndarray = PSM_LIGHTS, size: tu
         r = 0.46 * min(h, w)
         nx, ny = (xx - (w - 1) / 2) / r, ((h - 1) / 2 - yy) / r
         rho2 = nx * nx + ny * ny
-        mask = rho2 < 0.97
+        mask = rho2 < 1.0
         n = np.stack([nx, ny, np.sqrt(np.clip(1 - rho2, 0, 1))], -1)
         shadow = np.zeros((K, h, w), bool)
     elif shape == "relief":
@@ -179,7 +179,7 @@ def write_photos(folder: str | Path, shots: PhotoShots, name: str = "obj") -> tu
     spec = oiio.ImageSpec(m.shape[1], m.shape[0], 1, oiio.UINT8)
     out = oiio.ImageOutput.create(str(folder / f"{name}.mask.png"))
     out.open(str(folder / f"{name}.mask.png"), spec)
-    out.write_image(np.ascontiguousarray(m))
+    out.write_image(np.ascontiguousarray(m[..., None]))
     out.close()
     lp = folder.parent / f"{folder.name}.lp"
     write_lp(lp, [LightRecord(f"{name}.{k}.png", tuple(float(c) for c in d)) for k, d in enumerate(shots.dirs)])
