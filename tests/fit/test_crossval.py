@@ -168,3 +168,20 @@ def test_cli_default_pixels_agree_with_the_library():
     from dualscale.cli import fit as cli_fit
 
     assert cli_fit.CV_PIXELS == CV_PIXELS
+
+
+def test_the_chosen_loss_is_used_by_the_final_fit_and_every_fold(datasets, tmp_path, monkeypatch):
+    """The selection's loss (here an override, as photographs choose it) reaches the final fit and
+    the cross-validation folds alike: the held-out figure measures the fit that is delivered."""
+    obs = load_observations(datasets("twill")).crop(0, 6, 0, 6).select_leds(TWELVE)
+    losses: list[tuple[str, str]] = []
+    for mod, name in ((api, "final"), (holdout, "fold")):
+        real = mod.fit_observations
+        monkeypatch.setattr(mod, "fit_observations",
+                            lambda o, p, *a, _real=real, _name=name, **k: losses.append((_name, p.loss)) or
+                            _real(o, p, *a, **k))
+    over = {"loss": "l2", "anisotropy": False, "tint": False, "transmittance": False}
+    res, extra = api.fit_dataset("x", tmp_path / "m", "standard", overrides=over, obs=obs, previews=False,
+                                 cv_pixels=20)
+    assert losses == [("fold", "l2")] * 12 + [("final", "l2")] and res.preset.loss == "l2"
+    assert json.loads((tmp_path / "m" / "fit.json").read_text())["preset"]["loss"] == "l2"

@@ -21,7 +21,7 @@ from .io import save_fit
 from .metrics import map_errors
 from .observations import load_observations
 from .presets import Preset, get_preset
-from .select import select_components
+from .select import preset_for, select_components
 from .tiled import TILE, check_tile, check_tileable, clear_state, fit_tiled
 
 
@@ -46,7 +46,8 @@ def fit_dataset(dataset: str | Path, out: str | Path, preset: str | Preset = "st
     are the final fit's re-render errors on the images it was fitted on (``train_*``).
 
     Components are chosen from the data (all lights) unless ``comps`` is given or ``overrides``
-    fixes them.  The checkpoint lives at ``out/checkpoint.pt`` and is removed after a successful
+    fixes them; the loss the choice makes for unpolarised captures (:func:`.select.preset_for`)
+    replaces the preset's, in the final fit and in every fold.  The checkpoint lives at ``out/checkpoint.pt`` and is removed after a successful
     fit; ``restart`` discards an existing one.  ``gt``: a ground-truth maps folder to score
     against (only when given: nothing beside the dataset is taken as ground truth).  ``obs``:
     observations already loaded and calibrated (then ``dataset`` is only recorded).  The maps
@@ -90,6 +91,7 @@ def fit_dataset(dataset: str | Path, out: str | Path, preset: str | Preset = "st
             write_json(sel_path, sel)
     else:
         sel = {"method": "given by caller", "components": comps.__dict__}
+    p = preset_for(p, sel)  # the loss the selection chose (unpolarised captures), for the fit and every fold
     cv = _cross_validation(obs, p, comps, cv_pixels, folds, seed, progress, cv_path) if cv_pixels else None
     tiled: dict[str, Any] = {}
     if engine is None:
