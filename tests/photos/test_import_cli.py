@@ -36,7 +36,8 @@ def test_import_writes_a_v2_dataset_with_linear_radiance(sphere_set, tmp_path, c
     for k, rec in enumerate(ds.records):
         assert rec.light_kind == "led" and rec.light_id == k and rec.analyzer_deg is None
         assert rec.units == "relative_radiance" and rec.colour_space == "linear_rec709"
-        assert rec.saturation == 1.0 and rec.intensity == pytest.approx(scale)
+        # equal lights: their relative intensities, estimated from the photographs (issue 23), agree within 2 %
+        assert rec.saturation == 1.0 and rec.intensity == pytest.approx(scale, rel=0.02)
         assert np.allclose(rec.direction, sphere_set.dirs[k], atol=1e-8)
         img = ds.load(k)  # the decoded pixels, as stored: linear, 1.0 = the top code value
         assert np.abs(img - sphere_set.linear[k]).max() < 0.01
@@ -95,7 +96,7 @@ def _refused(capsys, out, code, *words):
 def test_refuses_integer_images_without_a_transfer(sphere_set, tmp_path, capsys):
     out = tmp_path / "ds"
     _refused(capsys, out, run(str(sphere_set.folder), "--lights", str(sphere_set.lp), "-o", str(out)),
-             "transfer", "--transfer srgb|linear|gamma:G")
+             "transfer", "--transfer auto|srgb|linear|gamma:G")
 
 
 def test_refuses_images_of_different_sizes(sphere_set, tmp_path, capsys):
@@ -156,7 +157,7 @@ def test_refuses_an_output_folder_that_is_not_a_dataset(sphere_set, tmp_path, ca
 
 def test_light_scale_is_the_stated_one(sphere_set, tmp_path):
     assert run(str(sphere_set.folder), "--lights", str(sphere_set.lp), "-o", str(tmp_path / "ds"), "--transfer",
-               "linear", "--scale", "1") == 0
+               "linear", "--scale", "1", "--intensities", "equal") == 0
     ds = read_dataset(tmp_path / "ds")
     assert all(r.intensity == 1.0 for r in ds.records)
     assert math.isclose(float(ds.load(2).max()), float(srgb8(sphere_set.linear[2]).max()) / 255, rel_tol=1e-6)

@@ -59,7 +59,7 @@ from pathlib import Path, PureWindowsPath
 
 import numpy as np
 
-from dualscale.errors import FormatError, GeometryError, InputError
+from dualscale.errors import FormatError, GeometryError, InputError, UnitsError
 from dualscale.formats.atomic import atomic_dir
 from dualscale.formats.lightfile import LightRecord, read_lights
 from dualscale.formats.photo import SUFFIXES, Codes, Photo, decode_codes, read_codes, read_mask

@@ -64,8 +64,6 @@ MIN_SERIES = 150
 FAMILY_MARGIN = 0.05
 #: bootstrap resamples for the uncertainty
 BOOTSTRAP = 8
-#: the prior's standard deviation of the lights' relative intensities (log scale): 0 = none
-INTENSITY_PRIOR = 0.1
 #: the curve family's Legendre coefficients carry a Gaussian prior of this standard deviation
 #: (a ridge: a curve must be told by the data, not by the misfit of non-Lambertian pixels)
 CURVE_PRIOR = 5.0
@@ -123,7 +121,7 @@ class _Data:
     dirs: np.ndarray       # (K, 3)
     normals: np.ndarray | None  # (S, 3) known normals (matte target) or None
     q: float               # one code value
-    scale: float = 0.0     # the current robust code-residual scale (the prior's weight), 0 = q
+    scale: float = 0.0     # the current robust code-residual scale (the curve prior's weight), 0 = q
 
 
 def _intensities(lin: np.ndarray, w: np.ndarray, d: _Data) -> np.ndarray:
@@ -152,9 +150,6 @@ def _intensities(lin: np.ndarray, w: np.ndarray, d: _Data) -> np.ndarray:
     if seen.sum() < 2:
         return np.ones(K)
     Qs = Q[np.ix_(seen, seen)]
-    n = int(seen.sum())
-    if INTENSITY_PRIOR > 0:  # the Gaussian prior on log e (module doc): u^T (Q / s^2 + C / sigma^2) u
-        Qs = Qs + (max(d.scale, d.q) / INTENSITY_PRIOR) ** 2 * (np.eye(n) - 1.0 / n)
     vals, vecs = np.linalg.eigh(Qs / max(np.trace(Qs), 1e-300))
     u = vecs[:, 0] * np.sign(vecs[:, 0].sum())
     e = np.ones(K)

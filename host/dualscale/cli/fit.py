@@ -70,6 +70,9 @@ def cmd_fit(args: argparse.Namespace) -> int:
                                          f"; the {res.preset.name} preset's led_stride thins the lights"))
     print("losses on the fitted images: " + ", ".join(f"{k}={v:.4g}" for k, v in res.losses.items()))
     print(describe(extra.get("cross_validation")))
+    if extra.get("radiometry"):
+        r = extra["radiometry"]
+        print(f"camera response: {r.get('response', r.get('transfer'))}; lights' intensities: {r.get('intensities')}")
     if "ground_truth" in extra:
         print("vs ground truth: " + ", ".join(f"{k}={v:.4g}" for k, v in extra["ground_truth"]["errors"].items()))
     print(f"wrote {Path(args.output) / 'fit.json'}")

@@ -125,7 +125,9 @@ def export_material(maps_dir: str | Path, out: str | Path, formats: Sequence[str
     if not tile:
         repeat = ex.size_mm
     ctx = ExportContext(name=name, repeat_mm=repeat, tiled=bool(tile), swatch_mm=swatch_mm,
-                        meta={"generator": _generator(), "source": str(maps_dir), **(meta or {})})
+                        meta={"generator": _generator(), "source": str(maps_dir),
+                              **({"radiometry": mmeta["radiometry"]} if mmeta.get("radiometry") else {}),
+                              **(meta or {})})
     out.mkdir(parents=True, exist_ok=True)
     done: dict[str, list[str]] = {}
     reused: list[str] = []

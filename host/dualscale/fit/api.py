@@ -25,6 +25,18 @@ from .select import preset_for, select_components
 from .tiled import TILE, check_tile, check_tileable, clear_state, fit_tiled
 
 
+def _radiometry(dataset: str | Path) -> dict | None:
+    """The dataset's radiometry summary (:func:`dualscale.formats.response.radiometry_summary`),
+    None when it has none or cannot be read here (the observations were given)."""
+    from dualscale.formats.dataset import read_dataset
+    from dualscale.formats.response import radiometry_summary
+
+    try:
+        return radiometry_summary(read_dataset(dataset).manifest)
+    except (OSError, ValueError):
+        return None
+
+
 def fit_dataset(dataset: str | Path, out: str | Path, preset: str | Preset = "standard",
                 overrides: dict[str, bool | None] | None = None, cv_pixels: int = CV_PIXELS,
                 cv_folds: int | str = "auto", progress: bool = False,
@@ -109,6 +121,9 @@ def fit_dataset(dataset: str | Path, out: str | Path, preset: str | Preset = "st
                              "cross_validation": cv, "threads": effective_threads()}
     if tiled:
         extra["tiled"] = tiled
+    rad = _radiometry(dataset)
+    if rad is not None:
+        extra["radiometry"] = rad
     if gt is not None:
         from dualscale.formats.maps import load_maps
 

@@ -43,6 +43,8 @@ def save_fit(root: str | Path, res: FitResult, selection: dict | None = None, ex
     remove_file(root / "fit.json")
     meta = {"fit": {k: report[k] for k in ("preset", "components", "iterations", "final_losses")},
             "ior": res.comps.ior}
+    if report.get("radiometry"):  # photographs: the camera response the maps were fitted under
+        meta["radiometry"] = report["radiometry"]
     save_maps(root, res.maps, meta, previews, texel_mm=texel_mm, attributes=fit_attributes(res, selection))
     return write_json(root / "fit.json", report)
 

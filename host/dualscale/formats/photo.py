@@ -19,19 +19,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from dualscale.errors import GeometryError, UnitsError
 
 from .exr import check_window, open_image
-
-if TYPE_CHECKING:
-    from .response import Response
+from .response import TRANSFERS, Response, parse_transfer  # noqa: F401  (parse_transfer, TRANSFERS: re-exported)
 
 SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr")
-TRANSFERS = ("srgb", "linear", "gamma:G")
 
 
 @dataclass(frozen=True)
@@ -43,26 +39,6 @@ class Photo:
     clipped: np.ndarray
     bits: int
     transfer: str
-
-
-def parse_transfer(transfer: str | None) -> tuple[str, float | None]:
-    """``("srgb" | "linear" | "gamma", G or None)``; :class:`~dualscale.errors.UnitsError`
-    for anything else."""
-    if transfer is None:
-        raise UnitsError("the transfer function of display-encoded images must be stated: "
-                         "--transfer srgb|linear|gamma:G (dualscale never guesses it)")
-    t = transfer.strip().lower()
-    if t in ("srgb", "linear"):
-        return t, None
-    if t.startswith("gamma:"):
-        try:
-            g = float(t[6:])
-        except ValueError:
-            g = float("nan")
-        if not (np.isfinite(g) and 0.2 <= g <= 5.0):
-            raise UnitsError(f"transfer {transfer!r}: the gamma must be a number between 0.2 and 5")
-        return "gamma", g
-    raise UnitsError(f"unknown transfer function {transfer!r}; use one of {', '.join(TRANSFERS)}")
 
 
 def decode(code: np.ndarray, transfer: str) -> np.ndarray:
@@ -121,12 +97,10 @@ def read_codes(path: str | Path, clip: float = 1.0) -> Codes:
     return Codes(data, (data >= 1.0 - 0.5 / (2 ** bits - 1)).any(-1), bits)
 
 
-def decode_codes(codes: Codes, transfer: "str | None | Response", where: str = "image") -> Photo:
+def decode_codes(codes: Codes, transfer: str | None | Response, where: str = "image") -> Photo:
     """Linearise :func:`read_codes`'s result by ``transfer`` (a stated transfer string, or a
     :class:`~dualscale.formats.response.Response`, e.g. estimated from the photographs);
     float images must be ``linear`` (:class:`UnitsError` otherwise)."""
-    from .response import Response
-
     if codes.bits == 32:
         name = transfer.transfer if isinstance(transfer, Response) else transfer
         if name is not None and parse_transfer(name)[0] != "linear":
@@ -138,7 +112,7 @@ def decode_codes(codes: Codes, transfer: "str | None | Response", where: str = "
     return Photo(rgb.astype(np.float32), codes.clipped, codes.bits, str(transfer))
 
 
-def read_photo(path: str | Path, transfer: "str | None | Response", clip: float = 1.0) -> Photo:
+def read_photo(path: str | Path, transfer: str | None | Response, clip: float = 1.0) -> Photo:
     """Read and linearise one photograph (see the module docstring).
 
     Greyscale images are expanded to RGB; an alpha channel is ignored.  Raises

@@ -43,6 +43,8 @@ CURVE_DEGREE = 6
 #: grid of the curve family's numerical integral (cells on [0, 1])
 _GRID = 2048
 GAMMA_RANGE = (0.2, 5.0)
+#: the transfers a user can state (``--transfer``)
+TRANSFERS = ("srgb", "linear", "gamma:G")
 
 
 def _srgb_inverse(c: np.ndarray) -> np.ndarray:
@@ -184,7 +186,58 @@ def response_from_json(doc: Any, where: str) -> Response:
 def stated_response(transfer: str) -> Response:
     """The :class:`Response` a stated ``--transfer`` names (``linear``, ``srgb``, ``gamma:G``);
     :class:`UnitsError` otherwise (``auto`` and ``curve`` are not decodings one can state)."""
-    from .photo import parse_transfer
-
     kind, g = parse_transfer(transfer)
     return Response(kind, () if g is None else (g,), "stated")
+
+
+def parse_transfer(transfer: str | None) -> tuple[str, float | None]:
+    """``("srgb" | "linear" | "gamma", G or None)``; :class:`~dualscale.errors.UnitsError`
+    for anything else."""
+    if transfer is None:
+        raise UnitsError("the transfer function of display-encoded images must be stated: "
+                         "--transfer srgb|linear|gamma:G (dualscale never guesses it)")
+    t = transfer.strip().lower()
+    if t in ("auto", "lights"):
+        raise UnitsError(f"--transfer {t}: the response is estimated from a set of photographs under several lights "
+                         "(dualscale import, dualscale lights sphere --matte); here it must be stated: "
+                         "srgb|linear|gamma:G (the import's estimate is in the dataset's "
+                         "extra.import.radiometry)")
+    if t in ("srgb", "linear"):
+        return t, None
+    if t.startswith("gamma:"):
+        try:
+            g = float(t[6:])
+        except ValueError:
+            g = float("nan")
+        if not (np.isfinite(g) and 0.2 <= g <= 5.0):
+            raise UnitsError(f"transfer {transfer!r}: the gamma must be a number between 0.2 and 5")
+        return "gamma", g
+    raise UnitsError(f"unknown transfer function {transfer!r}; use one of {', '.join(TRANSFERS)}")
+
+
+def radiometry_summary(manifest: dict[str, Any]) -> dict[str, Any] | None:
+    """What a dataset's ``manifest.json`` says of its photographs' radiometry, for the fit's
+    records, the report and the exports: ``{"transfer", "response", "source", "family",
+    "params", "intensities"}`` (``response`` a line for people, ``intensities`` where the lights'
+    relative intensities came from), or None for a dataset that was not imported from
+    photographs (the rig's calibrated captures)."""
+    imp = ((manifest or {}).get("extra") or {}).get("import")
+    if not isinstance(imp, dict):
+        return None
+    rad = imp.get("radiometry") or {}
+    resp = rad.get("response")
+    out: dict[str, Any] = {"transfer": manifest.get("transfer"),
+                           "intensities": rad.get("intensities_source") or "file"}
+    if isinstance(resp, dict):
+        try:
+            r = response_from_json(resp, "manifest.json")
+        except FormatError:
+            r = None
+        if r is not None:
+            out.update({"response": r.describe(), "source": r.source, "family": r.family,
+                        "params": list(r.params)})
+    else:
+        out.update({"response": str(manifest.get("transfer") or "linear (EXR)"), "source": "stated"})
+    if rad.get("warnings"):
+        out["warnings"] = list(rad["warnings"])
+    return out

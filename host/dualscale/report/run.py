@@ -328,6 +328,12 @@ def write_run_report(run_dir: str | Path, out: str | Path | None = None) -> Path
         ("fit time", fmt.duration(fit_sum.get("seconds"))),
         ("cross-validation time", fmt.duration(fit_sum.get("cv_seconds"))),
     ]
+    rad = (fit_json or {}).get("radiometry")
+    if rad:  # photographs: the camera response and light intensities the maps were fitted under
+        fit_rows.append(("camera response (photographs)", str(rad.get("response", rad.get("transfer")))))
+        fit_rows.append(("lights' relative intensities", str(rad.get("intensities"))))
+        for wmsg in rad.get("warnings") or []:
+            fit_rows.append(("radiometry warning", str(wmsg)))
     shown = {"preset", "images", "train_images", "heldout_method", "heldout_relative_l1",
              "heldout_baseline_relative_l1", "seconds", "cv_seconds", "texel_mm"}
     fit_rows += fmt.rows({k: v for k, v in fit_sum.items() if k not in shown and k != "skipped"}, depth=0)
