@@ -211,3 +211,27 @@ def test_matte_sphere_mask_not_a_circle_refused(chrome_and_matte, capsys, tmp_pa
     assert _cli("lights", "sphere", chrome, "-o", tmp_path / "lights", "--matte", bad) == 2
     assert "not a disc" in capsys.readouterr().err
     assert not (tmp_path / "lights.json").exists()
+
+
+def test_fit_and_exports_record_the_response(photos_g12, tmp_path, capsys):
+    """The response the maps were fitted under is in the fit's summary, fit.json, the maps'
+    material.json and the exports' provenance (glTF asset extras, MaterialX dualscale_meta)."""
+    root, folder, lp, _ = photos_g12
+    ds = root / "auto"
+    if not ds.is_dir():
+        assert _cli("import", folder, "--lights", lp, "-o", ds, "--transfer", "auto") == 0
+    maps = tmp_path / "maps"
+    assert _cli("fit", ds, "-o", maps, "--preset", "draft", "--cv-pixels", "0", "--threads", "1") == 0
+    out = capsys.readouterr().out
+    assert "camera response: gamma 1.2" in out and "estimated from the photographs" in out
+    fit = json.loads((maps / "fit.json").read_text())
+    assert fit["radiometry"]["source"] == "auto" and fit["radiometry"]["family"] == "gamma"
+    meta = json.loads((maps / "material.json").read_text())["meta"]
+    assert meta["radiometry"]["transfer"].startswith("gamma:1.2")
+    exp = tmp_path / "export"
+    assert _cli("export", maps, "-o", exp, "--format", "gltf,mtlx") == 0
+    gltf = next(exp.rglob("*.gltf"))
+    doc = json.loads(gltf.read_text())
+    assert doc["asset"]["extras"]["dualscale"]["provenance"]["radiometry"]["source"] == "auto"
+    mtlx = next(exp.rglob("*.mtlx")).read_text()
+    assert "radiometry" in mtlx and "gamma:1.2" in mtlx
