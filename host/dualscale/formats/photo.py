@@ -24,7 +24,7 @@ import numpy as np
 
 from dualscale.errors import GeometryError, UnitsError
 
-from .exr import check_window, open_image
+from .exr import check_window
 from .response import TRANSFERS, Response, parse_transfer  # noqa: F401  (parse_transfer, TRANSFERS: re-exported)
 
 SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr")
@@ -65,13 +65,30 @@ class Codes:
     bits: int
 
 
+def _open_unassociated(path: Path):
+    """An ``ImageInput`` that reads the colour *as stored*: OpenImageIO associates
+    (premultiplies) alpha on read by default, which would darken every pixel of an RGBA or
+    grey+alpha photograph by its alpha (``oiio:UnassociatedAlpha`` = 1 keeps it unassociated)."""
+    import OpenImageIO as oiio
+
+    if not path.is_file():
+        raise FileNotFoundError(f"image not found: {path}")
+    config = oiio.ImageSpec()
+    config.attribute("oiio:UnassociatedAlpha", 1)
+    inp = oiio.ImageInput.open(str(path), config)
+    if inp is None:
+        raise OSError(f"cannot read {path}: {oiio.geterror()}")
+    return inp
+
+
 def read_codes(path: str | Path, clip: float = 1.0) -> Codes:
     """Read one photograph's code values without decoding them (see :func:`read_photo`; the
-    same refusals, but no transfer is needed).  Greyscale is expanded to RGB, alpha ignored."""
+    same refusals, but no transfer is needed).  Greyscale is expanded to RGB; an alpha channel
+    is ignored and the colour is read as stored, not premultiplied by it."""
     path = Path(path)
     if path.suffix.lower() not in SUFFIXES:
         raise UnitsError(f"{path}: unsupported image type {path.suffix!r} (use {', '.join(SUFFIXES)})")
-    inp = open_image(path)
+    inp = _open_unassociated(path)
     try:
         spec = inp.spec()
         check_window(path, spec)
