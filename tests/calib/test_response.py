@@ -28,9 +28,9 @@ RESPONSES = {
     "gamma1.8": (lambda x: x ** (1 / 1.8), 0.01),
     "gamma2.2": (lambda x: x ** (1 / 2.2), 0.01),
     "srgb": (_srgb, 0.01),
-    # the S-shaped film curve is the monotone curve family's case; recovered to 3.4 % here, short
-    # of the 1 % (docs/PHOTOS.md names it)
-    "film": (film_curve, 0.04),
+    # the S-shaped film curve is the monotone curve family's case; recovered to 2.2 % here, short
+    # of the 1 % (docs/RADIOMETRY.md says why)
+    "film": (film_curve, 0.03),
 }
 
 

@@ -73,7 +73,7 @@ CURVE_MARGIN = 0.15
 BOOTSTRAP = 8
 #: the curve family's Legendre coefficients carry a Gaussian prior of this standard deviation
 #: (a ridge: a curve must be told by the data, not by the misfit of non-Lambertian pixels)
-CURVE_PRIOR = 5.0
+CURVE_PRIOR = 20.0
 #: IRLS rounds
 ROUNDS = 4
 #: Cauchy weight scale, in robust standard deviations of the code residual

@@ -69,7 +69,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
 
 import numpy as np
@@ -465,7 +465,22 @@ def read_dataset(root: str | Path) -> Dataset:
     if not isinstance(images, list):
         raise FormatError(f"{where}: images must be a list")
     records = [ImageRecord.from_json(d, defaults, where).validate(where) for d in images]
+    cameras = manifest.get("cameras", {})
+    if not isinstance(cameras, dict):
+        raise FormatError(f"{where}: cameras must be an object of camera records")
+    for name, c in cameras.items():
+        try:
+            Camera.from_json(name, c, where)
+        except ValueError as e:
+            raise FormatError(str(e)) from e
     for r in records:
+        rel = PurePosixPath(r.file.replace("\\", "/"))
+        if rel.is_absolute() or ".." in rel.parts or Path(r.file).is_absolute() or str(rel)[1:3] == ":/":
+            raise FormatError(f"{where}: image file {r.file!r} is not inside the dataset folder (a manifest names "
+                              "its images by paths relative to it, without '..')")
+        if r.camera not in cameras:
+            raise FormatError(f"{where}: image {r.file} is from camera {r.camera!r}, which the manifest's cameras "
+                              f"({', '.join(sorted(cameras)) or 'none'}) do not define")
         if not (root / r.file).is_file():
             raise FileNotFoundError(f"{root / r.file} listed in the manifest is missing")
     mask = None

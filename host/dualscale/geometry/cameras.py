@@ -45,8 +45,10 @@ class Camera:
     def __post_init__(self) -> None:
         if self.kind not in ("orthographic", "perspective"):
             raise ValueError(f"camera kind must be 'orthographic' or 'perspective', got {self.kind!r}")
-        if self.width <= 0 or self.height <= 0 or min(self.field_mm) <= 0:
-            raise ValueError("camera size and field must be positive")
+        for what, v in (("width", self.width), ("height", self.height), ("field_mm[0]", self.field_mm[0]),
+                        ("field_mm[1]", self.field_mm[1])):
+            if not (v > 0 and v < float("inf")):
+                raise ValueError(f"{what} must be a positive finite number, got {v}")
         if self.kind == "perspective" and self.position_mm[2] <= 0:
             raise ValueError("a perspective camera must sit above the sample (z > 0)")
 

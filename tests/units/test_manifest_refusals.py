@@ -1,0 +1,67 @@
+"""Dataset manifests the reader refuses (issue 24 §3): images outside the dataset folder, images
+of a camera the manifest does not define, cameras with impossible sizes -- each naming the file
+and the field, exit 2 on the command line, before any pixel is read."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from dualscale.errors import FormatError
+from dualscale.formats.dataset import read_dataset
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    from dualscale.cli import main
+
+    root = tmp_path_factory.mktemp("ds")
+    assert main(["synth", "twill", "-o", str(root / "syn"), "--dataset", "--size", "16", "--threads", "1"]) == 0
+    ds = root / "syn" / "dataset"
+    if not (ds / "manifest.json").is_file():
+        ds = next(p.parent for p in (root / "syn").rglob("manifest.json"))
+    return ds
+
+
+def _edit(src, tmp_path, fn):
+    dst = tmp_path / "ds"
+    shutil.copytree(src, dst)
+    m = json.loads((dst / "manifest.json").read_text())
+    fn(m)
+    (dst / "manifest.json").write_text(json.dumps(m))
+    return dst
+
+
+@pytest.mark.parametrize("bad", ["../../etc/passwd", "/etc/passwd", "images/../../x.exr", "C:\\\\x\\\\y.exr"])
+def test_image_outside_the_dataset_refused(dataset, tmp_path, bad):
+    def fn(m):
+        m["images"][0]["file"] = bad
+
+    with pytest.raises(FormatError, match="not inside the dataset folder"):
+        read_dataset(_edit(dataset, tmp_path, fn))
+
+
+def test_image_of_an_undefined_camera_refused(dataset, tmp_path):
+    def fn(m):
+        m["images"][0]["camera"] = "nope"
+
+    with pytest.raises(FormatError, match="camera 'nope'"):
+        read_dataset(_edit(dataset, tmp_path, fn))
+
+
+def test_camera_with_negative_width_refused_naming_the_field(dataset, tmp_path, capsys):
+    def fn(m):
+        next(iter(m["cameras"].values()))["width"] = -5
+
+    ds = _edit(dataset, tmp_path, fn)
+    with pytest.raises(FormatError, match=r"width must be a positive finite number, got -5"):
+        read_dataset(ds)
+    from dualscale.cli import main
+
+    assert main(["fit", str(ds), "-o", str(tmp_path / "maps"), "--threads", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "manifest.json" in err and "width" in err
+    assert not (tmp_path / "maps" / "fit.json").exists()
