@@ -288,9 +288,10 @@ class _LightSum:
             self._cache.popitem(last=False)
         return out
 
-    def expose(self, raw: np.ndarray, exposure_s: float) -> np.ndarray:
-        """One exposure of ``raw`` for ``exposure_s`` [s]: float32 normalised DN ``(H, W, 3)``."""
-        return np.asarray(self.exposer(raw, exposure_s), dtype=np.float32)
+    def expose(self, raw: np.ndarray, exposure_s: float, shot: object = None) -> np.ndarray:
+        """One exposure of ``raw`` for ``exposure_s`` [s]: float32 normalised DN ``(H, W, 3)``;
+        ``shot`` the shot's identity, which fixes its noise (:class:`~dualscale.sim.targets.Exposer`)."""
+        return np.asarray(self.exposer(raw, exposure_s, shot), dtype=np.float32)
 
 
 class Scene(_LightSum):
@@ -760,7 +761,9 @@ class SimCamera:
                 return
             try:
                 raw = self.scene.raw(job.lights, job.polarizer_cdeg)
-                image = self.scene.expose(raw, job.exposure_s)
+                # the noise is drawn per shot identity, so a resumed capture equals an uninterrupted one
+                image = self.scene.expose(raw, job.exposure_s, (self.scene.identity(), job.lights,
+                                                                job.polarizer_cdeg, round(job.exposure_s, 9)))
                 error = None
             except Exception as e:  # noqa: BLE001 - reported through collect(), never lost silently
                 image, error = None, f"{type(e).__name__}: {e}"

@@ -246,15 +246,26 @@ class Exposer:
         self.bias = cfg.dark_bias * (1.0 + 0.1 * rng.standard_normal((camera.height, camera.width, 1)))
         self.count = 0
 
-    def __call__(self, radiance: np.ndarray, exposure_s: float) -> np.ndarray:
+    def __call__(self, radiance: np.ndarray, exposure_s: float, shot: object = None) -> np.ndarray:
+        """``shot``: the shot's identity (any value with a stable ``repr``, e.g. the scene, the
+        lights, the analyser and the exposure): its noise is drawn from a seed made of it, so
+        the same shot taken again -- a capture resumed after a kill -- has the same noise.
+        ``None``: the seed counts this exposer's calls (a fresh draw per call)."""
         s = self.cfg.sensor()
         if not self.noise:  # the deterministic sensor: dark signal, saturation and 12 bits only
             s = replace(s, shot_noise=False, read_noise=False)
         dark_dn = self.bias + self.cfg.dark_rate * exposure_s
         x = radiance * self.vig + dark_dn * s.full_well_e / (exposure_s * s.gain_e)
         self.count += 1
+        if shot is None:
+            seed = self.seed * 100003 + self.count
+        else:
+            import hashlib
+
+            key = repr((self.defects.seed, self.seed, self.camera.name, shot)).encode()
+            seed = int.from_bytes(hashlib.blake2b(key, digest_size=7).digest(), "little")
         out = capture(torch.from_numpy(np.ascontiguousarray(x)), self.camera, replace(s, exposure_s=exposure_s),
-                      seed=self.seed * 100003 + self.count)
+                      seed=seed)
         return out.numpy()
 
 
