@@ -25,6 +25,20 @@ stage resumes from its work folder (the fit and the training checkpoint there). 
 
 Quality presets (:data:`QUALITIES`) choose coherent presets across stages; docs/DIGITIZE.md
 measures them.
+
+**Before any stage** (:class:`Digitizer`), every input is checked, so that a refused run writes
+nothing: the dataset's manifest and the header of each of its images, the calibration file, and
+the guidance (``--guidance``: an image is read whole -- readable, RGB, finite, its transfer
+function stated; a dataset folder's manifest and diffuse image header -- and the micro field must
+cover at least :data:`dualscale.propagate.stage.MIN_TRAIN_PX` guidance pixels).  Errors about
+the guidance name ``--guidance``.
+
+**The run's own check** (:func:`run_checks`, docs/DIGITIZE.md "The run's check"): a run that
+finished its fit passes when the fitted maps predict the lights they were not fitted on --
+the fit's cross-validated held-out relative L1, ``Σ|prediction − capture| / Σ capture``, is at
+most :data:`HELDOUT_L1_GOAL` (predicting black scores 1).  The checks are recorded in
+``run.json`` (``checks``); ``dualscale digitize`` exits 1 when one fails, its last line naming
+it.  A fit without a cross-validation pass (too few lights) is not checked.
 """
 
 from __future__ import annotations
@@ -44,6 +58,10 @@ from dualscale.formats.atomic import clean_stale, write_text
 from dualscale.formats.run import (file_sha256, json_sha256, read_stage, stage_path, tree_sha256, write_run,
                                    write_stage)
 
+#: the run's check: the largest cross-validated held-out relative L1 of the fit a run passes with
+#: (module docstring; the figures of docs/DIGITIZE.md and docs/PHOTOS.md are 0.02-0.25, random
+#: noise gives 1.0 and more)
+HELDOUT_L1_GOAL = 0.5
 CHECKPOINT_EVERY = 2  # fit iterations between checkpoints (the LM presets run 11-21 iterations in all)
 STAGES = ("calibrate", "fit", "flyouts", "propagate", "export", "report")
 # rough share of a run's time per stage, for the overall ETA (measured in docs/DIGITIZE.md)
@@ -122,6 +140,42 @@ class DigitizeOptions:
             check_tileable(get_preset(QUALITIES[self.quality].fit_preset))
 
 
+@dataclass(frozen=True)
+class Check:
+    """One of the run's own checks: ``name``, the measured ``value`` (``None``: not measured), the
+    ``goal`` as text, ``ok`` (``None`` when not measured) and ``text``: one line for the user."""
+
+    name: str
+    value: float | None
+    goal: str
+    ok: bool | None
+    text: str
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def run_checks(fit_record: dict[str, Any] | None) -> list[Check]:
+    """The run's own checks (module docstring) from the fit stage's record (``None``: the fit did
+    not run, nothing is checked)."""
+    if fit_record is None:
+        return []
+    s = fit_record.get("summary") or {}
+    rel = s.get("heldout_relative_l1")
+    goal = f"at most {100 * HELDOUT_L1_GOAL:.0f} %"
+    if not isinstance(rel, (int, float)):
+        return [Check("fit held-out error", None, goal, None,
+                      f"fit held-out relative L1 not measured ({s.get('heldout_method', 'no cross-validation')})")]
+    ok = bool(rel <= HELDOUT_L1_GOAL)
+    text = (f"fit held-out relative L1 {100 * rel:.1f} % ({'within' if ok else 'above'} the goal of {goal}; "
+            f"{s.get('heldout_method', 'cross-validated')})")
+    if not ok:
+        text += (": the fitted maps do not predict the lights they were not fitted on, so they do not describe "
+                 "the sample under other lights. Check that the images are one sample under the stated lights "
+                 "(directions, intensities, camera response), registered and unclipped")
+    return [Check("fit held-out error", float(rel), goal, ok, text)]
+
+
 @dataclass
 class StageResult:
     """What one stage did: its record and whether it was skipped (up to date)."""
@@ -141,6 +195,15 @@ class RunResult:
     def record(self, name: str) -> dict[str, Any] | None:
         return next((s.record for s in self.stages if s.name == name), None)
 
+    @property
+    def checks(self) -> list[Check]:
+        """The run's own checks (:func:`run_checks`) on the stages it ran."""
+        return run_checks(self.record("fit"))
+
+    @property
+    def failed(self) -> list[Check]:
+        return [c for c in self.checks if c.ok is False]
+
 
 def versions() -> dict[str, str]:
     """Versions of dualscale and the libraries whose results the stages depend on."""
@@ -153,6 +216,42 @@ def versions() -> dict[str, str]:
         except PackageNotFoundError:
             pass
     return out
+
+
+def _named(option: str, e: BaseException, hint: str = "") -> InputError:
+    """``e`` as an :class:`InputError` (its own class when one) whose one line names ``option``."""
+    from dualscale.errors import one_line
+
+    msg = one_line(e)
+    if not msg.startswith(option.split()[0]):
+        msg = f"{option}: {msg}"
+    if hint:
+        msg += f"; {hint}"
+    try:
+        return type(e)(msg) if isinstance(e, InputError) else InputError(msg)
+    except TypeError:
+        return InputError(msg)
+
+
+def _check_images(ds: Any, option: str) -> None:
+    """Every image of the dataset ``ds`` opens as an image (its header): a corrupt or missing one
+    is refused before any stage, naming the file."""
+    from dualscale.formats.exr import open_image
+
+    for rec in ds.records:
+        try:
+            open_image(ds.root / rec.file).close()
+        except (InputError, OSError) as e:
+            raise _named(option or f"dataset {ds.root}", e) from None
+
+
+def _micro_texel(ds: Any) -> float | None:
+    """The micro images' pixel pitch in mm from the dataset's first camera (``field_mm / width``)."""
+    cam = (ds.manifest.get("cameras") or {}).get(ds.records[0].camera) if ds.records else None
+    try:
+        return float(cam["field_mm"][0]) / float(cam["width"]) if cam and cam.get("field_mm") else None
+    except (KeyError, TypeError, ValueError, ZeroDivisionError):
+        return None
 
 
 def input_dataset(path: Path) -> Path:
@@ -239,7 +338,7 @@ class Digitizer:
         if opts.calibration is not None and not opts.calibration.is_file():
             raise FileNotFoundError(f"calibration file not found: {opts.calibration}")
         if opts.guidance is not None and not opts.guidance.exists():
-            raise FileNotFoundError(f"guidance image not found: {opts.guidance}")
+            raise FileNotFoundError(f"--guidance {opts.guidance}: no such image or folder")
         self.versions = versions()
         self._preflight()
 
@@ -256,6 +355,7 @@ class Digitizer:
         if raw and self.opts.calibration is None:
             raise UnitsError(f"{self.dataset_in}: the captures are in {', '.join(sorted(raw))} (camera counts): "
                              "give the rig's calibration file with --calibration CAL (dualscale calibrate)")
+        _check_images(ds, "")
         if self.opts.calibration is not None:
             read_calibration(self.opts.calibration)
         g = self.opts.guidance
@@ -263,7 +363,60 @@ class Digitizer:
             if self.opts.guidance_transfer is None:
                 raise UnitsError(f"--guidance {g}: a display-encoded image needs its transfer function: "
                                  "--transfer srgb|linear|gamma:G (dualscale never guesses it)")
-            parse_transfer(self.opts.guidance_transfer)
+            try:
+                parse_transfer(self.opts.guidance_transfer)
+            except InputError as e:
+                raise _named(f"--guidance {g} --transfer {self.opts.guidance_transfer}", e) from None
+        if g is not None:
+            self._check_guidance(g, ds)
+
+    def _check_guidance(self, g: Path, ds: Any) -> None:
+        """The guidance as the propagate stage will read it (module docstring), every error naming
+        ``--guidance``: a dataset folder's manifest, units and diffuse image (its header; it goes
+        through the calibrate stage first), an image file read whole; then whether the micro field
+        covers enough guidance pixels to train on."""
+        from dualscale.formats.dataset import read_dataset
+        from dualscale.formats.exr import open_image
+        from dualscale.propagate.guidance import _dataset_image, read_guidance
+        from dualscale.propagate.stage import MIN_TRAIN_PX, RIG_GUIDANCE_FIELD_MM
+
+        opt = f"--guidance {g}"
+        try:
+            if g.is_dir():
+                gds = read_dataset(g)
+                raw = {r.units for r in gds.records} - {"relative_radiance"}
+                if raw and self.opts.calibration is None:
+                    raise UnitsError(f"the guidance is in {', '.join(sorted(raw))} (camera counts): give the rig's "
+                                     "calibration file with --calibration CAL")
+                file, cam, _ = _dataset_image(g)
+                inp = open_image(file)
+                try:
+                    width, height = inp.spec().width, inp.spec().height
+                finally:
+                    inp.close()
+                tex = cam.pixel_mm[0] if cam is not None else None
+            else:
+                guide = read_guidance(g, self.opts.guidance_transfer, self.opts.guidance_texel_mm)
+                height, width = guide.shape
+                tex = guide.texel_mm
+        except (InputError, OSError) as e:
+            hint = ("the guidance is an image (EXR, or PNG/JPEG/TIFF with --transfer) or a dataset folder with a "
+                    "manifest.json (`dualscale synth --mid`, `dualscale import`)") if g.is_dir() else ""
+            raise _named(opt, e, hint) from None
+        if self.opts.guidance_texel_mm is not None:
+            tex = float(self.opts.guidance_texel_mm)
+        if tex is None:
+            tex = RIG_GUIDANCE_FIELD_MM / width
+        micro = _micro_texel(ds)
+        if micro is None:
+            return  # the propagate stage refuses it, naming the missing texel size
+        rec = ds.records[0]
+        cam = (ds.manifest.get("cameras") or {}).get(rec.camera) or {}
+        side = min(int(cam.get("width") or 0), int(cam.get("height") or 0)) * micro / tex
+        if side and side < MIN_TRAIN_PX:
+            raise InputError(f"{opt}: the micro field covers only {side:.0f} px of the {width}x{height} guidance at "
+                             f"{tex:.4g} mm/px; propagation needs at least {MIN_TRAIN_PX} px: a finer guidance, or "
+                             "its true texel size (--guidance-texel-mm)")
 
     # -- paths of the finished stages
     def out(self, stage: str) -> Path:
@@ -332,10 +485,14 @@ class Digitizer:
         from dualscale.formats.exr import write_exr
 
         obs = load_observations(self.dataset)
-        res, extra = fit_dataset(self.dataset, work / "maps", self.quality.fit_preset,
-                                 cv_pixels=self.quality.cv_pixels, cv_folds=self.quality.cv_folds,
-                                 progress=self.opts.progress, seed=self.opts.seed, obs=obs,
-                                 checkpoint_every=CHECKPOINT_EVERY, engine=self.opts.engine)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            res, extra = fit_dataset(self.dataset, work / "maps", self.quality.fit_preset,
+                                     cv_pixels=self.quality.cv_pixels, cv_folds=self.quality.cv_folds,
+                                     progress=self.opts.progress, seed=self.opts.seed, obs=obs,
+                                     checkpoint_every=CHECKPOINT_EVERY, engine=self.opts.engine)
+        for w in caught:  # to the stage's record, with advice that fits where these images came from
+            warnings.warn_explicit(self._fit_advice(str(w.message)), w.category, w.filename, w.lineno)
         write_exr(work / "residual.exr", residual_map(res.maps, res.comps, obs).numpy()[..., None], ("Y",))
         lights = extra["lights"]
         cv = extra["cross_validation"]
@@ -371,6 +528,27 @@ class Digitizer:
                "lights": per_light, "renders": renders}
         write_json(work / "heldout" / "heldout.json", doc)
         return summary
+
+    def _fit_advice(self, message: str) -> str:
+        """A fit warning as the user of this run should read it: the fit's advice to import the
+        photographs with ``dualscale import`` is replaced, for a dataset that came from it, by what
+        to check in that import."""
+        import re
+
+        from dualscale.formats.dataset import read_dataset
+
+        if "`dualscale import`" not in message:
+            return message
+        try:
+            imported = "import" in (read_dataset(self.dataset_in).manifest.get("extra") or {})
+        except (InputError, OSError):
+            return message
+        if not imported:
+            return message
+        return re.sub(r"Import photographs with `dualscale import`.*$",
+                      "These photographs came from `dualscale import`, which already scaled them by the lights: "
+                      "check the import's --lights, --intensities and --transfer (docs/RADIOMETRY.md), and that "
+                      "the photographs show one sample under those lights", message, flags=re.S)
 
     def flyouts(self) -> StageResult:
         params = {"enabled": self.quality.flyouts, "seed": self.opts.seed}
@@ -491,11 +669,17 @@ class Digitizer:
             raise InputError(f"stage {name!r}: choose one of {', '.join(STAGES)}")
         return getattr(self, name)()
 
-    def end(self) -> None:
-        """Remove the run's ``work/`` folder once every stage has moved its work out of it."""
+    def end(self) -> list[Check]:
+        """Remove the run's ``work/`` folder once every stage has moved its work out of it, and
+        record the run's own checks (:func:`run_checks`) in ``run.json``; returns them."""
         work = self.run / "work"
         if work.is_dir() and not any(work.iterdir()):
             work.rmdir()
+        names = list(STAGES if self.opts.until is None else STAGES[:STAGES.index(self.opts.until) + 1])
+        checks = run_checks(read_stage(self.run, "fit") if "fit" in names else None)
+        write_run(self.run, {"input": str(self.opts.input), "options": _options_json(self.opts), "stages": names,
+                             "checks": [c.to_json() for c in checks]})
+        return checks
 
     def digitize(self, on_stage: Callable[[StageResult], None] | None = None) -> RunResult:
         """Run (or skip) every stage up to ``until``; returns what each did."""
@@ -624,13 +808,16 @@ def _calibrated_leds(cal: dict[str, Any]) -> set[int] | None:
 
 
 def digitize(opts: DigitizeOptions, on_stage: Callable[[StageResult], None] | None = None,
-             on_start: Callable[[], None] | None = None, rig: RigCapture | None = None) -> RunResult:
+             on_start: Callable[[], None] | None = None, rig: RigCapture | None = None,
+             prepared: Digitizer | None = None) -> RunResult:
     """Run ``dualscale digitize`` (see the module docstring); ``on_start`` is called once the
     inputs passed their checks, ``on_stage`` after each stage.  Raises :class:`~dualscale.errors.InputError` (and subclasses) for input a stage
     cannot interpret, before anything of that stage is written.
 
     ``rig``: digitize from the rig: :func:`capture_stage` runs first, and its micro dataset (and
-    mid guidance, unless ``opts.guidance`` is given) are the input of the other stages."""
+    mid guidance, unless ``opts.guidance`` is given) are the input of the other stages.
+    ``prepared``: the :class:`Digitizer` of ``opts`` already made (its inputs checked), e.g. by a
+    caller that checks them before making the run folder."""
     if opts.threads:
         import torch
 
@@ -651,7 +838,7 @@ def digitize(opts: DigitizeOptions, on_stage: Callable[[StageResult], None] | No
         mid = opts.run / CAPTURE_STAGE / "mid"
         if opts.guidance is None and (mid / "manifest.json").is_file():
             opts.guidance = mid
-    d = Digitizer(opts)
+    d = prepared if prepared is not None and rig is None else Digitizer(opts)
     if on_start is not None:
         on_start()
     result = d.digitize(on_stage)

@@ -191,6 +191,22 @@ def resolve(spec: Spec) -> int:
     return spec
 
 
+def machine_cores() -> int:
+    """The machine's logical cores (``os.cpu_count()``), the most threads a count may ask for."""
+    return max(1, os.cpu_count() or 1)
+
+
+def clamp(spec: Spec) -> tuple[Spec, str | None]:
+    """``--threads``: a count above :func:`machine_cores` lowered to it, with the notice to show
+    (``None`` when unchanged; ``"auto"`` and ``None`` pass as they are).  Thousands of threads
+    per library would only wait on each other (and may exhaust the process's thread limit)."""
+    cores = machine_cores()
+    if isinstance(spec, int) and not isinstance(spec, bool) and spec > cores:
+        return cores, (f"--threads {spec} is more than this machine's {cores} core{'s' if cores > 1 else ''}: "
+                       f"using {cores}")
+    return spec, None
+
+
 def _set_numba(numba, n: int) -> int:
     """Set numba's pool to ``n`` capped at ``numba.config.NUMBA_NUM_THREADS`` and keep torch's
     count: numba's OpenMP threading layer resets OpenMP's thread count (which torch reports and

@@ -9,12 +9,15 @@ record, ``.dualscale-output.json`` (``{"format": "dualscale-output", "version": 
 ..., "inputs": [...]}``: the command and its resolved inputs, e.g. the dataset, or the material
 and seed of ``synth``).  A folder is **foreign** when it holds a record of another command or
 other inputs, or, without a record, the outputs of an earlier dualscale run (a
-``material.json``, ``manifest.json``, ``fit.json``, ... in it or one level down).  A foreign
-folder is refused (exit 2) unless ``--overwrite`` is given, which removes its contents first
-(never a folder that is, or holds, one of the command's inputs, the working folder or the home
-folder).  Rerunning the same command on the same inputs into its own folder is not foreign: it
-resumes or replaces its own outputs.  A command that fails on its input before writing anything
-leaves no folder behind.
+``material.json``, ``manifest.json``, ``fit.json``, ... in it or one level down; a command may
+recognise its own earlier, unrecorded outputs: ``own``).  A foreign folder is refused (exit 2)
+unless ``--overwrite`` is given.  ``--overwrite`` removes the folder's whole contents first,
+whatever they are (another run's outputs, unrelated files, or the same run's, which then starts
+over; ``capture --resume`` keeps its own capture); it never empties a folder that is, or holds,
+one of the command's inputs, the working folder or the home folder.  Without ``--overwrite``,
+rerunning the same command on the same inputs into its own folder is not foreign: it resumes or
+replaces its own outputs, and files that mark no dualscale run are left alone beside them.  A
+command that fails on its input before writing anything leaves no folder behind.
 
 ``--threads N|auto`` (:mod:`dualscale.threads`) sets torch's intra-op threads, OpenCV's and,
 when the process has loaded it, numba's; onnxruntime takes the count from the command
@@ -53,8 +56,10 @@ def add_output(parser: argparse.ArgumentParser, help: str, required: bool = True
     """The one output option: ``-o/--output`` (dest ``output``), with ``--overwrite``."""
     parser.add_argument("-o", "--output", required=required, help=help)
     parser.add_argument("--overwrite", action="store_true",
-                        help="replace an output folder that holds another run's outputs (its contents are removed "
-                             "first); a rerun of the same command into its own folder needs none")
+                        help="empty the output folder first: all its contents are removed (another run's outputs, "
+                             "unrelated files, or this same run's, which then starts over); needed for a folder that "
+                             "holds another command's or another input's outputs; a rerun of the same command on "
+                             "the same inputs into its own folder needs none (it resumes)")
 
 
 def _identity(command: str, inputs: Sequence[object]) -> dict:
@@ -66,8 +71,10 @@ def _identity(command: str, inputs: Sequence[object]) -> dict:
     return {"command": command, "inputs": [norm(x) for x in inputs if x is not None]}
 
 
-def _foreign(out: Path, ident: dict) -> str | None:
-    """Why ``out`` holds another run's outputs, or ``None``."""
+def _foreign(out: Path, ident: dict, own=None) -> str | None:
+    """Why ``out`` holds another run's outputs, or ``None``.  ``own(out)``: for a folder without a
+    record, the reason it holds another run (text), or ``None`` when it holds this command's own
+    earlier outputs; without it any marker file is another run's."""
     rec = out / RECORD
     if rec.is_file():
         try:
@@ -81,6 +88,10 @@ def _foreign(out: Path, ident: dict) -> str | None:
         if doc.get("inputs") != ident["inputs"]:
             return f"it holds the outputs of another run of {ident['command']} (inputs {doc.get('inputs')})"
         return None
+    if own is not None:
+        why = own(out)
+        if why is not False:
+            return why
     for m in MARKERS:
         for p in (out / m, *out.glob(f"*/{m}")):
             if p.is_file():
@@ -126,7 +137,7 @@ def _writable_error(out: Path, e: OSError) -> Exception:
 
 @contextlib.contextmanager
 def output_folder(args: argparse.Namespace, command: str, inputs: Sequence[object] = (), *,
-                  record: bool = True, folder: str | Path | None = None) -> Iterator[Path]:
+                  record: bool = True, folder: str | Path | None = None, own=None) -> Iterator[Path]:
     """Take the command's output folder (``folder``, default ``args.output``) before any work:
     refuse a foreign one unless ``args.overwrite`` (module docstring), check that it can be
     written (a probe file through :mod:`dualscale.formats.atomic`; ``InputError`` for a folder
@@ -134,7 +145,10 @@ def output_folder(args: argparse.Namespace, command: str, inputs: Sequence[objec
     Yields the folder.  When the body fails and the folder was created here and holds nothing
     but its record, it is removed again.
 
-    ``inputs``: what identifies the run (paths are resolved; other values kept as they are)."""
+    ``inputs``: what identifies the run (paths are resolved; other values kept as they are).
+    ``own(folder)``: for a folder without a record, ``None`` when it holds this command's own
+    earlier outputs of the same inputs (written before records existed), a reason (text) when
+    another run's, ``False`` to apply the usual marker files."""
     from dualscale.formats.atomic import probe_writable, write_json
 
     out = Path(folder if folder is not None else args.output)
@@ -147,11 +161,14 @@ def output_folder(args: argparse.Namespace, command: str, inputs: Sequence[objec
         created.append(p)
         p = p.parent
     if out.is_dir() and record:
-        why = _foreign(out, ident)
+        why = _foreign(out, ident, own)
+        overwrite = getattr(args, "overwrite", False)
         if why is not None:
-            if not getattr(args, "overwrite", False):
+            if not overwrite:
                 raise InputError(f"-o {out}: {why}; pass --overwrite to replace them, or choose another folder")
             _clear(out, inputs)
+        elif overwrite and not getattr(args, "resume", False) and any(out.iterdir()):
+            _clear(out, inputs)  # --overwrite empties the folder, as its help says (capture --resume keeps it)
     had_record = (out / RECORD).is_file()
     try:
         probe_writable(out)
@@ -194,10 +211,24 @@ def _threads_arg(text: str) -> int | str:
         raise argparse.ArgumentTypeError(str(e).removeprefix("--threads ")) from None
 
 
+class _ThreadsAction(argparse.Action):
+    """Stores ``--threads``; a count above the machine's cores (:func:`dualscale.threads.clamp`)
+    is lowered to them with a one-line notice on stderr (``dualscale CMD: warning: ...``): more
+    threads than cores only make the libraries' threads wait on each other."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        from dualscale.threads import clamp
+
+        n, note = clamp(values)
+        if note:
+            print(f"{parser.prog}: warning: {note}", file=sys.stderr)
+        setattr(namespace, self.dest, n)
+
+
 def add_work_options(parser: argparse.ArgumentParser, threads_help: str | None = None) -> None:
     """Add ``--threads N|auto`` and ``--progress/--no-progress`` to a long command
     (``threads_help``: what the count drives, before the common words on ``auto``)."""
-    parser.add_argument("--threads", type=_threads_arg, default=None, metavar="N|auto",
+    parser.add_argument("--threads", type=_threads_arg, action=_ThreadsAction, default=None, metavar="N|auto",
                         help=f"{threads_help or 'CPU threads for torch, OpenCV and numba'}; {THREADS_HELP}")
     parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
                         help="progress bar on stderr (default: on when stderr is a terminal)")
@@ -210,7 +241,7 @@ def apply_threads(args: argparse.Namespace) -> int:
     (onnxruntime sessions).  Raises :class:`~dualscale.errors.InputError` for a count below 1."""
     from dualscale.threads import resolve, set_threads
 
-    n = resolve(getattr(args, "threads", None))
+    n = resolve(getattr(args, "threads", None))  # --threads above the cores was lowered when parsed
     import cv2
     import torch  # noqa: F401 - loaded here so that set_threads reaches it
 

@@ -22,12 +22,36 @@ def _line(st) -> str:
     return "\n".join(lines)
 
 
+def _own_run(inp: str | None):
+    """For ``output_folder(own=...)``: a run folder without a record (from before records) is this
+    run's when its ``run.json`` names the same input; another input's when it names another."""
+    def own(out: Path):
+        import json
+
+        doc_path = out / "run.json"
+        if not doc_path.is_file():
+            return False
+        try:
+            doc = json.loads(doc_path.read_text())
+            before = doc.get("input") if isinstance(doc, dict) else None
+        except (OSError, ValueError):
+            return "its run.json is unreadable"
+        if inp is not None and before is not None and Path(before).resolve() == Path(inp).resolve():
+            return None
+        return f"it holds the digitize run of another input ({before})"
+    return own
+
+
+def _check_lines(res) -> list[str]:
+    return [f"check: {c.text}" + ("" if c.ok is None else " ✓" if c.ok else " ✗") for c in res.checks]
+
+
 def cmd_digitize(a: argparse.Namespace) -> int:
     from .export import parse_formats
 
-    from dualscale.pipeline import CAPTURE_STAGE, DigitizeOptions, RigCapture, digitize
+    from dualscale.pipeline import CAPTURE_STAGE, DigitizeOptions, Digitizer, RigCapture, digitize
 
-    from dualscale.errors import InputError
+    from dualscale.errors import EXIT_CODES, InputError
 
     if (a.input is None) == (a.rig is None):
         raise InputError("digitize: give a dataset folder INPUT, or --rig PORT with --camera SPEC (not both)")
@@ -42,20 +66,22 @@ def cmd_digitize(a: argparse.Namespace) -> int:
     def start() -> None:
         print(f"digitize {opts.input} -> {opts.run} (quality {opts.quality})", flush=True)
 
-    with output_folder(a, "digitize", record=False):  # the run folder's own records say whose it is
-        if a.rig is None:
-            res = digitize(opts, on_stage=lambda st: print(_line(st), flush=True), on_start=start)
-        else:
-            from .capture import capture_options, rig_and_cameras
-
-            roles = ("micro", "mid")
-            with rig_and_cameras(a.rig, a.camera, roles, a.parity, a.stopbits, a.sim_speed) as (rig, cams):
-                print(f"digitize from the rig {a.rig} ({', '.join(f'{r}: {c.spec}' for r, c in cams.items())})",
-                      flush=True)
-                res = digitize(opts, on_stage=lambda st: print(_line(st), flush=True), on_start=start,
-                               rig=RigCapture(rig, cams, a.lights, capture_options(a, a.rig)))
+    # every input is checked (Digitizer's preflight) before the run folder is made or touched
+    prepared = Digitizer(opts) if a.rig is None else None
+    ident = [Path(a.input)] if a.rig is None else [f"rig:{a.rig}", *a.camera]
     run = Path(a.output)
+    fresh = not run.exists()
+    try:
+        with output_folder(a, "digitize", ident, own=_own_run(a.input)):
+            res = _run(a, opts, start, prepared, digitize, RigCapture)
+    except InputError:
+        if fresh and run.is_dir():  # refused on its input: a run folder made by this command goes again
+            import shutil
+
+            shutil.rmtree(run, ignore_errors=True)
+        raise
     fit = res.record("fit")
+
     if fit is not None:
         s = fit["summary"]
         rel = s.get("heldout_relative_l1")
@@ -70,7 +96,51 @@ def cmd_digitize(a: argparse.Namespace) -> int:
                   f"{', '.join(f for f in e['files'] if f != 'maps')})")
     if res.record("report") is not None:
         print(f"report: {run / 'report' / 'index.html'}")
+    for line in _check_lines(res):
+        print(line)
+    failed = res.failed
+    if failed:
+        import sys
+
+        print(f"dualscale digitize: check failed: {failed[0].text} (the outputs are in {run}; "
+              "docs/DIGITIZE.md, \"The run's check\")", file=sys.stderr, flush=True)
+        return EXIT_CODES["check_failed"]
     return 0
+
+
+def _run(a, opts, start, prepared, digitize, RigCapture):
+    """The stages, from the dataset or (``--rig``) after capturing on the rig."""
+    if a.rig is None:
+        return digitize(opts, on_stage=lambda st: print(_line(st), flush=True), on_start=start, prepared=prepared)
+    from .capture import capture_options, rig_and_cameras
+
+    roles = ("micro", "mid")
+    with rig_and_cameras(a.rig, a.camera, roles, a.parity, a.stopbits, a.sim_speed) as (rig, cams):
+        print(f"digitize from the rig {a.rig} ({', '.join(f'{r}: {c.spec}' for r, c in cams.items())})",
+              flush=True)
+        return digitize(opts, on_stage=lambda st: print(_line(st), flush=True), on_start=start,
+                        rig=RigCapture(rig, cams, a.lights, capture_options(a, a.rig)))
+
+
+
+EXIT_EPILOG = """exit codes:
+  0    done, and the run's own check passed (or was not measured)
+  1    the run finished but failed its own check: the fit's cross-validated held-out relative L1
+       is above 50 % (the last line names it; docs/DIGITIZE.md, "The run's check")
+  2    bad input: a file, a value, an output folder holding another run; nothing is written
+  3    the rig or a camera (--rig)
+  4    a missing tool or environment (a full disk, the dask extra for --workers)
+  5    an internal error (please report it)
+  130  interrupted (Ctrl-C, a stop request): run the same command again to resume"""
+
+
+class _Formatter(argparse.HelpFormatter):
+    """Wraps the description as usual, keeps the epilog's table as written."""
+
+    def _fill_text(self, text, width, indent):
+        if text.startswith("exit codes:"):
+            return "".join(indent + line for line in text.splitlines(keepends=True))
+        return super()._fill_text(text, width, indent)
 
 
 def register(sub) -> None:
@@ -82,8 +152,12 @@ def register(sub) -> None:
                        description="Turn a photometric capture into SVBSDF maps and materials: RUN/export/{micro,mesoscale}/ "
                                    "hold the maps and the MaterialX, glTF/GLB, U3M and EXR exports (docs/EXPORT.md), "
                                    "RUN/report/index.html the report. Rerunning the same command skips finished "
-                                   "stages and resumes an interrupted one. Exit codes: 0 done, 2 bad input, "
-                                   "3 the rig or a camera (--rig), 130 interrupted (see README).")
+                                   "stages and resumes an interrupted one. RUN must be new, or this run's own "
+                                   "folder (the same INPUT): a folder holding another command's outputs or "
+                                   "another input's run is refused unless --overwrite (which empties it first). "
+                                   "Every input (the dataset and its images, --calibration, --guidance) is checked "
+                                   "before RUN is made.",
+                       epilog=EXIT_EPILOG, formatter_class=_Formatter)
     d.add_argument("input", nargs="?", default=None,
                    help="photometric dataset folder (manifest.json), or a folder holding micro/; or use --rig")
     d.add_argument("--rig", default=None, metavar="PORT",

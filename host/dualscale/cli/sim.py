@@ -85,7 +85,47 @@ def _capture_set(maps, cam, out: Path, lights: list[tuple[str, int | None]], ana
     return out / "manifest.json"
 
 
+#: the largest map or image side synth and render make (texels): 8192^2 maps already take several GB
+MAX_SIZE = 8192
+#: the smallest (the synthetic materials' weave needs it)
+MIN_SIZE = 8
+#: physical sizes (texel in um, field in mm) beyond which the virtual rig's geometry means nothing
+MAX_TEXEL_UM = 1e5
+MAX_FIELD_MM = 1e4
+
+
+def _check_size(value: int | None, option: str) -> None:
+    if value is not None and not MIN_SIZE <= value <= MAX_SIZE:
+        raise InputError(f"{option} {value}: choose {MIN_SIZE}..{MAX_SIZE} texels (a side of {value} would need "
+                         f"{_gib(value):.3g} GiB for the maps alone)" if value > MAX_SIZE else
+                         f"{option} {value}: choose {MIN_SIZE}..{MAX_SIZE} texels")
+
+
+def _gib(side: int) -> float:
+    """Memory of one set of float32 maps of ``side``^2 texels (17 channels), in GiB."""
+    return side * side * 17 * 4 / 2**30
+
+
+def _check_length(value: float | None, option: str, top: float, unit: str) -> None:
+    import math
+
+    if value is not None and not (math.isfinite(value) and 0 < value <= top):
+        raise InputError(f"{option} {value:g}: must be a positive, finite number of {unit} (at most {top:g})")
+
+
+def check_synth_args(args: argparse.Namespace) -> None:
+    """Refuse, before any folder is made, the sizes ``synth`` cannot make (one line, exit 2):
+    a side outside :data:`MIN_SIZE`..:data:`MAX_SIZE` (``--size 1000000`` would be 7 TiB), a
+    texel or field that is not a positive finite length (``--mid-field-mm inf``)."""
+    _check_size(args.size, "--size")
+    _check_length(args.texel_um, "--texel-um", MAX_TEXEL_UM, "micrometres")
+    if args.mid:
+        _check_size(args.mid_size, "--mid-size")
+        _check_length(args.mid_field_mm, "--mid-field-mm", MAX_FIELD_MM, "mm")
+
+
 def cmd_synth(args: argparse.Namespace) -> int:
+    check_synth_args(args)
     apply_threads(args)
     progress = want_progress(args)
     out = Path(args.output)
@@ -172,6 +212,8 @@ def cmd_render(args: argparse.Namespace) -> int:
     from dualscale.geometry.cameras import micro_camera, mid_camera, polar_camera
     from dualscale.formats.maps import load_maps
 
+    _check_size(args.size, "--size")
+    _check_length(args.texel_um, "--texel-um", MAX_TEXEL_UM, "micrometres")
     apply_threads(args)
     lights = _render_lights(args)
     maps, meta = load_maps(args.maps, dtype=torch.float64 if args.float64 else torch.float32)
@@ -199,14 +241,16 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("synth", help="write ground-truth maps (and optionally captures) of a synthetic material")
     p.add_argument("material", choices=sorted(MATERIALS))
     add_output(p, "output directory (maps/, micro/, mid/)")
-    p.add_argument("--size", type=int, default=512, help="map size in texels (square)")
+    p.add_argument("--size", type=int, default=512,
+                   help=f"map size in texels (square, {MIN_SIZE}..{MAX_SIZE}; default: 512)")
     p.add_argument("--texel-um", type=float, default=1.8, help="texel (= micro pixel) size in micrometres")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--dataset", action="store_true", help="also render a micro photometric dataset")
     p.add_argument("--lights", default="all", help="'all' or 'modN' (every N-th LED)")
     p.add_argument("--analyzers", default="0,90", help="analyser angles relative to each LED polariser, or 'none'")
     p.add_argument("--mid", action="store_true", help="also render a mid-range guidance image (diffuse group)")
-    p.add_argument("--mid-size", type=int, default=256)
+    p.add_argument("--mid-size", type=int, default=256,
+                   help=f"side of the mid-range guidance image in pixels ({MIN_SIZE}..{MAX_SIZE}; default: 256)")
     p.add_argument("--mid-field-mm", type=float, default=100.0,
                    help="field of the mid-range image in mm (the rig: 100; smaller for a test bed)")
     p.add_argument("--realistic", action="store_true", help="capture in camera counts with the virtual rig's sensor (metered exposures, LED "

@@ -47,6 +47,18 @@ def cmd_view(args: argparse.Namespace) -> int:
     return 0
 
 
+def _port(text: str) -> int:
+    """argparse type of ``--port``: a TCP port 0..65535 (0 = any free port); a usage error
+    otherwise (exit 2, one line), not an OverflowError from the socket."""
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"a TCP port 0..65535 (0 = any free port), got {text!r}") from None
+    if not 0 <= n <= 65535:
+        raise argparse.ArgumentTypeError(f"a TCP port is 0..65535 (0 = any free port), got {n}")
+    return n
+
+
 def register(subparsers) -> None:
     """Add ``view`` to an argparse subparsers object."""
     v = subparsers.add_parser(
@@ -57,7 +69,7 @@ def register(subparsers) -> None:
                     "image beside our renderer's image of the fitted maps (docs/VIEWER.md). Ctrl-C stops it.")
     v.add_argument("path", metavar="RUN|OUT", help="digitize run folder (run.json) or export folder (export.json) "
                                                   "with a glb or gltf export")
-    v.add_argument("--port", type=int, default=0, help="port on 127.0.0.1 (default: any free port)")
+    v.add_argument("--port", type=_port, default=0, help="port on 127.0.0.1 (default: any free port)")
     v.add_argument("--no-browser", action="store_true", help="do not open a browser; just print the URL")
     v.add_argument("--led", type=int, default=None, metavar="K",
                    help="LED whose captured and rendered images the page shows first (a run only)")

@@ -12,7 +12,7 @@ from typing import Sequence
 
 import numpy as np
 
-from dualscale.errors import GeometryError
+from dualscale.errors import FormatError, GeometryError
 
 from .atomic import atomic_path
 
@@ -62,34 +62,45 @@ def write_pixels(path: str | Path, pixels: np.ndarray, spec) -> Path:
 
 def open_image(path: str | Path):
     """An OpenImageIO ``ImageInput`` for ``path`` (close it); ``FileNotFoundError`` when missing,
-    ``OSError`` when unreadable, naming the file."""
+    :class:`~dualscale.errors.FormatError` when it is not a readable image, naming the file."""
     import OpenImageIO as oiio
 
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"image not found: {path}")
-    inp = oiio.ImageInput.open(str(path))
+    try:
+        inp = oiio.ImageInput.open(str(path))
+    except OSError as e:  # a file the process may not read: the permission is the user's to fix
+        raise FormatError(f"cannot read the image {path}: {e.strerror or e}") from None
     if inp is None:
-        raise OSError(f"cannot read {path}: {oiio.geterror()}")
+        raise FormatError(f"cannot read the image {path}: {_oiio_error(oiio.geterror())}")
     return inp
+
+
+def _oiio_error(text: str) -> str:
+    """OpenImageIO's error text, its first line (it may repeat the file name in several)."""
+    lines = [ln.strip() for ln in str(text).splitlines() if ln.strip()]
+    return lines[0][:300] if lines else "not a readable image"
 
 
 def read_exr(path: str | Path, channels: Sequence[str] | None = None, allow_window: bool = False) -> np.ndarray:
     """Read an image as float32 ``(H, W, C)``; ``channels`` selects by name (EXR reorders them).
 
     Raises :class:`~dualscale.errors.GeometryError` when the data window is not the display
-    window with its origin at (0, 0) (unless ``allow_window``), ``FileNotFoundError`` and
-    ``OSError`` for missing or unreadable files, ``ValueError`` for a missing channel."""
+    window with its origin at (0, 0) (unless ``allow_window``), ``FileNotFoundError`` for a
+    missing file, :class:`~dualscale.errors.FormatError` for one that is not a readable image
+    (corrupt, truncated), ``ValueError`` for a missing channel."""
     inp = open_image(path)
     try:
         spec = inp.spec()
         if not allow_window:
             check_window(path, spec)
         data = inp.read_image(0, 0, 0, spec.nchannels, "float")
+        err = inp.geterror() if data is None else ""
     finally:
         inp.close()
     if data is None:
-        raise OSError(f"cannot read pixels of {path}")
+        raise FormatError(f"cannot read the pixels of the image {path} (corrupt or truncated?): {_oiio_error(err)}")
     data = np.asarray(data, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
     if channels is None:
         return data
