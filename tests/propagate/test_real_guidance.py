@@ -4,7 +4,7 @@ shipped warm-start model.
 
 Plausible maps, as tested here (the fabrics have no ground truth):
 * finite, and every map inside its convention's range (load_maps refuses non-unit normals and
-  normals with z <= 0);
+  normals with z < 0);
 * the albedo follows the guidance: Pearson correlation of their luminances > 0.5;
 * the weave repeat carries over: the guidance's strongest spectral peak (beyond 8 cycles per
   image) stands out in the albedo's spectrum too, >= 20x the median power at that radius;

@@ -182,3 +182,22 @@ def test_malformed_camera_record_is_refused_naming_the_field(dataset, tmp_path, 
     rc = main(["digitize", str(dataset), "-o", str(run), "--quality", "draft", "--threads", "1", "--no-progress"])
     err = capsys.readouterr().err
     assert rc == 2 and "field_mm" in err and "Traceback" not in err, err
+
+
+def test_normals_in_the_plane_load_and_below_it_are_refused(tmp_path):
+    """docs/APPEARANCE.md stores normals with z >= 0 (issue 24 §8): z = 0, which the fit's
+    hemisphere mapping reaches at grazing tilt, loads; z < 0 is refused naming the texel."""
+    from dualscale.formats.exr import read_exr, write_exr
+    from dualscale.formats.maps import load_maps
+
+    assert main(["synth", "leather", "-o", str(tmp_path / "s"), "--size", "8", "--no-previews"]) == 0
+    maps = tmp_path / "s" / "maps"
+    n = read_exr(maps / "normal.exr")
+    n[1, 2] = (1.0, 0.0, 0.0)
+    write_exr(maps / "normal.exr", n, ("X", "Y", "Z"))
+    got, _ = load_maps(maps)
+    assert float(got.normal[1, 2, 2]) == 0.0
+    n[3, 4] = (0.0, 0.6, -0.8)
+    write_exr(maps / "normal.exr", n, ("X", "Y", "Z"))
+    with pytest.raises(GeometryError, match=r"below the sample plane \(z < 0; first at row 3, col 4\)"):
+        load_maps(maps)

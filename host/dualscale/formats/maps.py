@@ -16,7 +16,7 @@ canonical in-memory maps are :class:`dualscale.bsdf.MaterialMaps` (seed Sec. 5).
 
 Loading refuses (``FormatError``/``GeometryError``) names it does not know, sizes that disagree
 with ``material.json``, non-finite values and normal maps whose vectors are not unit length
-(tolerance 1e-2) or point below the sample plane (z <= 0).
+(tolerance 1e-2) or point below the sample plane (z < 0; z = 0, in the plane, is accepted).
 """
 
 from __future__ import annotations
@@ -298,7 +298,9 @@ def load_maps(root: str | Path, dtype: torch.dtype = torch.float32) -> tuple[Mat
 
 
 def check_normals(normal: np.ndarray, where: str) -> None:
-    """Refuse ``(H, W, 3)`` normals that are not unit length or point below the sample plane."""
+    """Refuse ``(H, W, 3)`` normals that are not unit length or point below the sample plane
+    (``z < 0``).  ``z = 0`` -- a normal in the plane, which the fit's hemisphere mapping reaches
+    at its rim on grazing surfaces -- is accepted (docs/APPEARANCE.md: stored with ``z >= 0``)."""
     n = np.asarray(normal, np.float64)
     length = np.linalg.norm(n, axis=-1)
     bad = np.abs(length - 1) > NORMAL_TOLERANCE
@@ -306,8 +308,8 @@ def check_normals(normal: np.ndarray, where: str) -> None:
         r, c = np.argwhere(bad)[0]
         raise GeometryError(f"{where}: {int(bad.sum())} normals are not unit vectors (first at row {r}, col {c}: "
                             f"length {length[r, c]:.4f}; tolerance {NORMAL_TOLERANCE})")
-    below = n[..., 2] <= 0
+    below = n[..., 2] < 0
     if below.any():
         r, c = np.argwhere(below)[0]
-        raise GeometryError(f"{where}: {int(below.sum())} normals point at or below the sample plane "
-                            f"(z <= 0; first at row {r}, col {c})")
+        raise GeometryError(f"{where}: {int(below.sum())} normals point below the sample plane "
+                            f"(z < 0; first at row {r}, col {c})")
