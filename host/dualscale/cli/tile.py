@@ -68,7 +68,7 @@ def register(subparsers) -> None:
     t.add_argument("maps", help="maps folder (material.json)")
     add_output(t, "output maps folder for the tile")
     t.add_argument("--repeats", type=_repeats, default=None, metavar="NxM",
-                   help="repeats of the cell along x and y (default 1x1)")
+                   help="repeats of the cell along x and y (default 1x1, more where a side would be under 32 texels)")
     t.add_argument("--source", default="all", metavar="all|albedo|normal_x|normal_y|IMAGE",
                    help="signal to find the repeat on: all (albedo luminance and normal x, y together; default), one "
                         "map, or a guidance image of the maps' size")

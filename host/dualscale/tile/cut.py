@@ -32,7 +32,7 @@ mean, ``size_mm`` is authoritative.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -46,6 +46,7 @@ from .seam import GOAL, maps_seam_scores, seam_score
 
 MAX_MULTIPLE = 6
 AXIS_TOL_PX = 0.35
+MIN_TILE_PX = 32  # by default a side of the tile spans whole repeats of at least this many texels
 
 
 @dataclass
@@ -71,6 +72,7 @@ class Tile:
     origin_px: tuple[float, float]
     blend_px: int
     seam: dict
+    resampling: dict = field(default_factory=dict)
 
     def meta(self) -> dict:
         """JSON-able ``tile`` record for ``material.json`` (``meta["tile"]``)."""
@@ -81,6 +83,7 @@ class Tile:
                 "lattice": lat, "repeats": list(self.repeats), "cell_px": self.cell_px.round(4).tolist(),
                 "axis_aligned": self.axis_aligned, "shear_deg": round(self.shear_deg, 4),
                 "origin_px": [round(v, 3) for v in self.origin_px], "blend_px": self.blend_px, "seam": self.seam,
+                "resampling": self.resampling,
                 "frame": "vectors_px (dcol, drow) with row down; vectors_mm (x, y) with y up"}
 
 
@@ -179,6 +182,39 @@ def _along_y(a: np.ndarray, n2: int, b: int, r: np.ndarray) -> np.ndarray:
     return t
 
 
+def _plan(cell: np.ndarray, nx: int, ny: int, blend_px: int | None, shape: tuple[int, int]) -> dict:
+    """The tile of ``nx x ny`` cells: its repeat vectors ``u, w`` (input texels), its size ``n1 x
+    n2`` texels (``round(|u|), round(|w|)``), the affine map ``A`` (columns: input texels per
+    output texel step, so the repeat lands on the integer grid), the blend band and the box of
+    origins that keep the padded parallelogram inside the field (``fits``)."""
+    h, w = shape
+    u, wv = nx * cell[0], ny * cell[1]
+    n1, n2 = int(round(np.linalg.norm(u))), int(round(np.linalg.norm(wv)))
+    if n1 < 2 or n2 < 2:
+        raise NoRepeatError(f"the repeat ({n1} x {n2} texels) is too small to cut a tile")
+    if blend_px is None:
+        b = min(max(2, min(n1, n2) // 8), min(n1, n2) // 2)
+    else:
+        b = int(blend_px)
+        if b < 0 or 2 * b > min(n1, n2):
+            raise InputError(f"--blend must be between 0 and half the tile's shorter side ({min(n1, n2) // 2} "
+                             f"texels), got {blend_px}")
+    A = np.stack([u / n1, wv / n2], 1)  # columns: input texels per output texel step
+
+    def room(band: int):
+        # the padded parallelogram's corners relative to the origin; origins keeping it inside
+        c = np.array([[i, j] for i in (-band, n1 + band) for j in (-band, n2 + band)], float) @ A.T
+        return c, -c.min(0) + 1, np.array([w, h]) - c.max(0) - 1
+
+    corners, lo, hi = room(b)
+    while blend_px is None and (hi < lo).any() and b > 1:  # the default band shrinks to what the field holds
+        b -= 1
+        corners, lo, hi = room(b)
+    need = np.ceil(corners.max(0) - corners.min(0) + 2).astype(int)
+    return {"u": u, "w": wv, "n1": n1, "n2": n2, "A": A, "band": b, "lo": lo, "hi": hi,
+            "fits": bool((hi >= lo).all()), "need": need}
+
+
 def make_tile(maps: MaterialMaps, texel_mm: float | None, lattice: Lattice | None = None,
               repeats: tuple[int, int] | None = None, blend_px: int | None = None, source: str = "all",
               origin_candidates: int = 6) -> Tile:
@@ -187,9 +223,12 @@ def make_tile(maps: MaterialMaps, texel_mm: float | None, lattice: Lattice | Non
     ``maps``: the propagated (or fitted) maps; ``texel_mm``: their texel size in mm, or
     ``None`` (then ``size_mm`` and the tile's ``texel_mm`` are ``None`` and only ``size_px``
     is known); ``lattice``: the repeat (default: :func:`~dualscale.tile.lattice.find_lattice`
-    on ``source``); ``repeats``: ``(nx, ny)`` cells, default ``(1, 1)``; ``blend_px``: the
-    feathered band (default: an eighth of the tile's shorter side, at least 2 texels, ``0`` =
-    none).
+    on ``source``); ``repeats``: ``(nx, ny)`` cells, default ``(1, 1)`` or, where a cell's side
+    is shorter than :data:`MIN_TILE_PX` texels (a weave period of a few texels), enough cells
+    to reach it (fewer where the field is too short); ``blend_px``: the feathered band
+    (default: an eighth of the tile's shorter side, at least 2 texels and at most half of it,
+    ``0`` = none).  ``Tile.resampling`` records the affine map, the tile's texel and the
+    lattice in tile texels.
 
     ``Tile.seam``: ``{"tile": s, "untreated": s0, "maps": {...}, "goal": 1.1, "signal": ...}``
     -- the seam score (:func:`~dualscale.tile.seam.seam_score`) of the tile's albedo luminance,
@@ -203,33 +242,27 @@ def make_tile(maps: MaterialMaps, texel_mm: float | None, lattice: Lattice | Non
         raise InputError(f"texel_mm must be a positive number of mm, got {texel_mm!r}")
     if lattice is None:
         lattice = find_lattice(maps, texel_mm, source=source)
-    nx, ny = repeats or (1, 1)
-    if int(nx) != nx or int(ny) != ny or nx < 1 or ny < 1:
-        raise InputError(f"repeats must be two positive integers, got {repeats!r}")
-    nx, ny = int(nx), int(ny)
     h, w = maps.shape
     cell, aligned = choose_cell(lattice, shape=(h, w))
-    u, wv = nx * cell[0], ny * cell[1]
-    n1, n2 = int(round(np.linalg.norm(u))), int(round(np.linalg.norm(wv)))
-    if n1 < 2 or n2 < 2:
-        raise NoRepeatError(f"the repeat ({n1} x {n2} texels) is too small to cut a tile")
-    b = max(2, min(n1, n2) // 8) if blend_px is None else int(blend_px)
-    if b < 0 or 2 * b > min(n1, n2):
-        raise InputError(f"--blend must be between 0 and half the tile's shorter side ({min(n1, n2) // 2} texels), "
-                         f"got {blend_px}")
-    A = np.stack([u / n1, wv / n2], 1)  # columns: input texels per output texel step
-
-    def room(band: int):
-        # the padded parallelogram's corners relative to the origin; origins keeping it inside
-        c = np.array([[i, j] for i in (-band, n1 + band) for j in (-band, n2 + band)], float) @ A.T
-        return c, -c.min(0) + 1, np.array([w, h]) - c.max(0) - 1
-
-    corners, lo, hi = room(b)
-    while blend_px is None and (hi < lo).any() and b > 1:  # the default band shrinks to what the field holds
-        b -= 1
-        corners, lo, hi = room(b)
-    if (hi < lo).any():
-        need = np.ceil(corners.max(0) - corners.min(0) + 2).astype(int)
+    if repeats is None:  # 1 x 1, or enough repeats for MIN_TILE_PX texels a side (fewer if the field is short)
+        nx, ny = (max(1, math.ceil(MIN_TILE_PX / float(np.linalg.norm(v)))) for v in cell)
+    else:
+        nx, ny = repeats
+        if int(nx) != nx or int(ny) != ny or nx < 1 or ny < 1:
+            raise InputError(f"repeats must be two positive integers, got {repeats!r}")
+    nx, ny = int(nx), int(ny)
+    while True:
+        plan = _plan(cell, nx, ny, blend_px, (h, w))
+        if plan["fits"] or repeats is not None or (nx == 1 and ny == 1):
+            break
+        if nx * np.linalg.norm(cell[0]) >= ny * np.linalg.norm(cell[1]) and nx > 1 or ny == 1:
+            nx -= 1
+        else:
+            ny -= 1
+    u, wv, n1, n2, A, b = (plan[k] for k in ("u", "w", "n1", "n2", "A", "band"))
+    lo, hi = plan["lo"], plan["hi"]
+    if not plan["fits"]:
+        need = plan["need"]
         raise InputError(f"the tile ({n1} x {n2} texels, {nx} x {ny} repeats) with a {b}-texel blend band on each side "
                          f"needs {need[0]} x {need[1]} texels of the field, which is {w} x {h}: give a larger field, or "
                          f"cut it with `dualscale tile` and fewer --repeats or a smaller --blend")
@@ -250,7 +283,8 @@ def make_tile(maps: MaterialMaps, texel_mm: float | None, lattice: Lattice | Non
     ext = _sample(stack, origin, A, n1, n2, b, 3)
     tile_arr = _feather(ext, n1, n2, b)
     size_px = (float(np.linalg.norm(u)), float(np.linalg.norm(wv)))
-    tmaps = _unstack(tile_arr, layout, _physical_map(A, n1, n2, size_px), maps)
+    J = _physical_map(A, n1, n2, size_px)
+    tmaps = _unstack(tile_arr, layout, J, maps)
     validate_maps(tmaps)
     cos = float(u @ wv / (np.linalg.norm(u) * np.linalg.norm(wv)))
     shear = math.degrees(math.acos(np.clip(cos, -1, 1))) - 90.0
@@ -267,8 +301,22 @@ def make_tile(maps: MaterialMaps, texel_mm: float | None, lattice: Lattice | Non
     tmm = None if texel_mm is None else float(texel_mm)
     size_mm = None if tmm is None else (size_px[0] * tmm, size_px[1] * tmm)
     tile_texel = None if tmm is None else 0.5 * (size_mm[0] / n1 + size_mm[1] / n2)
+    texel_px = (size_px[0] / n1, size_px[1] / n2)
+    resampling = {
+        "method": "affine resampling of whole repeats onto an integer texel grid (cubic spline)",
+        "affine_px": np.concatenate([A, origin[:, None]], 1).round(6).tolist(),
+        "affine_frame": "input (col, row) = A (i, j) + origin, continuous texel coordinates (texel (c, r) spans "
+                        "[c, c + 1) x [r, r + 1)), (i, j) the tile's",
+        "cell_tile_px": [[n1, 0], [0, n2]],
+        "lattice_tile_px": (np.linalg.solve(A, lattice.vectors_px.T).T).round(4).tolist(),
+        "texel_px": [round(v, 6) for v in texel_px],
+        "texel_mm": None if tmm is None else [round(v * tmm, 8) for v in texel_px],
+        "jacobian": J.round(6).tolist(),
+        "maps": "every map resampled together; tangent as (cos 2 phi, sin 2 phi), then rotated by the jacobian; "
+                "normal through its slope (jacobian^-T), renormalised; others clipped to [0, 1]",
+    }
     return Tile(tmaps, size_mm, size_px, tile_texel, lattice, (nx, ny), np.stack([u, wv]), aligned, shear,
-                (float(origin[0]), float(origin[1])), b, seam)
+                (float(origin[0]), float(origin[1])), b, seam, resampling)
 
 
 def _physical_map(A: np.ndarray, n1: int, n2: int, size_px: tuple[float, float]) -> np.ndarray:

@@ -9,6 +9,12 @@ Issue 12 Sec. 2 ("find the repeat").  The method:
 2. **Autocorrelation.**  ``rho(s) = sum f(x) f(x + s) / (N(s) var)`` over the ``N(s)`` texel
    pairs that overlap at shift ``s`` (zero-padded FFT, so no wrap-around), for shifts up to half
    the field on each axis: a lattice vector found there repeats at least twice in the field.
+2b. **Finer grid** (issue 24 Sec. 6).  When the finest basis of a first pass (steps 3-5) is
+   shorter than :data:`FINE_BELOW_PX` texels, its peaks fall between the texel samples and the
+   local maxima lock onto them (a twill photo's (1.24, 2.57) came out as (1, 2)); steps 3-5 run
+   again on ``rho`` evaluated exactly on a grid 2-8 times finer (:func:`autocorrelation_fine`,
+   a matrix DFT of the padded spectrum) in a window of a few dozen texels, where only
+   sub-lattices that fit :data:`FINE_SUBLATTICE_FIT` times in the window are considered.
 3. **Peaks.**  Local maxima of ``rho`` (``skimage.feature.peak_local_max``) refined to sub-texel
    position by a least-squares quadratic fit over their 3 x 3 neighbourhood.
 4. **Basis.**  The strongest peak sets the scale; peaks within ``strong`` (0.5) of its height are
@@ -49,6 +55,12 @@ from dualscale.errors import InputError
 
 SOURCES = ("all", "albedo", "normal_x", "normal_y")
 LUMA = np.array([0.2126, 0.7152, 0.0722])
+FINE_BELOW_PX = 12.0  # a finest period shorter than this is searched again on a finer grid (step 2b)
+MAX_FACTOR = 8  # the finer grid's samples per texel, at most
+MAX_FINE_WINDOW = 601  # samples per side of the finer autocorrelation window, at most
+FINE_MIN_RADIUS_PX = 32.0  # its half-width in texels: at least this,
+FINE_RADIUS_PERIODS = 8.0  # and this many of the longest first-pass vectors (within the field's half)
+FINE_SUBLATTICE_FIT = 2.5  # a repeat searched there fits this many times in the half-width
 
 
 class NoRepeatError(InputError):
@@ -141,26 +153,64 @@ def to_signal(image: np.ndarray) -> np.ndarray:
     return a
 
 
-def autocorrelation(signal: np.ndarray, detrend_frac: float = 1 / 8) -> np.ndarray:
-    """Normalised autocorrelation of ``signal`` ``(H, W)``; returns ``(2 * (H // 2) + 1,
-    2 * (W // 2) + 1)`` with shift ``(0, 0)`` at the centre (``rho = 1`` there), shifts
-    ``(drow, dcol)`` up to half the field.  Zero-padded FFT, divided by the overlap count."""
+def _padded_power(signal: np.ndarray, detrend_frac: float = 1 / 8) -> tuple[np.ndarray, float]:
+    """The power spectrum (``rfft2``, zero-padded to ``(2 H, 2 W)``) of ``signal`` with slow
+    shading removed and the mean subtracted, and the signal's variance."""
     h, w = signal.shape
     f = signal - ndimage.gaussian_filter(signal, detrend_frac * min(h, w), mode="reflect")
     f = f - f.mean()
     var = float((f * f).mean())
     if var <= 1e-20:
         raise NoRepeatError("the map is uniform: no repeat to find")
+    F = np.fft.rfft2(f, (2 * h, 2 * w))
+    return (F * np.conj(F)).real, var
+
+
+def autocorrelation(signal: np.ndarray, detrend_frac: float = 1 / 8) -> np.ndarray:
+    """Normalised autocorrelation of ``signal`` ``(H, W)``; returns ``(2 * (H // 2) + 1,
+    2 * (W // 2) + 1)`` with shift ``(0, 0)`` at the centre (``rho = 1`` there), shifts
+    ``(drow, dcol)`` up to half the field.  Zero-padded FFT, divided by the overlap count."""
+    h, w = signal.shape
+    P, var = _padded_power(signal, detrend_frac)
     ph, pw = 2 * h, 2 * w
-    F = np.fft.rfft2(f, (ph, pw))
-    ac = np.fft.irfft2(F * np.conj(F), (ph, pw))
-    ones = np.fft.rfft2(np.ones_like(f), (ph, pw))
+    ac = np.fft.irfft2(P, (ph, pw))
+    ones = np.fft.rfft2(np.ones_like(signal), (ph, pw))
     cnt = np.fft.irfft2(ones * np.conj(ones), (ph, pw))
     ac = np.fft.fftshift(ac)
     cnt = np.fft.fftshift(cnt)
     hh, hw = h // 2, w // 2
     sl = (slice(h - hh, h + hh + 1), slice(w - hw, w + hw + 1))
     return ac[sl] / (np.maximum(cnt[sl], 1.0) * var)
+
+
+def autocorrelation_fine(signal: np.ndarray, radius_px: float, factor: int, detrend_frac: float = 1 / 8
+                         ) -> np.ndarray:
+    """The normalised autocorrelation of :func:`autocorrelation` on a grid ``factor`` times
+    finer, for shifts up to ``radius_px`` on each axis: ``(2 n + 1, 2 n + 1)`` with ``n =
+    round(radius_px * factor)``, shift ``(0, 0)`` at the centre, sample ``k`` at shift ``(k - n)
+    / factor`` texels.
+
+    The zero-padded autocorrelation is a finite trigonometric sum over the padded spectrum, so
+    it is evaluated exactly at fractional shifts (the band-limited interpolation of its texel
+    samples) by a matrix DFT restricted to the window: the upsampled DFT of Guizar-Sicairos,
+    Thurman and Fienup (Opt. Lett. 33, 2008), which ``skimage.registration.
+    phase_cross_correlation`` uses for its sub-pixel peak.  The overlap count ``(H - |drow|)
+    (W - |dcol|)`` is exact at any shift."""
+    h, w = signal.shape
+    P, var = _padded_power(signal, detrend_frac)
+    ph, pw = 2 * h, 2 * w
+    n = int(round(radius_px * factor))
+    s = np.arange(-n, n + 1) / factor
+    fy, fx = np.fft.fftfreq(ph), np.fft.rfftfreq(pw)
+    weight = np.full(fx.size, 2.0)  # the half spectrum stands for its conjugate half
+    weight[0] = 1.0
+    if pw % 2 == 0:
+        weight[-1] = 1.0
+    e_row = np.exp(2j * np.pi * np.outer(s, fy))
+    e_col = np.exp(2j * np.pi * np.outer(fx, s))
+    ac = ((e_row @ (P * weight)) @ e_col).real / (ph * pw)
+    cnt = np.outer(h - np.abs(s), w - np.abs(s))
+    return ac / (cnt * var)
 
 
 def refine_peak(ac: np.ndarray, r: int, c: int) -> tuple[float, float, float]:
@@ -229,43 +279,78 @@ def find_lattice(image_or_maps, texel_mm: float | None = None, source: str = "al
         raise NoRepeatError(f"the field is {w} x {h} texels: too small to find a repeat (at least 16 x 16)")
     if texel_mm is not None and not (np.isfinite(texel_mm) and texel_mm > 0):
         raise InputError(f"texel_mm must be a positive number of mm, got {texel_mm!r}")
-    acs = []
+    acs, kept = [], []
     for sig in sigs:
         try:
             acs.append(autocorrelation(sig))
+            kept.append(sig)
         except NoRepeatError:
             continue  # a uniform map (flat normals) carries no repeat: the others decide
     if not acs:
         raise NoRepeatError(f"the {w} x {h} map is uniform: no repeat to find")
     ac = np.mean(acs, axis=0)
-    cy, cx = np.array(ac.shape) // 2
-    B0 = _autocorrelation_basis(ac, strong, min_period_px)
-    if B0 is None:
+    found = _search(ac, strong, min_period_px, max_index, min_contrast)
+    if found is None:
         raise NoRepeatError(f"no repeat found in the {w} x {h} field: no two independent autocorrelation peaks "
                             "(no periodic pattern, or fewer than two repeats in the field)")
-    B0 = reduce_basis(_refine(ac, B0)[0])
-    B, index, contrast = _best_sublattice(ac, B0, max_index, min_contrast)
-    B, pts, resid = _refine(ac, reduce_basis(B))
-    B = reduce_basis(B)
+    coarse = found
+    factor, radius = 1, None
+    finest = float(np.linalg.norm(coarse["finest"], axis=1).min())
+    if finest < FINE_BELOW_PX:
+        # module step 2b: a period of a few texels is sampled too coarsely by the texel grid
+        # (the peaks fall between the samples and lock onto them): search again on the
+        # autocorrelation evaluated on a finer grid
+        factor = int(min(MAX_FACTOR, max(2, np.ceil(FINE_BELOW_PX / finest))))
+        longest = float(np.linalg.norm(coarse["B"], axis=1).max())
+        radius = float(min(h // 2, w // 2, (MAX_FINE_WINDOW // 2) / factor,
+                           max(FINE_MIN_RADIUS_PX, FINE_RADIUS_PERIODS * longest)))
+        acf = np.mean([autocorrelation_fine(sig, radius, factor) for sig in kept], axis=0)
+        fine = _search(acf, strong, min_period_px * factor, max_index, min_contrast,
+                       max_len=radius * factor / FINE_SUBLATTICE_FIT)
+        if fine is not None:
+            found, ac = fine, acf
+        else:
+            factor, radius = 1, None
+    B = found["B"]
     strength = _strength(ac, B)
+    Bpx = B / factor
     if strength < min_strength:
         raise NoRepeatError(f"no clear repeat in the {w} x {h} field: periodicity strength {strength:.2f} < "
-                            f"{min_strength} (best candidate vectors {B[0].round(1).tolist()}, "
-                            f"{B[1].round(1).tolist()} texels)")
-    cy, cx = np.array(ac.shape) // 2
+                            f"{min_strength} (best candidate vectors {Bpx[0].round(1).tolist()}, "
+                            f"{Bpx[1].round(1).tolist()} texels)")
     for v in B:  # each vector must be a repeat, not a point on a ridge of a 1-D (stripe) pattern
         on, half = _step(ac, v)
         if on - half < min_step:
+            v = v / factor
             raise NoRepeatError(f"no two-dimensional repeat in the {w} x {h} field: the pattern repeats along one "
                                 f"direction only (stripes, or twill lines whose repeat along the line is not "
                                 f"resolved; autocorrelation {on:.2f} at ({v[0]:.2f}, {v[1]:.2f}) texels and its "
                                 f"multiples, {half:.2f} half way between)")
-    if max(abs(B[:, 0]).max() * 2, 0) > w or abs(B[:, 1]).max() * 2 > h:
-        raise NoRepeatError(f"the repeat ({B[0].round(1).tolist()}, {B[1].round(1).tolist()} texels) fits fewer than "
-                            f"twice in the {w} x {h} field")
-    return Lattice(B, None if texel_mm is None else float(texel_mm), float(strength), float(resid), int(pts),
-                   source, (h, w), {"finest_px": B0.round(4).tolist(),
-                                    "sublattice_index": index, "sublattice_contrast": round(contrast, 4)})
+    if abs(Bpx[:, 0]).max() * 2 > w or abs(Bpx[:, 1]).max() * 2 > h:
+        raise NoRepeatError(f"the repeat ({Bpx[0].round(1).tolist()}, {Bpx[1].round(1).tolist()} texels) fits fewer "
+                            f"than twice in the {w} x {h} field")
+    extra = {"finest_px": (found["finest"] / factor).round(4).tolist(), "sublattice_index": found["index"],
+             "sublattice_contrast": round(found["contrast"], 4), "grid_factor": factor,
+             "grid_window_px": None if radius is None else round(radius, 3)}
+    if factor > 1:
+        extra["texel_grid_px"] = coarse["B"].round(4).tolist()  # the first pass, on the texel grid
+    return Lattice(Bpx, None if texel_mm is None else float(texel_mm), float(strength),
+                   float(found["resid"]) / factor, int(found["points"]), source, (h, w), extra)
+
+
+def _search(ac: np.ndarray, strong: float, min_period: float, max_index: int, min_contrast: float,
+            max_len: float | None = None) -> dict | None:
+    """Module steps 4-5 on an autocorrelation window ``ac`` (in its own sample units): the finest
+    basis, the weave's sub-lattice (vectors up to ``max_len``), the least-squares basis; ``None``
+    without two peaks."""
+    B0 = _autocorrelation_basis(ac, strong, min_period)
+    if B0 is None:
+        return None
+    B0 = reduce_basis(_refine(ac, B0)[0])
+    B, index, contrast = _best_sublattice(ac, B0, max_index, min_contrast, max_len=max_len)
+    B, pts, resid = _refine(ac, reduce_basis(B))
+    return {"B": reduce_basis(B), "finest": B0, "index": index, "contrast": float(contrast), "points": pts,
+            "resid": resid}
 
 
 def spectral_peaks(sig: np.ndarray, min_period_px: float = 2.0, min_ratio: float = 8.0,
@@ -403,14 +488,19 @@ def _in_sublattice(n: np.ndarray, M: np.ndarray) -> np.ndarray:
     return (np.abs(x - xi) < 1e-6) & (np.abs(y - np.round(y)) < 1e-6)
 
 
-def _best_sublattice(ac: np.ndarray, B0: np.ndarray, max_index: int, min_contrast: float, min_t: float = 5.0):
+def _best_sublattice(ac: np.ndarray, B0: np.ndarray, max_index: int, min_contrast: float, min_t: float = 5.0,
+                     max_len: float | None = None):
     """The sub-lattice of ``B0`` (index 1 .. ``max_index``) whose points stand out most: the
     largest mean ``rho`` on its points minus the mean on the other points of ``B0``; index 1
-    (``B0`` itself) unless that contrast reaches ``min_contrast``."""
+    (``B0`` itself) unless that contrast reaches ``min_contrast``.  ``max_len``: sub-lattices
+    whose reduced basis has a longer vector are not considered (too few of their points in a
+    small window to judge them)."""
     n, _, v = _relocate(ac, B0)
     scored = []
     for k in range(2, max_index + 1):
         for M in sublattices(k):
+            if max_len is not None and np.linalg.norm(reduce_basis(M @ B0), axis=1).max() > max_len:
+                continue
             inside = _in_sublattice(n, M)
             if inside.sum() < 2 or (~inside).sum() < 2:
                 continue

@@ -33,11 +33,14 @@ def seam_score(image: np.ndarray) -> float:
 
 
 def maps_seam_scores(maps: MaterialMaps) -> dict[str, float]:
-    """Seam score of every map of ``maps`` (the albedo as luminance), by name."""
+    """Seam score of every map of ``maps`` (the albedo as luminance; the tangent, an axial angle
+    ``pi v``, as ``(cos 2 pi v, sin 2 pi v)``, so 0.02 and 0.98 are neighbours), by name."""
     out = {}
     for name, t in maps.items():
         a = t.detach().cpu().numpy().astype(np.float64)
         if name == "albedo":
             a = a @ LUMA
+        elif name == "tangent":
+            a = np.concatenate([np.cos(2 * np.pi * a), np.sin(2 * np.pi * a)], -1)
         out[name] = round(seam_score(a), 4)
     return out
