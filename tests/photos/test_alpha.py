@@ -60,3 +60,23 @@ def test_oiio_written_unassociated_rgba_read_as_stored(tmp_path, ext, bits):
     out.close()
     c = read_codes(p)
     assert np.allclose(c.code[0, 0], round(0.6 * top) / top, atol=0.5 / top), c.code[0, 0]
+
+
+@pytest.mark.parametrize("what", ["garbage", "truncated"])
+def test_corrupt_photographs_are_bad_input_naming_the_file(tmp_path, what, capsys):
+    """A corrupt or truncated photograph is bad input (exit 2), named (issue 24 §2)."""
+    from dualscale.cli import main
+    from dualscale.errors import FormatError
+    from dualscale.sim.photos import PSM_LIGHTS, render_photos, write_photos
+
+    folder, lp = write_photos(tmp_path / "obj", render_photos("sphere", size=(24, 32)))
+    bad = folder / "obj.3.png"
+    data = bad.read_bytes()
+    bad.write_bytes(b"not an image at all" * 10 if what == "garbage" else data[: len(data) // 2])
+    with pytest.raises(FormatError, match="obj.3.png"):
+        read_codes(bad)
+    assert main(["import", str(folder), "--lights", str(lp), "-o", str(tmp_path / "ds"), "--transfer", "auto"]) == 2
+    err = capsys.readouterr().err
+    assert "obj.3.png" in err
+    assert not (tmp_path / "ds" / "manifest.json").exists()
+    assert len(PSM_LIGHTS) == 12

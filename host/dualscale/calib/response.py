@@ -143,8 +143,8 @@ def _intensities(lin: np.ndarray, w: np.ndarray, d: _Data) -> np.ndarray:
     eye = np.eye(K)
     if d.normals is None:
         L = d.dirs
-        A = np.einsum("sk,ki,kj->sij", w, L, L) + 1e-12 * np.eye(3)
-        Ainv = np.linalg.inv(A)
+        A = np.einsum("sk,ki,kj->sij", w, L, L)
+        Ainv = np.linalg.inv(A + (1e-9 * np.trace(A, axis1=1, axis2=2)[:, None, None] + 1e-30) * np.eye(3))
         P = (L @ Ainv @ L.T) * w[:, None, :]                         # (S, K, K): L A^-1 L^T W
     else:
         cos = np.clip(d.normals @ d.dirs.T, 0.0, None)
@@ -174,7 +174,8 @@ def _solve(resp: Response, d: _Data, W: np.ndarray, e0: np.ndarray | None) -> tu
     e = _intensities(lin, w, d) if e0 is None else e0
     if d.normals is None:
         we = w * e * e
-        A = np.einsum("sk,ki,kj->sij", we, L, L) + 1e-12 * np.eye(3)
+        A = np.einsum("sk,ki,kj->sij", we, L, L)
+        A = A + (1e-9 * np.trace(A, axis1=1, axis2=2)[:, None, None] + 1e-30) * np.eye(3)
         r = np.einsum("sk,sk,ki->si", w * e, lin, L)
         b = np.linalg.solve(A, r[..., None])[..., 0]
     else:
@@ -321,6 +322,13 @@ def estimate_response(codes: np.ndarray, dirs: np.ndarray, valid: np.ndarray | N
                      "inliers": float((W[d.m] > 0.5).mean())}
     chosen = choose_family({f: v["score"] for f, v in fits.items()})
     x, e, W, s = results[chosen]
+    signal = float(np.median(d.c[d.m]))
+    if s > 0.25 * signal or not np.all(np.isfinite(e)) or float(np.max(e) / np.min(e)) > 50.0:
+        raise CalibrationError(
+            f"the photographs' shading is not consistent with any camera response under the given light directions "
+            f"(robust residual {s / d.q:.1f} codes for a median code of {signal / d.q:.0f}; intensities "
+            f"{float(np.min(e)):.3g}..{float(np.max(e)):.3g}): are these one object's photographs under the light "
+            "file's lights, in its order? State the response with --transfer srgb|linear|gamma:G to import anyway")
     # bootstrap over pixel-channels
     rng = np.random.default_rng(seed + 1)
     boot_x, boot_e, boot_g = [], [], []

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dualscale.errors import GeometryError, UnitsError
+from dualscale.errors import FormatError, GeometryError, UnitsError
 
 from .exr import check_window
 from .response import TRANSFERS, Response, parse_transfer  # noqa: F401  (parse_transfer, TRANSFERS: re-exported)
@@ -77,7 +77,7 @@ def _open_unassociated(path: Path):
     config.attribute("oiio:UnassociatedAlpha", 1)
     inp = oiio.ImageInput.open(str(path), config)
     if inp is None:
-        raise OSError(f"cannot read {path}: {oiio.geterror()}")
+        raise FormatError(f"{path}: not a readable image ({oiio.geterror() or 'unknown format'})")
     return inp
 
 
@@ -94,10 +94,11 @@ def read_codes(path: str | Path, clip: float = 1.0) -> Codes:
         check_window(path, spec)
         fmt = str(spec.format)
         native = inp.read_image(0, 0, 0, spec.nchannels, "float")
+        inp_error = inp.geterror() if native is None else ""
     finally:
         inp.close()
     if native is None:
-        raise OSError(f"cannot read pixels of {path}")
+        raise FormatError(f"{path}: cannot read its pixels (truncated or corrupt image: {inp_error or 'no detail'})")
     data = np.asarray(native, np.float32).reshape(spec.height, spec.width, spec.nchannels)
     alpha = spec.alpha_channel
     colour_idx = [i for i in range(spec.nchannels) if i != alpha][:3]
@@ -133,7 +134,7 @@ def read_photo(path: str | Path, transfer: str | None | Response, clip: float = 
     """Read and linearise one photograph (see the module docstring).
 
     Greyscale images are expanded to RGB; an alpha channel is ignored.  Raises
-    ``FileNotFoundError``, ``OSError`` (unreadable), :class:`~dualscale.errors.UnitsError`
+    ``FileNotFoundError``, :class:`~dualscale.errors.FormatError` (not a readable image: corrupt, truncated, unknown format), :class:`~dualscale.errors.UnitsError`
     (transfer missing or not applicable), :class:`~dualscale.errors.GeometryError` (a shifted
     data window), ``ValueError`` (non-finite pixels in a float image).
     """
@@ -150,7 +151,7 @@ def read_mask(path: str | Path, shape: tuple[int, int] | None = None) -> np.ndar
         raise FileNotFoundError(f"mask not found: {path}")
     buf = oiio.ImageBuf(str(path))
     if buf.has_error:
-        raise OSError(f"cannot read {path}: {buf.geterror()}")
+        raise FormatError(f"{path}: not a readable mask image ({buf.geterror()})")
     check_window(path, buf.spec())
     arr = np.asarray(buf.get_pixels(oiio.FLOAT), np.float32).reshape(buf.spec().height, buf.spec().width, -1)
     mask = arr[..., 0] > 0.5
