@@ -257,3 +257,23 @@ def test_flash_with_a_missing_tool_refuses_before_building(monkeypatch, capsys):
     monkeypatch.setattr(subprocess, "run", lambda *a, **k: ran.append(a))
     assert main(["flash", "--tool", "openocd"]) == 4
     assert "openocd is not installed" in capsys.readouterr().err and ran == []
+
+
+def test_every_option_has_help():
+    """Issue 24 §5: every option of every command says what it does in --help."""
+    import argparse
+
+    from dualscale.cli import build_parser
+
+    missing = []
+
+    def walk(p, path):
+        for a in p._actions:
+            if isinstance(a, argparse._SubParsersAction):
+                for n, sp in a.choices.items():
+                    walk(sp, path + [n])
+            elif a.option_strings and a.dest != "help" and not a.help:  # SUPPRESS: hidden on purpose
+                missing.append(f"{' '.join(path)} {'/'.join(a.option_strings)}")
+
+    walk(build_parser(), [])
+    assert not missing, missing

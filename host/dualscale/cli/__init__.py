@@ -99,7 +99,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="cmd", required=True)
 
     s = sub.add_parser("sim", help="start the simulated rig (prints its serial device first)")
-    s.add_argument("--target", choices=("posix", "qemu"), default="posix")
+    s.add_argument("--target", choices=("posix", "qemu"), default="posix",
+                   help="posix: the C core as a host program; qemu: the STM32F405 image under QEMU (default: posix)")
     s.add_argument("--link", help="make a symlink to the serial device at this path")
     s.add_argument("--speed", type=float, default=1.0,
                    help="posix: 1 = real time, >1 accelerated virtual time, 0 = as fast as possible")
@@ -110,19 +111,21 @@ def build_parser() -> argparse.ArgumentParser:
 
     c = sub.add_parser("console", help="interactive serial console")
     c.add_argument("--port", required=True, help="serial device or pyserial URL")
-    c.add_argument("--address", type=int, default=1)
+    c.add_argument("--address", type=int, default=1, help="Modbus unit address of the rig (default: 1)")
     c.add_argument("-c", metavar="CMDS", help='run ";"-separated commands and exit')
     _serial_format_options(c)
     c.set_defaults(fn=cmd_console)
 
     f = sub.add_parser("flash", help="build and flash the STM32F405 firmware")
-    f.add_argument("--tool", choices=("auto", "pio", "openocd", "st-flash", "dfu-util"), default="auto")
+    f.add_argument("--tool", choices=("auto", "pio", "openocd", "st-flash", "dfu-util"), default="auto",
+                   help="flasher to use; auto takes the first one installed (default: auto)")
     f.add_argument("--dry-run", action="store_true", help="print the exact commands only")
     f.add_argument("--port", help="serial port to check the firmware version on afterwards")
     f.set_defaults(fn=cmd_flash)
 
     d = sub.add_parser("demo", help="run the full micro-capture sequence on the simulated rig")
-    d.add_argument("--target", choices=("posix", "qemu"), default="posix")
+    d.add_argument("--target", choices=("posix", "qemu"), default="posix",
+                   help="simulator to run the sequence on: posix or qemu (default: posix)")
     d.add_argument("--speed", type=float, default=10.0, help="posix simulator speed (see sim)")
     d.add_argument("--events", action="store_true", help="print every event")
     _serial_format_options(d)

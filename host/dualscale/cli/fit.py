@@ -114,7 +114,8 @@ def register(subparsers) -> None:
     f = subparsers.add_parser("fit", help="fit SVBSDF maps to a micro photometric dataset")
     f.add_argument("dataset", help="dataset directory (manifest.json), or a `synth` output with micro/")
     add_output(f, "output directory for the maps")
-    f.add_argument("--preset", choices=sorted(FIT_PRESETS), default="standard")
+    f.add_argument("--preset", choices=sorted(FIT_PRESETS), default="standard",
+                   help="fit preset: draft (fast), standard or paper (docs/FITTING.md; default: standard)")
     for comp in ("transmittance", "anisotropy", "tint"):
         f.add_argument(f"--{comp}", choices=sorted(_SWITCH), default="auto",
                        help=f"force the {comp} component on/off (default: decided from the data)")
@@ -140,8 +141,8 @@ def register(subparsers) -> None:
     f.add_argument("--stop-after", type=int, default=None, help=argparse.SUPPRESS)
     f.add_argument("--gt", default=None, metavar="MAPS",
                    help="ground-truth maps folder to score the fit against (evaluation only)")
-    f.add_argument("--seed", type=int, default=0)
-    f.add_argument("--no-previews", action="store_true")
+    f.add_argument("--seed", type=int, default=0, help="seed of the component choice's and the cross-validation's pixel samples (default: 0)")
+    f.add_argument("--no-previews", action="store_true", help="write the EXR maps without PNG previews (default: previews)")
     add_work_options(f)
     g = add_engine_options(f, "fit in pixel tiles on N local Dask worker processes, one thread each ("
                               "the same maps as one process; default: one process)")
@@ -154,7 +155,8 @@ def register(subparsers) -> None:
     sl = ss.add_parser("lights", help="fit with each light subset (supplementary Sec. 6) and evaluate it")
     sl.add_argument("dataset")
     add_output(sl, "output directory (study.json, study.png, one maps folder per subset)")
-    sl.add_argument("--preset", choices=sorted(FIT_PRESETS), default="standard")
+    sl.add_argument("--preset", choices=sorted(FIT_PRESETS), default="standard",
+                    help="fit preset of each subset's fit (default: standard)")
     sl.add_argument("--subset", action="append", metavar="NAME=IDS",
                     help="extra subset: LED ids and ranges, e.g. 'mine=0,3,10-20'")
     sl.add_argument("--only", nargs="*", default=None, help="run only these subsets")
@@ -167,8 +169,8 @@ def register(subparsers) -> None:
     add_output(fo, "output directory (flyouts.json, flyouts.svg, flyout_mask.exr, confidence.exr)")
     fo.add_argument("--tangent", default=None, help="maps directory with tangent.exr (fitted or ground truth)")
     fo.add_argument("--seeds", type=int, default=10000, help="seeds for a 1 Mpx image (scaled with the image size)")
-    fo.add_argument("--min-length-mm", type=float, default=0.27)
+    fo.add_argument("--min-length-mm", type=float, default=0.27, help="shortest fibre reported, in mm (default: 0.27)")
     fo.add_argument("--gt", default=None, help="ground-truth folder with flyouts.json and flyout_mask.exr to score against")
-    fo.add_argument("--seed", type=int, default=0)
+    fo.add_argument("--seed", type=int, default=0, help="seed of the detection's random choices (default: 0)")
     add_work_options(fo)
     fo.set_defaults(fn=cmd_flyouts)

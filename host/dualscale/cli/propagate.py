@@ -134,7 +134,8 @@ def register(subparsers) -> None:
                    help="folder with micro/ and maps/ (as 'dualscale synth --dataset' writes), or a micro dataset")
     add_output(t, "model file to write (checkpoints go to OUTPUT.ckpt)")
     t.add_argument("--maps", action="append", help="maps folder for each DATASET, in order (repeat)")
-    t.add_argument("--preset", choices=sorted(PROPAGATE_PRESETS), default="fast")
+    t.add_argument("--preset", choices=sorted(PROPAGATE_PRESETS), default="fast",
+                   help="training preset: quick, fast, balanced or paper (docs/PROPAGATION.md; default: fast)")
     t.add_argument("--iterations", type=int, help="override the preset's iteration count")
     t.add_argument("--batch", type=int, help="override the preset's batch size")
     t.add_argument("--lr", type=float, help="override the preset's learning rate")
@@ -145,16 +146,16 @@ def register(subparsers) -> None:
     t.add_argument("--blur-sigma-max", type=float, default=3.0, help="blur sigma ~ U(0.1, MAX) px (paper: 11)")
     t.add_argument("--init", help="warm-start model file (e.g. models/warmstart_w16.dsp)")
     t.add_argument("--resume", action="store_true", help="continue from OUTPUT.ckpt")
-    t.add_argument("--checkpoint-every", type=int, default=50)
-    t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--checkpoint-every", type=int, default=50, help="write OUTPUT.ckpt every N steps, for --resume (default: 50)")
+    t.add_argument("--seed", type=int, default=0, help="seed of the initialisation, the crops and the augmentation (default: 0)")
     t.add_argument("--no-amp", action="store_true", help="train in float32")
-    t.add_argument("--device", default="cpu")
+    t.add_argument("--device", default="cpu", help="torch device to train on, e.g. cpu or cuda (default: cpu)")
     add_work_options(t, "torch intra-op threads (on busy shared cores, set OMP_WAIT_POLICY=PASSIVE or use 1)")
     t.set_defaults(fn=cmd_train)
 
     e = sub.add_parser("export", help="export a model to ONNX fp32 and fp16 and check parity")
     e.add_argument("model")
-    e.add_argument("--no-check", action="store_true")
+    e.add_argument("--no-check", action="store_true", help="skip the ONNX-vs-torch parity check (default: checked)")
     e.add_argument("--int8", action="store_true",
                    help="also write MODEL.int8.onnx (dynamic int8 quantisation; slower than fp32 on this CPU, "
                         "its loss per map is in docs/PROPAGATION.md)")
@@ -170,8 +171,8 @@ def register(subparsers) -> None:
                    help="texel size of the guidance, recorded in the maps (default: from its dataset's camera; "
                         "unknown: null, with a warning)")
     add_output(r, "output maps folder")
-    r.add_argument("--tile", type=int, default=512)
-    r.add_argument("--overlap", type=int, default=64)
+    r.add_argument("--tile", type=int, default=512, help="side of the inference tiles in guidance pixels (default: 512)")
+    r.add_argument("--overlap", type=int, default=64, help="overlap of neighbouring tiles in pixels, blended (default: 64)")
     r.add_argument("--batch", type=int, default=1, help="tiles per onnxruntime call")
     r.add_argument("--precision", choices=("auto", "fp32", "fp16", "int8"), default="auto",
                    help="auto: fp16 on CUDA, fp32 on CPU; int8: the export made by 'propagate export --int8' "

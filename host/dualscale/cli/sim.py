@@ -244,7 +244,7 @@ def register(subparsers) -> None:
     p.add_argument("--size", type=int, default=512,
                    help=f"map size in texels (square, {MIN_SIZE}..{MAX_SIZE}; default: 512)")
     p.add_argument("--texel-um", type=float, default=1.8, help="texel (= micro pixel) size in micrometres")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="seed of the synthetic material (default: 0)")
     p.add_argument("--dataset", action="store_true", help="also render a micro photometric dataset")
     p.add_argument("--lights", default="all", help="'all' or 'modN' (every N-th LED)")
     p.add_argument("--analyzers", default="0,90", help="analyser angles relative to each LED polariser, or 'none'")
@@ -257,14 +257,15 @@ def register(subparsers) -> None:
                         "spectra and gains, dark signal, noise, 12 bit); calibrate with synth-targets + calibrate")
     p.add_argument("--shadows", action="store_true",
                    help="cast shadows of the relief and of the raised fly-out fibres in the dataset")
-    p.add_argument("--no-previews", action="store_true")
+    p.add_argument("--no-previews", action="store_true", help="write the EXR maps without PNG previews (default: previews)")
     add_work_options(p)
     p.set_defaults(fn=cmd_synth)
 
     r = subparsers.add_parser("render", help="render maps under chosen lights/analyser to EXR + PNG previews")
     r.add_argument("maps", help="directory written by 'synth' (its maps/ folder) or save_maps")
     add_output(r, "output dataset directory (EXR + manifest.json, previews/)")
-    r.add_argument("--camera", choices=list(regmap.CAMERA_NAMES), default="micro")
+    r.add_argument("--camera", choices=list(regmap.CAMERA_NAMES), default="micro",
+                   help="the rig camera to render through (default: micro)")
     r.add_argument("--led", type=int, nargs="*", help="LED ids (one image each)")
     r.add_argument("--backlight", type=int, nargs="*", help="back-light ids")
     r.add_argument("--diffuse", action="store_true", help="also render the diffuse group")
@@ -272,8 +273,8 @@ def register(subparsers) -> None:
     r.add_argument("--relative", action="store_true", help="angles are relative to each LED polariser (0 = P0)")
     r.add_argument("--texel-um", type=float, default=1.8, help="texel size in micrometres")
     r.add_argument("--size", type=int, default=None, help="image size for mid/polar cameras")
-    r.add_argument("--realistic", action="store_true")
-    r.add_argument("--float64", action="store_true")
+    r.add_argument("--realistic", action="store_true", help="camera counts through the virtual sensor (gains, dark signal, noise) instead of radiance")
+    r.add_argument("--float64", action="store_true", help="render in float64 (default: float32)")
     r.add_argument("--shadows", action="store_true",
                    help="cast the shadows of the relief saved with the maps (geometry.exr; micro camera only)")
     add_work_options(r)
