@@ -277,3 +277,25 @@ def test_every_option_has_help():
 
     walk(build_parser(), [])
     assert not missing, missing
+
+
+def test_digitize_names_the_command_line_the_user_can_run(monkeypatch, tmp_path):
+    """Issue 24 §5: after `make demo`, `dualscale` is not on PATH; the last lines name
+    `.venv/bin/dualscale` (the script that ran), or `dualscale` when that is on PATH."""
+    import os
+    import sys
+
+    from dualscale.cli.digitize import _cli_name
+
+    script = tmp_path / ".venv" / "bin" / "dualscale"
+    script.parent.mkdir(parents=True)
+    script.write_text("#!/bin/sh\n")
+    script.chmod(0o755)
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "argv", [str(script)])
+    monkeypatch.setenv("PATH", "/usr/bin:/bin")
+    assert _cli_name() == os.path.join(".venv", "bin", "dualscale")
+    monkeypatch.setenv("PATH", f"{script.parent}:/usr/bin")
+    assert _cli_name() == "dualscale"
+    monkeypatch.setattr(sys, "argv", ["-c"])
+    assert _cli_name().endswith("-m dualscale.cli")

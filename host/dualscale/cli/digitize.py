@@ -96,6 +96,8 @@ def cmd_digitize(a: argparse.Namespace) -> int:
                   f"{', '.join(f for f in e['files'] if f != 'maps')})")
     if res.record("report") is not None:
         print(f"report: {run / 'report' / 'index.html'}")
+    if res.record("export") is not None:
+        print(f"view it: {_cli_name()} view {run}")
     for line in _check_lines(res):
         print(line)
     failed = res.failed
@@ -106,6 +108,24 @@ def cmd_digitize(a: argparse.Namespace) -> int:
               "docs/DIGITIZE.md, \"The run's check\")", file=sys.stderr, flush=True)
         return EXIT_CODES["check_failed"]
     return 0
+
+
+def _cli_name() -> str:
+    """How this shell can run the command line again: ``dualscale`` when that name on PATH is
+    the script now running, else that script's path (``.venv/bin/dualscale`` after ``make
+    demo``, relative when it is below the working folder), else ``python -m dualscale.cli``."""
+    import os
+    import shutil
+    import sys
+
+    here = os.path.abspath(sys.argv[0]) if sys.argv and sys.argv[0] else ""
+    if not (here and os.path.basename(here) == "dualscale" and os.path.isfile(here)):
+        return f"{sys.executable} -m dualscale.cli"
+    on_path = shutil.which("dualscale")
+    if on_path and os.path.samefile(on_path, here):
+        return "dualscale"
+    rel = os.path.relpath(here)
+    return rel if not rel.startswith("..") else here
 
 
 def _run(a, opts, start, prepared, digitize, RigCapture):
