@@ -414,8 +414,8 @@ class Digitizer:
         cam = (ds.manifest.get("cameras") or {}).get(rec.camera) or {}
         side = min(int(cam.get("width") or 0), int(cam.get("height") or 0)) * micro / tex
         if side and side < MIN_TRAIN_PX:
-            raise InputError(f"{opt}: the micro field covers only {side:.0f} px of the {width}x{height} guidance at "
-                             f"{tex:.4g} mm/px; propagation needs at least {MIN_TRAIN_PX} px: a finer guidance, or "
+            raise InputError(f"{opt}: the micro field covers only {side:.0f} guidance pixels (a {width}x{height} "
+                             f"guidance at {tex:.4g} mm/px); propagation needs at least {MIN_TRAIN_PX} px: a finer guidance, or "
                              "its true texel size (--guidance-texel-mm)")
 
     # -- paths of the finished stages

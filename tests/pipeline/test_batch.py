@@ -32,7 +32,7 @@ def _run(*argv: str) -> tuple[int, str, str, float]:
 @pytest.fixture(scope="module")
 def batch_list(sample, tmp_path_factory) -> Path:
     """Two good samples of the tiny twill (draft, no guidance) and one whose guidance is far too
-    coarse to propagate to (it fails in its propagate task, after calibrate, fit and fly-outs).
+    coarse to propagate to (refused before any stage: digitize checks every input up front, issue 24).
     The inputs are given relative to the list's folder."""
     folder = tmp_path_factory.mktemp("lists")
     micro = os.path.relpath(sample / "micro", folder)
@@ -80,16 +80,16 @@ def test_batch_on_a_local_cluster_runs_every_sample_and_reports_the_failing_one(
     assert (out / "b" / "export" / "micro" / "glb" / "b_micro.glb").is_file()
     assert _record(out, "a", "fit")["params"]["seed"] == 0 and _record(out, "b", "fit")["params"]["seed"] == 1
     # the failing one: its stages before propagate finished, the later ones never ran
-    assert [s for s in STAGES if _record(out, "coarse", s) is not None] == ["calibrate", "fit", "flyouts"]
+    assert [s for s in STAGES if _record(out, "coarse", s) is not None] == []  # refused before any work
     doc = _summary(out)
     assert doc["format"] == "dualscale-batch-summary" and doc["engine"].startswith("local (2 workers")
     rows = _rows(doc)
     assert list(rows) == ["a", "b", "coarse"]
     assert [rows[n]["status"] for n in rows] == ["done", "done", "failed"]
     bad = rows["coarse"]
-    assert bad["failed_stage"] == "propagate" and bad["error"].startswith("InputError: ")
+    assert bad["failed_stage"] == "calibrate" and bad["error"].startswith("InputError: ")
     assert "guidance pixels" in bad["error"] and "InputError" in bad["traceback"]
-    assert [bad["stages"][s]["status"] for s in STAGES] == ["done", "done", "done", "failed", "not run", "not run"]
+    assert [bad["stages"][s]["status"] for s in STAGES] == ["failed"] + ["not run"] * (len(STAGES) - 1)
     for name in GOOD:
         r, fit = rows[name], _record(out, name, "fit")["summary"]
         assert all(r["stages"][s]["status"] == "done" and r["stages"][s]["seconds"] > 0 for s in STAGES)
@@ -108,7 +108,7 @@ def test_batch_on_a_local_cluster_runs_every_sample_and_reports_the_failing_one(
     # the CSV says the same
     table = list(csv.DictReader(io.StringIO((out / "summary.csv").read_text())))
     assert [(t["name"], t["status"], t["failed_stage"]) for t in table] == [
-        ("a", "done", ""), ("b", "done", ""), ("coarse", "failed", "propagate")]
+        ("a", "done", ""), ("b", "done", ""), ("coarse", "failed", "calibrate")]
     assert "guidance pixels" in table[2]["error"] and table[2]["seconds_export"] == ""
     assert float(table[0]["seconds_fit"]) > 0 and float(table[0]["heldout_relative_l1"]) == pytest.approx(rows["a"]["heldout_relative_l1"])
     assert table[1]["exports"] == "b/export/micro/glb/b_micro.glb" and table[0]["up_to_date"] == ""
@@ -116,7 +116,7 @@ def test_batch_on_a_local_cluster_runs_every_sample_and_reports_the_failing_one(
     html = (out / "summary.html").read_text()
     assert "out&lt;i&gt;&amp;" in html and "out<i>" not in html and "guidance pixels" in html
     # the terminal: one line per sample as it ends, the table, the failure on stderr
-    assert "coarse: FAILED at propagate: InputError" in cluster_run["stdout"]
+    assert "coarse: FAILED at calibrate: InputError" in cluster_run["stdout"]
     assert "a: done in" in cluster_run["stdout"] and "summary.html" in cluster_run["stdout"]
     assert "1 of 3 sample(s) failed: coarse" in cluster_run["stderr"]
 
@@ -133,7 +133,7 @@ def test_a_rerun_skips_every_finished_stage(cluster_run, batch_list):
         assert f"{name}: done in" in stdout and "6 stage(s) up to date" in stdout
     assert {(n, s): _record(out, n, s)["finished"] for n in GOOD for s in STAGES} == before  # nothing redone
     bad = rows["coarse"]
-    assert [bad["stages"][s]["status"] for s in STAGES] == ["up to date"] * 3 + ["failed", "not run", "not run"]
+    assert [bad["stages"][s]["status"] for s in STAGES] == ["failed"] + ["not run"] * (len(STAGES) - 1)
     table = list(csv.DictReader(io.StringIO((out / "summary.csv").read_text())))
     assert table[0]["up_to_date"] == ";".join(STAGES)
 
@@ -212,7 +212,7 @@ def test_run_batch_reports_progress_and_each_sample_as_it_ends(cluster_run, batc
     assert [(d, t) for d, t, _ in calls] == [(i, 18) for i in range(1, 19)]
     assert calls[0][2] == "a calibrate" and calls[-1][2] == "coarse report not run"
     assert ended == [("a", "done"), ("b", "done"), ("coarse", "failed")] == [(r.name, r.status) for r in res]
-    assert res[2].failure["stage"] == "propagate" and res[2].failure["error_type"] == "InputError"
+    assert res[2].failure["stage"] == "calibrate" and res[2].failure["error_type"] == "InputError"
 
 
 BAD_LISTS = {
