@@ -235,3 +235,29 @@ def test_fit_and_exports_record_the_response(photos_g12, tmp_path, capsys):
     assert doc["asset"]["extras"]["dualscale"]["provenance"]["radiometry"]["source"] == "auto"
     mtlx = next(exp.rglob("*.mtlx")).read_text()
     assert "radiometry" in mtlx and "gamma:1.2" in mtlx
+
+
+def test_a_truncated_chrome_photograph_is_refused_not_given_another_images_light(chrome_and_matte, tmp_path,
+                                                                                  capsys):
+    """A corrupt chrome photograph gave the previous image's direction (ImageBuf read lazily)."""
+    import shutil
+
+    root, chrome, _, _ = chrome_and_matte
+    bad = tmp_path / "chrome"
+    shutil.copytree(chrome, bad)
+    data = (bad / "chrome.4.png").read_bytes()
+    (bad / "chrome.4.png").write_bytes(data[: len(data) // 2])
+    assert _cli("lights", "sphere", bad, "-o", tmp_path / "lights") == 2
+    assert "chrome.4.png" in capsys.readouterr().err
+    assert not (tmp_path / "lights.json").exists() and not (tmp_path / "lights.lp").exists()
+
+
+def test_stated_srgb_on_a_stated_gamma_photograph_set_warns_through_the_fit(photos_g12, tmp_path, capsys):
+    """The import's contradiction warning is repeated by the fit (and so by digitize's report)."""
+    root, folder, lp, _ = photos_g12
+    ds = tmp_path / "srgb"
+    assert _cli("import", folder, "--lights", lp, "-o", ds, "--transfer", "srgb") == 0
+    capsys.readouterr()
+    assert _cli("fit", ds, "-o", tmp_path / "maps", "--preset", "draft", "--cv-pixels", "0", "--threads", "1") == 0
+    err = capsys.readouterr().err
+    assert "radiometry" in err and "contradict --transfer srgb" in err

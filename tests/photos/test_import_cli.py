@@ -96,7 +96,7 @@ def _refused(capsys, out, code, *words):
 def test_refuses_integer_images_without_a_transfer(sphere_set, tmp_path, capsys):
     out = tmp_path / "ds"
     _refused(capsys, out, run(str(sphere_set.folder), "--lights", str(sphere_set.lp), "-o", str(out)),
-             "transfer", "--transfer auto|srgb|linear|gamma:G")
+             "transfer", "--transfer auto|lights|srgb|linear|gamma:G")
 
 
 def test_refuses_images_of_different_sizes(sphere_set, tmp_path, capsys):

@@ -119,10 +119,15 @@ def read_gray(path: str | Path, decode: bool = True) -> tuple[np.ndarray, np.nda
 
     path = Path(path)
     buf = oiio.ImageBuf(str(path))
-    if buf.has_error:
-        raise LightSphereError(f"{path}: cannot read image ({buf.geterror()})")
+    # read the pixels now: ImageBuf reads lazily, and a truncated file fails only then (and
+    # get_pixels would hand back whatever buffer was there -- another image's pixels)
+    if buf.has_error or not buf.read(0, 0, True) or buf.has_error:
+        raise LightSphereError(f"{path}: cannot read image ({buf.geterror() or 'truncated or corrupt'})")
     spec = buf.spec()
-    px = np.asarray(buf.get_pixels(oiio.FLOAT), dtype=np.float64)
+    px = buf.get_pixels(oiio.FLOAT)
+    if px is None or buf.has_error:
+        raise LightSphereError(f"{path}: cannot read its pixels ({buf.geterror() or 'truncated or corrupt'})")
+    px = np.asarray(px, dtype=np.float64)
     if px.ndim == 2:
         px = px[..., None]
     px = px[..., : 3 if spec.nchannels >= 3 else 1]

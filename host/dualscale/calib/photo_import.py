@@ -266,12 +266,15 @@ def radiometry(codes: list[Codes], dirs: np.ndarray, rel: np.ndarray | None, mas
         return None, np.ones(K) if rel is None else rel, "file" if rel is not None else "equal", {}, notes, warns
     if transfer is None:
         raise UnitsError("the transfer function of display-encoded images must be stated or estimated: "
-                         "--transfer auto|srgb|linear|gamma:G (auto: estimated from the photographs)")
+                         "--transfer auto|lights|srgb|linear|gamma:G (auto: estimated from the photographs; lights: "
+                         "the matte sphere's, from the light file)")
     bits = max(c.bits for c in codes)
     sel = np.flatnonzero(mask.ravel()) if mask is not None else np.arange(codes[0].code.shape[0] * codes[0].code.shape[1])
     stack = np.stack([c.code.reshape(-1, 3)[sel] for c in codes]).astype(np.float64)   # (K, P, 3)
     valid = ~np.stack([c.clipped.ravel()[sel] for c in codes])
     want_e = intensities == "estimate" or (intensities == "auto" and rel is None)
+    if intensities == "file" and rel is None:
+        notes.append(f"--intensities file: {lights.name} gives no intensities; every light is given 1")
     given = None if want_e else (np.ones(K) if (rel is None or intensities == "equal") else rel)
     e_src = "estimated" if want_e else ("equal" if given is not None and (rel is None or intensities == "equal")
                                          else "file")
@@ -283,25 +286,32 @@ def radiometry(codes: list[Codes], dirs: np.ndarray, rel: np.ndarray | None, mas
         e = est.intensities if want_e else given
         notes += est.notes
         if want_e:
-            # the same estimate with equal lights: are the response and the intensities told apart?
-            eq = estimate_response(stack, dirs, valid, bits=bits, intensities=np.ones(K),
-                                   families=(resp.family,) if resp.family in ("gamma", "curve") else ("gamma",),
+            # the best power law with equal lights, against the one with the intensities estimated:
+            # are the response and the intensities told apart by these lights?
+            eq = estimate_response(stack, dirs, valid, bits=bits, intensities=np.ones(K), families=("gamma",),
                                    bootstrap=0)
             from dualscale.calib.response import curve_distance
 
-            dist = curve_distance(eq.response, resp, est.code_range)
-            record["equal_intensities_response"] = eq.response.to_json()
-            record["equal_intensities_curve_distance"] = dist
-            if dist > 0.02:
-                notes.append(f"the response and the lights' intensities are partly confounded by this light layout: "
-                             f"with equal intensities the estimate is {eq.response.describe()} ({100 * dist:.1f} % of "
-                             "full scale apart); photograph a matte reference sphere to separate them")
+            joint = Response("gamma", tuple(est.fits["gamma"]["params"]), "auto")
+            dist = curve_distance(eq.response, joint, est.code_range)
+            ratio = eq.score("gamma") / max(est.score("gamma"), 1e-12)
+            record["equal_intensities"] = {"gamma": eq.response.to_json(), "curve_distance": dist,
+                                           "loss_ratio": ratio}
+            if dist > 0.02 and ratio < 1.10:
+                notes.append(f"the response and the lights' intensities are confounded by this light layout: the best "
+                             f"power law is {joint.params[0]:.3f} with the intensities estimated and "
+                             f"{eq.response.params[0]:.3f} with them equal, which the photographs explain almost "
+                             f"as well (loss {ratio:.2f}x); a matte reference sphere separates the two "
+                             "(docs/RADIOMETRY.md)")
         return resp, np.asarray(e), e_src, record, notes, warns
     resp = _light_file_response(lights) if transfer == "lights" else stated_response(transfer)
     try:
         est = estimate_response(stack, dirs, valid, bits=bits, intensities=given, bootstrap=4)
     except InputError as exc:
-        notes.append(f"the response could not be checked against the photographs: {exc}")
+        why = str(exc).split("; state the response")[0].split(": are these")[0]
+        warns.append(f"--transfer {transfer} could not be checked against the photographs"
+                     + (", and the lights' intensities could not be estimated (all set equal)" if given is None
+                        else "") + f": {why}")
         return resp, np.ones(K) if given is None else given, "equal" if given is None else e_src, record, notes, warns
     bad, msg, check = check_stated(est, resp, stack, dirs, valid, bits)
     record["check"] = check

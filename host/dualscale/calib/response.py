@@ -293,11 +293,16 @@ def estimate_response(codes: np.ndarray, dirs: np.ndarray, valid: np.ndarray | N
     d.dirs = dirs
     lo, hi = code_window(bits)
     S = d.c.shape[0]
+    if dirs.shape[0] < MIN_LIGHTS:
+        raise CalibrationError(
+            f"{dirs.shape[0]} photograph(s): a camera response is estimated from the shading of at least "
+            f"{MIN_LIGHTS} photographs under different lights; state it with --transfer srgb|linear|gamma:G")
     if S < MIN_SERIES:
         raise CalibrationError(
             f"too few lit pixels to estimate a camera response: {S} pixel-channels have {MIN_LIGHTS} or more "
-            f"lights with code values in [{lo:.3f}, {hi:.3f}] (need {MIN_SERIES}); state the response with "
-            "--transfer srgb|linear|gamma:G, or photograph a matte reference sphere")
+            f"lights with code values in [{lo:.3f}, {hi:.3f}] (need {MIN_SERIES}): the photographs are too dark, "
+            f"too bright or too small" + ("" if normals is not None else "; state the response with "
+                                          "--transfer srgb|linear|gamma:G, or photograph a matte reference sphere"))
     e_fixed = None if intensities is None else np.asarray(intensities, np.float64) / math.exp(
         float(np.mean(np.log(np.asarray(intensities, np.float64)))))
     src = "auto" if normals is None else "target"
@@ -368,8 +373,11 @@ def estimate_response(codes: np.ndarray, dirs: np.ndarray, valid: np.ndarray | N
 # -- checking a stated response -------------------------------------------------------------------
 
 #: a stated response contradicts the data when its consistency loss exceeds the estimate's by
-#: this factor *and* its inverse curve is this far (fraction of full scale) from the estimate's
-CONTRADICTION_LOSS = 1.25
+#: this factor *and* its inverse curve is this far (fraction of full scale) from the estimate's.
+#: On real objects the loss has a floor set by their non-Lambertian reflection, which compresses
+#: the ratios: sRGB on the psm figurines (28 % of full scale from the estimate, 10-24 % worse at
+#: predicting held-out photographs) scores 1.21-1.33; a stated gamma 1.2 there 1.02-1.03
+CONTRADICTION_LOSS = 1.10
 CONTRADICTION_CURVE = 0.03
 
 

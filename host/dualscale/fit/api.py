@@ -124,6 +124,10 @@ def fit_dataset(dataset: str | Path, out: str | Path, preset: str | Preset = "st
     rad = _radiometry(dataset)
     if rad is not None:
         extra["radiometry"] = rad
+        import warnings
+
+        for w in rad.get("warnings") or []:  # the import's radiometric warning stays a warning of the fit
+            warnings.warn(f"the dataset's radiometry: {w}", RuntimeWarning, stacklevel=2)
     if gt is not None:
         from dualscale.formats.maps import load_maps
 

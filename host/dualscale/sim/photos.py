@@ -160,7 +160,8 @@ def render_photos(shape: str = "sphere", dirs: np.ndarray = PSM_LIGHTS, size: tu
 
 def write_photos(folder: str | Path, shots: PhotoShots, name: str = "obj") -> tuple[Path, Path]:
     """Write ``shots`` as ``folder/name.K.png`` + ``name.mask.png`` and the light file
-    ``folder/name.lp`` (the true directions; no intensities); returns ``(folder, light file)``."""
+    ``<folder>.lp`` beside the folder (the true directions; no intensities); returns
+    ``(folder, light file)``."""
     import OpenImageIO as oiio
 
     from dualscale.formats.lightfile import LightRecord, write_lp
