@@ -161,3 +161,22 @@ def test_light_scale_is_the_stated_one(sphere_set, tmp_path):
     ds = read_dataset(tmp_path / "ds")
     assert all(r.intensity == 1.0 for r in ds.records)
     assert math.isclose(float(ds.load(2).max()), float(srgb8(sphere_set.linear[2]).max()) / 255, rel_tol=1e-6)
+
+
+def test_overwrite_with_bad_input_loses_nothing(sphere_set, tmp_path, capsys):
+    """`--overwrite` empties the folder only once the command succeeds: an import refused on a
+    corrupt photograph leaves the earlier dataset as it was (a fresh user's trial, issue 23)."""
+    import shutil
+
+    out = tmp_path / "ds"
+    assert run(str(sphere_set.folder), "--lights", str(sphere_set.lp), "-o", str(out), "--transfer", "srgb") == 0
+    before = sorted(p.relative_to(out) for p in out.rglob("*"))
+    bad = tmp_path / "bad"
+    shutil.copytree(sphere_set.folder, bad)
+    first = sorted(p for p in bad.iterdir() if "mask" not in p.name)[0]
+    first.write_bytes(first.read_bytes()[:40])
+    capsys.readouterr()
+    assert run(str(bad), "--lights", str(sphere_set.lp), "-o", str(out), "--transfer", "srgb", "--overwrite") == 2
+    assert first.name in capsys.readouterr().err
+    assert sorted(p.relative_to(out) for p in out.rglob("*")) == before
+    assert read_dataset(out).records and not list(tmp_path.glob(".ds.overwritten-*"))

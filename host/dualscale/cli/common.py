@@ -108,8 +108,11 @@ def _is_within(a: Path, b: Path) -> bool:
         return False
 
 
-def _clear(out: Path, inputs: Sequence[object]) -> None:
-    """Remove the contents of ``out`` (``--overwrite``), refusing folders it must never empty."""
+def _clear(out: Path, inputs: Sequence[object]) -> Path | None:
+    """Empty ``out`` (``--overwrite``), refusing folders it must never empty.  The contents are
+    moved aside into a hidden sibling folder, which is returned: :func:`output_folder` deletes it
+    when the command succeeds and puts the contents back when it refuses its input or fails, so
+    that bad input loses nothing.  None when nothing could be set aside (then they are deleted)."""
     res = out.resolve()
     guarded = [Path.home().resolve(), Path.cwd().resolve(), Path(res.anchor)]
     for x in inputs:
@@ -121,11 +124,36 @@ def _clear(out: Path, inputs: Sequence[object]) -> None:
         if _is_within(g, res):
             raise InputError(f"-o {out} contains {g}: --overwrite empties only a folder of its own; "
                              "choose another folder")
+    aside = res.parent / f".{res.name}.overwritten-{os.getpid()}"
+    try:
+        aside.mkdir()
+        for p in res.iterdir():
+            os.rename(p, aside / p.name)
+        return aside
+    except OSError:  # another filesystem or an unwritable parent: delete, as before
+        if aside.is_dir():
+            for p in aside.iterdir():
+                os.rename(p, res / p.name)
+            aside.rmdir()
     for p in res.iterdir():
         if p.is_dir() and not p.is_symlink():
             shutil.rmtree(p)
         else:
             p.unlink()
+    return None
+
+
+def _restore(out: Path, aside: Path) -> None:
+    """Put back what :func:`_clear` set aside, removing what the failed command wrote."""
+    for p in out.iterdir():
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p, ignore_errors=True)
+        else:
+            with contextlib.suppress(OSError):
+                p.unlink()
+    for p in aside.iterdir():
+        os.rename(p, out / p.name)
+    aside.rmdir()
 
 
 def _writable_error(out: Path, e: OSError) -> Exception:
@@ -160,27 +188,39 @@ def output_folder(args: argparse.Namespace, command: str, inputs: Sequence[objec
     while not p.exists():
         created.append(p)
         p = p.parent
+    aside: Path | None = None
     if out.is_dir() and record:
         why = _foreign(out, ident, own)
         overwrite = getattr(args, "overwrite", False)
         if why is not None:
             if not overwrite:
                 raise InputError(f"-o {out}: {why}; pass --overwrite to replace them, or choose another folder")
-            _clear(out, inputs)
+            aside = _clear(out, inputs)
         elif overwrite and not getattr(args, "resume", False) and any(out.iterdir()):
-            _clear(out, inputs)  # --overwrite empties the folder, as its help says (capture --resume keeps it)
+            aside = _clear(out, inputs)  # --overwrite empties the folder, as its help says (capture --resume keeps it)
     had_record = (out / RECORD).is_file()
     try:
         probe_writable(out)
         if record:
             write_json(out / RECORD, {"format": RECORD_FORMAT, "version": 1, **ident})
     except OSError as e:
+        if aside is not None:
+            _restore(out, aside)
         raise _writable_error(out, e) from None
     try:
         yield out
         if record and not (out / RECORD).is_file():  # a writer that replaced the whole folder (atomic_dir)
             write_json(out / RECORD, {"format": RECORD_FORMAT, "version": 1, **ident})
+        if aside is not None:
+            shutil.rmtree(aside, ignore_errors=True)
     except BaseException as e:
+        if aside is not None:
+            from dualscale.errors import DualscaleError, Interrupted
+
+            if isinstance(e, DualscaleError) and not isinstance(e, Interrupted) or isinstance(e, (ValueError, OSError)):
+                _restore(out, aside)  # refused or failed: the folder's earlier contents come back
+                raise
+            shutil.rmtree(aside, ignore_errors=True)  # interrupted: the new run's outputs stay, to resume
         if record and not had_record and isinstance(e, InputError) and (out / RECORD).is_file():
             # refused on its input: leave a folder that was already there as it was (an interrupted
             # run keeps its record, so that the rerun resumes)
