@@ -17,14 +17,6 @@ from dualscale.fit.select import diffuse_only, has_specular, select_components
 from photoset import angle_deg, lights_one_side, render_sphere
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def imported(tmp_path, roughness=None, n=12, size=32):
     s = render_sphere(tmp_path / "ball", lights_one_side(n, seed=1), size=size, roughness=roughness, gain=2.0)
     import_photos(s.folder, s.lp, tmp_path / "ds", "srgb")

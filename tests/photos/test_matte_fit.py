@@ -36,14 +36,6 @@ PSM_DIRS = PSM_DIRS / np.linalg.norm(PSM_DIRS, axis=1, keepdims=True)
 GAMMA = 1.2
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def matte_sphere(folder, size: int = 36, seed: int = 0, noise_codes: float = 1.0, albedo=(0.75, 0.55, 0.4)):
     """Write ``obj.<k>.png`` (8-bit, ``V = L^(1/GAMMA)``), ``obj.mask.png`` and ``lights.json``
     (the directions and the true relative powers); returns ``(lights file, normals (H, W, 3),

@@ -75,14 +75,10 @@ def read_png(path: str | Path, srgb: bool) -> np.ndarray:
     unassociated).  Used to measure what an export keeps."""
     import OpenImageIO as oiio
 
+    from dualscale.formats.photo import open_unassociated
+
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"texture not found: {path}")
-    config = oiio.ImageSpec()
-    config.attribute("oiio:UnassociatedAlpha", 1)
-    inp = oiio.ImageInput.open(str(path), config)
-    if inp is None:
-        raise OSError(f"cannot read {path}: {oiio.geterror()}")
+    inp = open_unassociated(path)
     try:
         fmt = inp.spec().format
         data = inp.read_image(fmt)

@@ -65,7 +65,7 @@ class Codes:
     bits: int
 
 
-def _open_unassociated(path: Path):
+def open_unassociated(path: Path):
     """An ``ImageInput`` that reads the colour *as stored*: OpenImageIO associates
     (premultiplies) alpha on read by default, which would darken every pixel of an RGBA or
     grey+alpha photograph by its alpha (``oiio:UnassociatedAlpha`` = 1 keeps it unassociated)."""
@@ -88,7 +88,7 @@ def read_codes(path: str | Path, clip: float = 1.0) -> Codes:
     path = Path(path)
     if path.suffix.lower() not in SUFFIXES:
         raise UnitsError(f"{path}: unsupported image type {path.suffix!r} (use {', '.join(SUFFIXES)})")
-    inp = _open_unassociated(path)
+    inp = open_unassociated(path)
     try:
         spec = inp.spec()
         check_window(path, spec)
