@@ -177,8 +177,8 @@ def radiometry_summary(row: dict) -> dict:
            "intensities_source": rad.get("intensities_source") or ints.get("source"),
            "seconds_estimation": rad.get("seconds"), "seconds_import": row["seconds_import"],
            "light_scale": row["import"].get("light_scale"),
-           "equal_intensities_response": rad.get("equal_intensities_response", {}).get("transfer"),
-           "equal_intensities_curve_distance": rad.get("equal_intensities_curve_distance"),
+           "equal_intensities_response": ((rad.get("equal_intensities") or {}).get("gamma") or {}).get("transfer"),
+           "equal_intensities_curve_distance": (rad.get("equal_intensities") or {}).get("curve_distance"),
            "code_range_used": ev.get("code_range_used"), "notes": rad.get("notes") or []}
     return out
 
