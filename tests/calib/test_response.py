@@ -261,3 +261,23 @@ def test_stated_srgb_on_a_stated_gamma_photograph_set_warns_through_the_fit(phot
     assert _cli("fit", ds, "-o", tmp_path / "maps", "--preset", "draft", "--cv-pixels", "0", "--threads", "1") == 0
     err = capsys.readouterr().err
     assert "radiometry" in err and "contradict --transfer srgb" in err
+
+
+def test_exr_photographs_are_linear_with_auto_and_refused_with_a_curve(tmp_path, capsys):
+    """Float images carry no camera response: `auto` takes them as they are (with a note), a
+    stated non-linear transfer is refused."""
+    from dualscale.formats.exr import write_exr
+    from dualscale.formats.lightfile import LightRecord, write_lp
+
+    shots = render_photos("sphere", size=(24, 32))
+    folder = tmp_path / "exr"
+    folder.mkdir()
+    for k in range(len(shots.dirs)):
+        write_exr(folder / f"e.{k}.exr", shots.linear[k].astype(np.float32), ("R", "G", "B"))
+    lp = tmp_path / "e.lp"
+    write_lp(lp, [LightRecord(f"e.{k}.exr", tuple(d)) for k, d in enumerate(shots.dirs)])
+    assert _cli("import", folder, "--lights", lp, "-o", tmp_path / "ds", "--transfer", "auto", "--mask", "none") == 0
+    assert "linear already" in capsys.readouterr().out
+    assert _cli("import", folder, "--lights", lp, "-o", tmp_path / "ds2", "--transfer", "gamma:2.2",
+                "--mask", "none") == 2
+    assert "linear already" in capsys.readouterr().err

@@ -261,8 +261,10 @@ def radiometry(codes: list[Codes], dirs: np.ndarray, rel: np.ndarray | None, mas
         raise InputError(f"--intensities {intensities!r}: choose one of {', '.join(INTENSITIES)}")
     K = len(codes)
     if {c.bits for c in codes} == {32}:
-        if transfer not in (None, "linear"):
+        if transfer not in (None, "linear", "auto"):
             raise UnitsError("EXR images are linear already: drop --transfer or use --transfer linear")
+        if transfer == "auto":
+            notes.append("the images are floating point (EXR): linear already, no response to estimate")
         return None, np.ones(K) if rel is None else rel, "file" if rel is not None else "equal", {}, notes, warns
     if transfer is None:
         raise UnitsError("the transfer function of display-encoded images must be stated or estimated: "
@@ -383,7 +385,8 @@ def import_photos(images: str | Path, lights: str | Path, out: str | Path, trans
                 else np.array([1.0 if r.intensity is None else r.intensity for r in records], np.float64))
     resp, rel, rel_src, rad_rec, rad_notes, rad_warns = radiometry(codes, dirs, file_rel, m, transfer, Path(lights),
                                                                    strict, intensities)
-    photos = [decode_codes(c, resp if resp is not None else transfer, str(p)) for c, p in zip(codes, paths)]
+    photos = [decode_codes(c, resp if resp is not None else (None if transfer == "auto" else transfer), str(p))
+              for c, p in zip(codes, paths)]
     if scale == "auto":
         e = light_scale(photos, dirs, rel, m)
         source = (f"auto: 99th percentile of the Lambertian albedo (max channel) over the "
