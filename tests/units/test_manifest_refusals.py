@@ -65,3 +65,16 @@ def test_camera_with_negative_width_refused_naming_the_field(dataset, tmp_path, 
     err = capsys.readouterr().err
     assert "manifest.json" in err and "width" in err
     assert not (tmp_path / "maps" / "fit.json").exists()
+
+
+def test_render_with_an_analyser_on_the_mid_camera_is_refused_up_front(tmp_path, capsys):
+    """`render --analyzer 0,90 --camera mid` failed with "duplicate image" and left an image
+    (issue 24 §3): the mid camera has no analyser; refused before anything is written."""
+    from dualscale.cli import main
+
+    assert main(["synth", "leather", "-o", str(tmp_path / "s"), "--size", "8", "--no-previews"]) == 0
+    out = tmp_path / "r"
+    assert main(["render", str(tmp_path / "s" / "maps"), "-o", str(out), "--led", "0", "12", "--analyzer", "0,90",
+                 "--camera", "mid", "--size", "16"]) == 2
+    assert "has no analyser" in capsys.readouterr().err
+    assert not out.exists() or not any(out.rglob("*.exr"))

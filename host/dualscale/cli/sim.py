@@ -227,9 +227,15 @@ def cmd_render(args: argparse.Namespace) -> int:
         size = args.size or 512
         cam = mid_camera(size) if args.camera == "mid" else polar_camera(int(args.camera[-1]), size)
         texel = args.texel_um / 1000.0
+    analyzers = _analyzers(args.analyzer)
+    if not cam.has_analyzer and analyzers != [None]:
+        raise InputError(f"--analyzer {args.analyzer}: the {args.camera} camera has no analyser (only the micro "
+                         "camera has one); drop --analyzer, or give --analyzer none")
+    if len(set(analyzers)) != len(analyzers):
+        raise InputError(f"--analyzer {args.analyzer}: an angle is given twice")
     geometry = _shadow_geometry(args, maps.shape) if args.shadows else None
     with output_folder(args, "render", [args.maps]):
-        path = _capture_set(maps, cam, Path(args.output), lights, _analyzers(args.analyzer), args.relative, texel,
+        path = _capture_set(maps, cam, Path(args.output), lights, analyzers, args.relative, texel,
                             args.realistic, True, {"maps": str(args.maps), "material": meta,
                                                    "shadows": bool(args.shadows)}, geometry, want_progress(args))
     print(f"wrote {path}")
