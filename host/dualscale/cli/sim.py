@@ -229,8 +229,8 @@ def cmd_render(args: argparse.Namespace) -> int:
         texel = args.texel_um / 1000.0
     analyzers = _analyzers(args.analyzer)
     if not cam.has_analyzer and analyzers != [None]:
-        raise InputError(f"--analyzer {args.analyzer}: the {args.camera} camera has no analyser (only the micro "
-                         "camera has one); drop --analyzer, or give --analyzer none")
+        raise InputError(f"--analyzer {args.analyzer}: the {args.camera} camera has no analyser (the micro and polar "
+                         "cameras have one); drop --analyzer, or give --analyzer none")
     if len(set(analyzers)) != len(analyzers):
         raise InputError(f"--analyzer {args.analyzer}: an angle is given twice")
     geometry = _shadow_geometry(args, maps.shape) if args.shadows else None
