@@ -326,3 +326,21 @@ def test_non_finite_input_is_refused(tmp_path, field):
 def test_bad_repeat_size_is_refused(tmp_path, repeat):
     with pytest.raises(InputError, match="repeat_mm"):
         mtlx.write(_isotropic(8), ExportContext("iso", repeat), tmp_path)
+
+
+def test_xml_special_characters_in_the_provenance_give_a_strictly_parsable_document(tmp_path):
+    """A source path with '<' and '&' (issue 24 §7): MaterialX's writer copies '<' into the
+    attribute unescaped, which strict XML parsers refuse; the provenance is written with JSON
+    escapes and decodes to the same path."""
+    import xml.etree.ElementTree as ET
+
+    from dualscale.cli import main
+
+    src = tmp_path / "runs<1>&b"
+    assert main(["synth", "leather", "-o", str(src), "--size", "8", "--no-previews"]) == 0
+    out = tmp_path / "exp"
+    assert main(["export", str(src / "maps"), "-o", str(out), "--format", "mtlx", "--name", "m"]) == 0
+    f = next(out.rglob("*.mtlx"))
+    root = ET.parse(f).getroot()  # strict: fails on a raw '<' inside an attribute
+    metas = [e.get("dualscale_meta") for e in root.iter() if e.get("dualscale_meta")]
+    assert metas and json.loads(metas[0])["source"].endswith("runs<1>&b/maps")

@@ -169,6 +169,15 @@ def _fmt(v: float) -> str:
     return f"{float(v):.9g}"
 
 
+def _xml_safe_json(obj) -> str:
+    """``obj`` as JSON with ``<``, ``>`` and ``&`` written as JSON escapes (``\\u003c`` ...): the
+    same JSON when decoded, and nothing MaterialX's writer would copy unescaped into an XML
+    attribute (it leaves ``<`` as is, which strict XML parsers refuse; a source path such as
+    ``runs/<sample>&1`` reaches the provenance)."""
+    return (json.dumps(obj, sort_keys=True, default=str)
+            .replace("<", "\\u003c").replace(">", "\\u003e").replace("&", "\\u0026"))
+
+
 def build_document(ex: Exchange, ctx: ExportContext, textures: dict[str, _Tex]):
     """The MaterialX document (not yet validated) referencing ``textures`` by relative file name."""
     import MaterialX as mx
@@ -180,8 +189,7 @@ def build_document(ex: Exchange, ctx: ExportContext, textures: dict[str, _Tex]):
     doc.setColorSpace(WORKING_SPACE)
     size = "unknown" if ctx.repeat_mm is None else f"{_fmt(ctx.repeat_mm[0])} x {_fmt(ctx.repeat_mm[1])} mm"
     doc.setDocString(f"dualscale SVBSDF export of {name!r}; one texture repeat = {size}"
-                     f"{' (seamless tile)' if ctx.tiled else ''}; provenance: "
-                     f"{json.dumps(ctx.meta, sort_keys=True, default=str)}")
+                     f"{' (seamless tile)' if ctx.tiled else ''}; provenance: {_xml_safe_json(ctx.meta)}")
     for attr, mtype, desc in ATTRIBUTES:
         ad = doc.addAttributeDef(f"AD_{attr}")
         ad.setAttrName(attr)
@@ -300,7 +308,7 @@ def build_document(ex: Exchange, ctx: ExportContext, textures: dict[str, _Tex]):
     if "opacity" in textures:
         connect(op, "geometry_opacity", "opacity", "float")
 
-    meta = json.dumps(ctx.meta, sort_keys=True, default=str)
+    meta = _xml_safe_json(ctx.meta)
     for shader, label in ((ss, "standard_surface"), (op, "open_pbr_surface")):
         mat = doc.addMaterialNode(f"M_{elem}_{label}", shader)
         if ctx.repeat_mm is not None:
