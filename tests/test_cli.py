@@ -299,3 +299,14 @@ def test_digitize_names_the_command_line_the_user_can_run(monkeypatch, tmp_path)
     assert _cli_name() == "dualscale"
     monkeypatch.setattr(sys, "argv", ["-c"])
     assert _cli_name().endswith("-m dualscale.cli")
+
+
+def test_digitize_takes_tile_px_and_checks_it_before_work(tmp_path, capsys):
+    """`digitize --tile-px` (issue 24 §8): the fit's tile side, checked before any work."""
+    from dualscale.cli import build_parser, main
+
+    a = build_parser().parse_args(["digitize", "x", "-o", str(tmp_path / "r"), "--workers", "2", "--tile-px", "32"])
+    assert a.tile_px == 32
+    assert main(["digitize", str(tmp_path / "nope"), "-o", str(tmp_path / "r"), "--tile-px", "0"]) == 2
+    assert "--tile-px" in capsys.readouterr().err
+    assert not (tmp_path / "r").exists()

@@ -114,6 +114,7 @@ class DigitizeOptions:
     tile: bool = False
     name: str | None = None
     engine: Any = None  # a dualscale.engine.EngineSpec: the fit stage runs in tiles on that cluster
+    tile_px: int | None = None  # the side of those tiles (None: fit.tiled.TILE); the same maps at any side
 
     def __post_init__(self) -> None:
         self.input, self.run = Path(self.input), Path(self.run)
@@ -138,6 +139,10 @@ class DigitizeOptions:
             from dualscale.fit.tiled import check_tileable
 
             check_tileable(get_preset(QUALITIES[self.quality].fit_preset))
+        if self.tile_px is not None:
+            from dualscale.fit.tiled import check_tile
+
+            check_tile(self.tile_px)
 
 
 @dataclass(frozen=True)
@@ -490,7 +495,8 @@ class Digitizer:
             res, extra = fit_dataset(self.dataset, work / "maps", self.quality.fit_preset,
                                      cv_pixels=self.quality.cv_pixels, cv_folds=self.quality.cv_folds,
                                      progress=self.opts.progress, seed=self.opts.seed, obs=obs,
-                                     checkpoint_every=CHECKPOINT_EVERY, engine=self.opts.engine)
+                                     checkpoint_every=CHECKPOINT_EVERY, engine=self.opts.engine,
+                                     **({} if self.opts.tile_px is None else {"tile_px": self.opts.tile_px}))
         for w in caught:  # to the stage's record, with advice that fits where these images came from
             warnings.warn_explicit(self._fit_advice(str(w.message)), w.category, w.filename, w.lineno)
         write_exr(work / "residual.exr", residual_map(res.maps, res.comps, obs).numpy()[..., None], ("Y",))
@@ -719,7 +725,7 @@ def _rendered_lights(obs: Any, per_light: list[dict[str, Any]]) -> list[int]:
 
 
 def _options_json(o: DigitizeOptions) -> dict[str, Any]:
-    out = {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(o).items() if k not in ("run", "engine")}
+    out = {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(o).items() if k not in ("run", "engine", "tile_px")}
     out["engine"] = None if o.engine is None else o.engine.describe
     return out
 

@@ -61,7 +61,7 @@ def cmd_digitize(a: argparse.Namespace) -> int:
     opts = DigitizeOptions(input=inp, run=a.output, calibration=a.calibration, guidance=a.guidance,
                            guidance_transfer=a.transfer, guidance_texel_mm=a.guidance_texel_mm, quality=a.quality,
                            until=a.until, threads=apply_threads(a), progress=want_progress(a), seed=a.seed,
-                           engine=engine_spec(a),
+                           engine=engine_spec(a), tile_px=a.tile_px,
                            export=tuple(parse_formats(a.export, '--export')), tile=a.tile, name=a.name)
     def start() -> None:
         print(f"digitize {opts.input} -> {opts.run} (quality {opts.quality})", flush=True)
@@ -205,6 +205,9 @@ def register(sub) -> None:
 
     add_capture_options(d)
     add_work_options(d)
-    add_engine_options(d, "run the fit stage in pixel tiles on N local Dask worker processes (the same maps; "
-                          "default: one process; docs/SCALE.md)")
+    g = add_engine_options(d, "run the fit stage in pixel tiles on N local Dask worker processes (the same maps; "
+                              "default: one process; docs/SCALE.md)")
+    g.add_argument("--tile-px", type=int, default=None, metavar="PX",
+                   help="side of the fit's tiles with --workers/--scheduler/--cluster (default 64; the same maps at "
+                        "any side; docs/SCALE.md)")
     d.set_defaults(fn=cmd_digitize)
