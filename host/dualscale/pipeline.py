@@ -332,6 +332,21 @@ def run_stage(run: Path, name: str, inputs: dict[str, Any], params: dict[str, An
     return StageResult(name, record, False)
 
 
+def _calibration_key(path: Path) -> str:
+    """What the calibrate stage keys on in a calibration file: its content without the time it
+    was written (``created``), so that recomputing an unchanged calibration does not redo the run
+    (issue 24 §8); the file's bytes when it is not JSON (the stage then refuses it)."""
+    import json
+
+    try:
+        doc = json.loads(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, ValueError):
+        return file_sha256(path)
+    if isinstance(doc, dict):
+        doc = {k: v for k, v in doc.items() if k != "created"}
+    return json_sha256(doc)
+
+
 class Digitizer:
     """Runs the stages of one run folder (see the module docstring)."""
 
@@ -448,7 +463,7 @@ class Digitizer:
 
         g = self.opts.guidance
         inputs = {"dataset": tree_sha256(self.dataset_in),
-                  "calibration": None if self.opts.calibration is None else file_sha256(self.opts.calibration),
+                  "calibration": None if self.opts.calibration is None else _calibration_key(self.opts.calibration),
                   "guidance_dataset": tree_sha256(g) if g is not None and g.is_dir() else None}
 
         def run(work: Path) -> dict[str, Any]:

@@ -78,3 +78,29 @@ def test_render_with_an_analyser_on_the_mid_camera_is_refused_up_front(tmp_path,
                  "--camera", "mid", "--size", "16"]) == 2
     assert "has no analyser" in capsys.readouterr().err
     assert not out.exists() or not any(out.rglob("*.exr"))
+
+
+def test_the_same_pixels_give_the_same_exr_bytes(tmp_path):
+    """No write time in our EXR files (issue 24 §8: calibrate wrote the time into every EXR, so
+    recomputing an unchanged calibration changed the fit's input key)."""
+    import time
+
+    from dualscale.formats.exr import write_exr
+
+    img = np.linspace(0, 1, 48, dtype=np.float32).reshape(4, 4, 3)
+    write_exr(tmp_path / "a.exr", img, ("R", "G", "B"))
+    time.sleep(1.1)
+    write_exr(tmp_path / "b.exr", img, ("R", "G", "B"))
+    assert (tmp_path / "a.exr").read_bytes() == (tmp_path / "b.exr").read_bytes()
+
+
+def test_the_calibration_key_ignores_the_time_it_was_written(tmp_path):
+    """Recomputing an unchanged calibration changes only its ``created`` time: the calibrate
+    stage's input key stays, so the run is not redone (issue 24 §8)."""
+    from dualscale.pipeline import _calibration_key
+
+    a, b, c = tmp_path / "a.json", tmp_path / "b.json", tmp_path / "c.json"
+    a.write_text(json.dumps({"format": "x", "created": "2026-12-01T10:00:00+00:00", "dark": {"micro": [1, 2]}}))
+    b.write_text(json.dumps({"created": "2026-12-02T11:00:00+00:00", "dark": {"micro": [1, 2]}, "format": "x"}))
+    c.write_text(json.dumps({"format": "x", "created": "2026-12-01T10:00:00+00:00", "dark": {"micro": [1, 3]}}))
+    assert _calibration_key(a) == _calibration_key(b) != _calibration_key(c)

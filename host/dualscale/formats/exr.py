@@ -35,6 +35,9 @@ def write_exr(path: str | Path, image: np.ndarray, channels: Sequence[str] | Non
     spec = oiio.ImageSpec(img.shape[1], img.shape[0], img.shape[2], "float")
     spec.channelnames = names
     spec.attribute("compression", "zip")
+    # no write time in the file (OpenImageIO adds one by default): the same pixels give the same
+    # bytes, so a recomputed, unchanged stage output keeps the content hash the next stage keys on
+    spec.attribute("DateTime", "")
     for k, v in (attributes or {}).items():
         spec.attribute(k, str(v))
     write_pixels(path, img, spec)
