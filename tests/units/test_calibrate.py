@@ -115,7 +115,9 @@ def test_output_folder_appears_whole_or_not_at_all(tmp_path):
     victim = ds / read_dataset(ds).records[4].file
     good = victim.read_bytes()
     victim.write_bytes(b"not an exr")  # found only when its turn comes, after 4 images are written
-    with pytest.raises(OSError):
+    from dualscale.errors import FormatError
+
+    with pytest.raises(FormatError, match="micro_led"):  # bad input, naming the file (issue 24 §2)
         to_radiance(ds, out, cal)
     assert (out / "previous.txt").is_file() and not list(tmp_path.glob(".tmp-*"))
     victim.write_bytes(good)
