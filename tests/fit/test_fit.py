@@ -106,7 +106,9 @@ def test_missing_and_corrupt_files_give_clear_errors(datasets, tmp_path):
     shutil.copytree(datasets("leather") / "micro", dst)
     victim = sorted((dst / "images").glob("*.exr"))[5]
     victim.write_bytes(b"not an exr at all")
-    with pytest.raises(OSError, match=victim.name):
+    from dualscale.errors import FormatError
+
+    with pytest.raises(FormatError, match=victim.name):  # bad input naming the file (issue 24 §2)
         load_observations(dst)
     victim.unlink()
     with pytest.raises(FileNotFoundError, match="missing"):
