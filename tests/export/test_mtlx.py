@@ -225,9 +225,53 @@ def test_names_the_exporter_accepts(tmp_path):
     doc = mtlx.read_document(files[0])
     ok, msg = mtlx.validate(doc)
     assert ok, msg
+    stem = mtlx.element_stem("2024.twill-v2")
+    assert stem.startswith("2024_twill_v2_h") and mx.createValidName(stem) == stem
     assert {m.getName() for m in doc.getMaterialNodes()} == {
-        "M_2024_twill_v2_standard_surface", "M_2024_twill_v2_open_pbr_surface"}
+        f"M_{stem}_standard_surface", f"M_{stem}_open_pbr_surface"}
+    assert {m.getAttribute("dualscale_name") for m in doc.getMaterialNodes()} == {"2024.twill-v2"}
     assert all(p.name.startswith("2024.twill-v2_") for p in files[1:])
+
+
+def test_element_names_are_one_per_material_name():
+    """issue 24 §7: names that the MaterialX sanitiser maps alike ('.', '-' -> '_') keep apart,
+    valid names stay as they are, and a name that looks like a hashed stem does not collide."""
+    names = ["denim-01", "denim_01", "denim.01", "denim-01-", "denim--01", "denim_-01", "Denim_01", "d",
+             "swatch_isotropic", "2024.twill-v2", "2024_twill_v2", "2024-twill.v2"]
+    names.append(mtlx.element_stem("denim-01"))  # a user's name equal to another's hashed stem
+    stems = [mtlx.element_stem(n) for n in names]
+    assert len(set(stems)) == len(names), dict(zip(names, stems))
+    assert all(mx.createValidName(s) == s for s in stems)
+    assert mtlx.element_stem("denim_01") == "denim_01" and mtlx.element_stem("swatch_isotropic") == "swatch_isotropic"
+    assert mtlx.element_stem("denim-01") == mtlx.element_stem("denim-01")  # stable
+
+
+def test_a_library_of_names_that_sanitise_alike_keeps_every_material(tmp_path):
+    """issue 24 §7: 'denim-01' and 'denim_01' exported side by side and imported into one
+    document (as a user's library does, ``importLibrary``): four materials, not two, each
+    reaching its own textures, its name recoverable, and the library passes ``validate()``."""
+    rng = np.random.default_rng(5)
+    docs = {}
+    for name in ("denim-01", "denim_01"):
+        albedo = rng.uniform(0.05, 0.9, (8, 8, 3))
+        ex = exchange(to_maps(albedo=albedo, roughness=rng.uniform(0.1, 0.9, (8, 8))), TEXEL_MM)
+        files = mtlx.write(ex, ExportContext(name, (0.08, 0.08)), tmp_path)
+        docs[name] = (files[0], albedo)
+    lib = mx.createDocument()
+    for path, _ in docs.values():
+        lib.importLibrary(mtlx.read_document(path))
+    ok, msg = mtlx.validate(lib)
+    assert ok, msg
+    mats = lib.getMaterialNodes()
+    assert len(mats) == 4, [m.getName() for m in mats]
+    assert sorted(m.getAttribute("dualscale_name") for m in mats) == ["denim-01", "denim-01", "denim_01", "denim_01"]
+    for m in mats:
+        name = m.getAttribute("dualscale_name")
+        (shader,) = mx.getShaderNodes(m)
+        fname, _, _ = _source(shader.getInput("base_color"))
+        assert fname == f"{name}_base_color.png", (m.getName(), fname)
+        got = _read(tmp_path / fname, srgb=True)
+        assert np.abs(got - docs[name][1]).max() < SRGB_8BIT_TOL
 
 
 def test_unknown_size_uses_plain_images(tmp_path):

@@ -30,6 +30,12 @@ unit spans (``unit="millimeter"``, ``unittype="distance"``), so the texture repe
 (``ctx.meta``) and the sizes are custom attributes of each ``surfacematerial``, declared with
 ``attributedef`` elements, and summarised in the document's ``doc`` string.
 
+Element names (``NG_<e>``, ``SR_<e>_<shader>``, ``M_<e>_<shader>``) are built from the
+material's name by :func:`element_stem`, which is injective: ``denim-01`` and ``denim_01`` give
+different elements, so a library that imports several exports into one document keeps every
+material (MaterialX's ``importLibrary`` skips an element whose name is already there).  The
+material's name as given is the ``dualscale_name`` attribute of each ``surfacematerial``.
+
 Sources: MaterialX Specification 1.39 (Standard Nodes: ``image``, ``tiledimage``,
 ``normalmap``; colour spaces); Autodesk Standard Surface v1.0.1 (Georgiev et al. 2019);
 OpenPBR Surface v1.1 (Andersson et al.); seed Sec. 5 for our model.
@@ -37,8 +43,10 @@ OpenPBR Surface v1.1 (Andersson et al.); seed Sec. 5 for our model.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
+import re
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -62,7 +70,28 @@ ATTRIBUTES = (
     ("dualscale_texel_mm", "float", "physical size of one texel in mm"),
     ("dualscale_tiled", "boolean", "the textures are a seamless tile"),
     ("dualscale_meta", "string", "provenance (JSON): generator, version, source"),
+    ("dualscale_name", "string", "the material's name as given (the files' stem), which the element names encode"),
 )
+
+_NOT_ELEMENT = re.compile(r"[^A-Za-z0-9_]")  # what MaterialX's createValidName maps to '_' in our names
+_HASH_TAIL = re.compile(r"_h[0-9a-f]{8}$")  # the suffix element_stem appends
+
+
+def element_stem(name: str) -> str:
+    """The stem of the element names of material ``name`` (a name of
+    :data:`dualscale.export.NAME_RE`): ``name`` itself when it is a valid MaterialX name
+    (letters, digits, ``_``), else ``name`` with ``.`` and ``-`` mapped to ``_`` plus
+    ``_h`` and the first 8 hex digits of the name's SHA-256 (UTF-8): ``denim-01`` ->
+    ``denim_01_h08dfef21``, ``denim_01`` -> ``denim_01``.
+
+    Injective on names (up to a collision of 32-bit hash prefixes): a name that sanitising would
+    change, or that already ends like a hash suffix (``_h`` + 8 hex digits), always gets its own
+    hash appended; every other name is left as it is and cannot end like one.  Stable: the same
+    name gives the same stem in every run and version."""
+    valid = _NOT_ELEMENT.sub("_", name)
+    if valid == name and not _HASH_TAIL.search(name):
+        return name
+    return f"{valid}_h{hashlib.sha256(name.encode('utf-8')).hexdigest()[:8]}"
 
 
 @lru_cache(maxsize=1)
@@ -183,7 +212,7 @@ def build_document(ex: Exchange, ctx: ExportContext, textures: dict[str, _Tex]):
     import MaterialX as mx
 
     name = ctx.name                   # file stem
-    elem = mx.createValidName(name)   # element names: '.' and '-' become '_'
+    elem = element_stem(name)         # element names: valid and one per name (see element_stem)
     doc = mx.createDocument()
     doc.setVersionString(MTLX_VERSION)
     doc.setColorSpace(WORKING_SPACE)
@@ -317,6 +346,7 @@ def build_document(ex: Exchange, ctx: ExportContext, textures: dict[str, _Tex]):
             mat.setAttribute("dualscale_texel_mm", _fmt(ex.texel_mm))
         mat.setAttribute("dualscale_tiled", "true" if ctx.tiled else "false")
         mat.setAttribute("dualscale_meta", meta)
+        mat.setAttribute("dualscale_name", name)
     return doc
 
 
@@ -353,4 +383,4 @@ def write(ex: Exchange, ctx: ExportContext, out: Path) -> list[Path]:
     return [mtlx, *files]
 
 
-__all__ = ["build_document", "plan_textures", "read_document", "standard_libraries", "validate", "write"]
+__all__ = ["build_document", "element_stem", "plan_textures", "read_document", "standard_libraries", "validate", "write"]
