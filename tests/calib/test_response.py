@@ -22,14 +22,16 @@ def _srgb(x):
     return np.asarray(colour.cctf_encoding(np.clip(x, 0, 1), function="sRGB"))
 
 
+# (encode, the largest error with g(1) = 1): every response is held to 1 % of full scale at the
+# best common scale (the gauge the photographs leave free: curve_distance's scale_free); with the
+# convention g(1) = 1 the S-shaped film curve is 2-3 % off, because its last 2 % of codes, above
+# the code window, span 17 % of the linear range and are extrapolated (docs/RADIOMETRY.md)
 RESPONSES = {
     "linear": (lambda x: x, 0.01),
     "gamma1.2": (lambda x: x ** (1 / 1.2), 0.01),
     "gamma1.8": (lambda x: x ** (1 / 1.8), 0.01),
     "gamma2.2": (lambda x: x ** (1 / 2.2), 0.01),
     "srgb": (_srgb, 0.01),
-    # the S-shaped film curve is the monotone curve family's case; recovered to 2.2 % here, short
-    # of the issue's 1 % (docs/RADIOMETRY.md says why)
     "film": (film_curve, 0.03),
 }
 
@@ -40,10 +42,27 @@ def _estimate(shots, **kw):
     return estimate_response(codes, shots.dirs, valid, bits=shots.bits, **kw)
 
 
-def _curve_error(est, encode, bits=8):
+def _curve_error(est, encode, bits=8, scale_free=False):
+    """The largest error of the estimated inverse response over the code window (fractions of
+    full scale), with g(1) = 1 or at the best common scale."""
     lo, hi = code_window(bits)
     c = np.linspace(lo, hi, 200)
-    return float(np.max(np.abs(est.response.inverse(c) - inverse_of(encode)(c))))
+    ge, gt = est.response.inverse(c), inverse_of(encode)(c)
+    if scale_free:
+        s = np.linspace(0.8, 1.25, 9001)[:, None]
+        return float(np.min(np.max(np.abs(s * ge - gt), axis=1)))
+    return float(np.max(np.abs(ge - gt)))
+
+
+def test_curve_distance_scale_free():
+    from dualscale.calib.response import curve_distance
+    from dualscale.formats.response import Response
+
+    a, b = Response("gamma", (1.5,)), Response("gamma", (2.0,))
+    assert curve_distance(a, b, (0.03, 0.98), scale_free=True) < curve_distance(a, b, (0.03, 0.98))
+    assert curve_distance(a, b, (0.03, 0.98), scale_free=True) > 0.05  # a different shape stays apart
+    half = Response("curve", (1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0))  # the identity as a curve
+    assert curve_distance(half, Response("linear", ()), scale_free=True) < 1e-6
 
 
 @pytest.mark.parametrize("name", list(RESPONSES))
@@ -52,18 +71,21 @@ def test_response_and_intensities_recovered_sphere(name):
     shots = render_photos("sphere", size=(72, 96), encode=encode, intensities=E_TRUE, spec=0.5, shininess=80)
     assert (shots.codes == 255).any(), "the highlights must clip, to test that clipped samples are left out"
     est = _estimate(shots, bootstrap=2)
+    assert _curve_error(est, encode, scale_free=True) <= 0.01, (name, est.response.describe(), est.fits)
     assert _curve_error(est, encode) <= tol, (name, est.response.describe(), est.fits)
     e = E_TRUE / np.exp(np.mean(np.log(E_TRUE)))
     assert np.max(np.abs(est.intensities / e - 1)) <= 0.02, (est.intensities, e)
     assert est.response.source == "auto" and est.response.evidence["fits"]
 
 
-def test_relief_with_cast_shadows():
-    encode = RESPONSES["gamma1.8"][0]
+@pytest.mark.parametrize("name", ["gamma1.8", "srgb", "film"])
+def test_relief_with_cast_shadows(name):
+    encode, tol = RESPONSES[name]
     shots = render_photos("relief", size=(72, 96), encode=encode, intensities=E_TRUE)
     assert shots.shadow.mean() > 0.01, "the relief must cast shadows"
     est = _estimate(shots, bootstrap=0)
-    assert _curve_error(est, encode) <= 0.01, est.response.describe()
+    assert _curve_error(est, encode, scale_free=True) <= 0.01, est.response.describe()
+    assert _curve_error(est, encode) <= tol, est.response.describe()
     e = E_TRUE / np.exp(np.mean(np.log(E_TRUE)))
     assert np.max(np.abs(est.intensities / e - 1)) <= 0.02
 
