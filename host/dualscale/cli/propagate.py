@@ -75,13 +75,12 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 def _onnx_for(model: Path, precision: str) -> Path:
     """The ONNX file to run: ``model`` itself, or the one exported next to a model file."""
-    from dualscale.propagate.export import export_model, onnx_paths
+    from dualscale.propagate.export import ensure_exported, onnx_paths
 
     if model.suffix == ".onnx":
         return model
     p32, p16 = onnx_paths(model)
-    if not p32.is_file() or not p16.is_file() or p32.stat().st_mtime < model.stat().st_mtime:
-        export_model(model, check=False)
+    ensure_exported(model, check=False)  # by content: a model replaced by an older file is re-exported
     if precision == "int8":  # the int8 file is opened (and checked) beside the fresh fp32 export
         return p32
     if precision == "auto":

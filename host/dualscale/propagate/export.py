@@ -7,6 +7,12 @@ graph (:func:`quantize_int8`) is onnxruntime's dynamic quantisation of the fp32 
 (``onnxruntime.quantization.quantize_dynamic``: uint8 weights, activations quantised per run,
 ``ConvInteger``); float32 input and output.  Its accuracy loss per map is measured in
 docs/PROPAGATION.md; it is never chosen by default.
+
+Every export records the SHA-256 of the model file it was made from (``dualscale:source_sha256``),
+and :func:`ensure_exported` -- what ``dualscale propagate run`` and the propagate stage call --
+re-exports when that differs from the model file's content or is absent.  The decision is by
+content, not modification time: a model file replaced by another one with an older time
+(``cp -p``, ``rsync -t``, an archive) is re-exported, and an unchanged one is not.
 """
 
 from __future__ import annotations
@@ -27,6 +33,7 @@ from .model import load_model
 from .unet import MULTIPLE, PropagationUNet, map_slices
 
 OPSET = 17
+SOURCE_KEY = "dualscale:source_sha256"  # ONNX metadata: SHA-256 (hex) of the model file exported
 
 
 def export_onnx(model: PropagationUNet, path: str | Path, half: bool = False, meta: dict | None = None) -> Path:
@@ -159,12 +166,57 @@ def quantize_int8(fp32_path: str | Path, path: str | Path) -> Path:
     return Path(path)
 
 
-def export_model(model_path: str | Path, check: bool = True, int8: bool = False) -> dict:
+def file_sha256(path: str | Path) -> str:
+    """SHA-256 (hex) of a file's bytes, read in 1 MiB blocks."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def recorded_source(onnx_file: str | Path) -> str | None:
+    """The model-file SHA-256 that an ONNX export records (:data:`SOURCE_KEY`), or ``None`` when
+    the file is missing, not a readable ONNX model, or records none (an export made before
+    the hash was recorded)."""
+    import onnx
+
+    try:
+        proto = onnx.load(str(onnx_file), load_external_data=False)
+    except Exception:  # noqa: BLE001 -- missing, truncated, not ONNX: all mean "export again"
+        return None
+    return next((e.value for e in proto.metadata_props if e.key == SOURCE_KEY), None)
+
+
+def exports_current(model_path: str | Path, digest: str | None = None) -> bool:
+    """Whether both ONNX exports next to ``model_path`` (:func:`onnx_paths`) were made from a
+    model file with the content it has now: each records ``digest`` (default: the file's
+    SHA-256, :func:`file_sha256`).  Modification times play no part."""
+    digest = digest or file_sha256(model_path)
+    return all(recorded_source(p) == digest for p in onnx_paths(model_path))
+
+
+def ensure_exported(model_path: str | Path, check: bool = True) -> dict | None:
+    """Export ``model_path`` to fp32 and fp16 ONNX (:func:`export_model`) unless both exports
+    beside it were made from the same content (:func:`exports_current`).  Returns
+    :func:`export_model`'s dict when it exported (with parity when ``check``), ``None`` when
+    the exports were current.  The one re-export decision of ``dualscale propagate run`` and of
+    the propagate stage."""
+    digest = file_sha256(model_path)
+    if exports_current(model_path, digest):
+        return None
+    return export_model(model_path, check=check, digest=digest)
+
+
+def export_model(model_path: str | Path, check: bool = True, int8: bool = False, digest: str | None = None) -> dict:
     """Export a model file to fp32 and fp16 ONNX next to it (and int8 with ``int8=True``:
     :func:`quantize_int8`); returns paths and parity per map (max abs difference against
-    PyTorch fp32, :func:`parity`)."""
+    PyTorch fp32, :func:`parity`).  Each export records the model file's SHA-256
+    (:data:`SOURCE_KEY`; ``digest``: that hash when the caller has it, taken before the file is
+    read, so a file replaced meanwhile is exported again next time)."""
+    digest = digest or file_sha256(model_path)
     model, doc = load_model(model_path)
-    meta = {"dualscale:input_reference": json.dumps(doc.get("input_reference"))}
+    meta = {"dualscale:input_reference": json.dumps(doc.get("input_reference")), SOURCE_KEY: digest}
     p32, p16 = onnx_paths(model_path)
     export_onnx(model, p32, half=False, meta=meta)
     export_onnx(model, p16, half=True, meta=meta)

@@ -121,7 +121,7 @@ def run_propagation(dataset: Path, maps: Path, guidance: Path, out: Path, *, pre
     from dualscale.formats.maps import load_maps
 
     from .data import load_source
-    from .export import export_model, onnx_paths
+    from .export import ensure_exported, onnx_paths
     from .infer import OnnxModel, run_tiled
     from .resample import resample_source
     from .train import TrainOptions, preset_with, train
@@ -182,8 +182,8 @@ def run_propagation(dataset: Path, maps: Path, guidance: Path, out: Path, *, pre
     t1 = time.perf_counter()
     p32, p16 = onnx_paths(model_path)
     parity = None
-    if not p32.is_file() or not p16.is_file() or p32.stat().st_mtime < model_path.stat().st_mtime:
-        ex = export_model(model_path, check=True)
+    ex = ensure_exported(model_path, check=True)  # by content (the hash recorded in the ONNX), not by time
+    if ex is not None:
         parity = max(ex["parity_fp32"].values())
         if parity >= 1e-4:
             warnings.append(f"ONNX fp32 parity {parity:.2g} is worse than 1e-4")
