@@ -48,7 +48,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -106,6 +106,8 @@ class ResponseEstimate:
     seconds: float
     code_range: tuple[float, float]
     notes: list[str] = field(default_factory=list)
+    #: the pixel-channel sample the estimate was made on (reused by :func:`check_stated`)
+    sample: _Data | None = field(default=None, repr=False, compare=False)
 
     def score(self, family: str) -> float:
         return float(self.fits[family]["score"])
@@ -367,7 +369,7 @@ def estimate_response(codes: np.ndarray, dirs: np.ndarray, valid: np.ndarray | N
                      "extrapolated by its family")
     return ResponseEstimate(resp, np.asarray(e if e_fixed is None else e_fixed), np.asarray(e_std),
                             "given" if e_fixed is not None else ("target" if normals is not None else "estimated"),
-                            fits, s0, S, int(d.m.sum()), time.perf_counter() - t0, cr, notes)
+                            fits, s0, S, int(d.m.sum()), time.perf_counter() - t0, cr, notes, d)
 
 
 # -- checking a stated response -------------------------------------------------------------------
@@ -415,8 +417,11 @@ def check_stated(est: ResponseEstimate, stated: Response, codes: np.ndarray, dir
     range the sample uses (and by more than 3 bootstrap standard deviations), up to a common
     scale (:func:`curve_distance` ``scale_free``: a stated curve that differs from the estimate
     by a scale alone is contradicted by no photograph)."""
-    d, _ = _series(np.asarray(codes), valid, bits, 1000, 0, None)
-    d.dirs = np.asarray(dirs, np.float64)
+    if est.sample is not None and est.sample.normals is None:  # the estimate's own sample
+        d = replace(est.sample)
+    else:
+        d, _ = _series(np.asarray(codes), valid, bits, 1000, 0, None)
+        d.dirs = np.asarray(dirs, np.float64)
     e_fixed = est.intensities if est.intensities_source == "given" else None
     W = d.m.astype(np.float64)
     for _ in range(ROUNDS):  # IRLS with the stated curve fixed (a stated gamma's power is not refitted)
