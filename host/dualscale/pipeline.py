@@ -592,10 +592,12 @@ class Digitizer:
         maps = self.out("fit") / "maps"
         tangent = maps if (maps / "tangent.exr").is_file() else None
         rep = detect_dataset(self.dataset, work, tangent_maps=tangent, obs=obs, seed=self.opts.seed)
-        out = {"count": rep["count"], "tangent_filter": rep["tangent_filter"], "pixel_mm": rep["pixel_mm"]}
+        out = {"count": rep["count"], "tangent_filter": rep["tangent_filter"], "pixel_mm": rep["pixel_mm"],
+               "resolvability": rep["resolvability"]}
+        out["warnings"] = [rep["resolvability"]["warning"]] if rep["resolvability"]["warning"] else []
         if tangent is None:
-            out["warnings"] = ["the fit found the sample isotropic (no tangent map): fly-outs are detected without "
-                               "the yarn-direction filter, which lets more yarn highlights through"]
+            out["warnings"].append("the fit found the sample isotropic (no tangent map): fly-outs are detected without "
+                                   "the yarn-direction filter, which lets more yarn highlights through")
         return out
 
     def propagate(self) -> StageResult:

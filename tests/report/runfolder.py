@@ -41,8 +41,11 @@ def _maps(rng, h=H, w=W):
                         specular_tint=t(np.full((h, w, 1), 0.2, np.float32)))
 
 
-def make_run(root: Path, *, flyouts: bool = True, guidance: bool = True, seed: int = 0) -> Path:
-    """Write a complete RUN folder under ``root``; optional stages can be skipped."""
+def make_run(root: Path, *, flyouts: bool = True, guidance: bool = True, seed: int = 0, name: str | None = None,
+             capture_seconds: float | None = None) -> Path:
+    """Write a complete RUN folder under ``root``; optional stages can be skipped.  ``name``: the
+    ``--name`` option; ``capture_seconds``: a ``digitize --rig`` run, whose capture stage record
+    (``stages/capture.json``) is written beside the stages ``run.json`` lists, as the pipeline does."""
     from dualscale.formats.exr import write_exr
     from dualscale.formats.maps import save_maps
 
@@ -53,8 +56,10 @@ def make_run(root: Path, *, flyouts: bool = True, guidance: bool = True, seed: i
     (root / "run.json").write_text(json.dumps({
         "format": "dualscale-run", "version": 1, "input": "/data/captures/twill_042",
         "options": {"preset": "standard", "guidance": "/data/guidance/twill.exr" if guidance else None,
-                    "flyouts": flyouts, "shadow_ratio": 0.5},
+                    "flyouts": flyouts, "shadow_ratio": 0.5, "name": name},
         "stages": stages}))
+    if capture_seconds is not None:
+        _stage(root, "capture", capture_seconds, {"micro": {"shots": 264, "frames": 792}})
     _stage(root, "calibrate", 4.2, {
         "calibration": "/lab/rig.calib.json", "units_in": "normalised_dn", "units_out": "relative_radiance",
         "colour_space_in": "camera_raw:Nikon 5100 (NPL)", "colour_space_out": "linear_rec709", "transfer": None,
@@ -101,7 +106,7 @@ def make_run(root: Path, *, flyouts: bool = True, guidance: bool = True, seed: i
         "baseline_relative_l1": 0.1031234567, "scheme": "8-fold", "folds": folds, "pixels": 2000,
         "components_chosen": "once, on all lights (the same components in every fold)",
         "lights": lights, "renders": renders}))
-    _stage(root, "fit", 133.4, {"preset": "standard", "seconds": 133.4, "images": 254, "train_images": 254,
+    _stage(root, "fit", 133.4, {"preset": "standard", "seconds": 41.7, "images": 254, "train_images": 254,
                                 "leds": 127, "fitted_leds": 127, "heldout_relative_l1": 0.04312345678901,
                                 "heldout_baseline_relative_l1": 0.1031234567, "heldout_method": method,
                                 "cv_seconds": 61.23456},
@@ -114,16 +119,28 @@ def make_run(root: Path, *, flyouts: bool = True, guidance: bool = True, seed: i
         for c, r in (p for line in poly for p in line):
             mask[r, c] = 1
         (root / "flyouts").mkdir(parents=True, exist_ok=True)
-        (root / "flyouts" / "flyouts.json").write_text(json.dumps({"count": 2, "polylines_px": poly}))
+        from dualscale.fit.flyouts import resolvability
+
+        res = resolvability(TEXEL_MM)  # 12 um fibres at 4.9 um: 2.4 texels across, under-resolved
+        (root / "flyouts" / "flyouts.json").write_text(json.dumps({"count": 2, "polylines_px": poly,
+                                                                   "resolvability": res}))
         write_exr(root / "flyouts" / "flyout_mask.exr", mask, ["Y"])
-        _stage(root, "flyouts", 0.84, {"count": 2})
+        _stage(root, "flyouts", 0.84, {"count": 2, "resolvability": res}, warnings=[res["warning"]])
     else:
         _stage(root, "flyouts", 0.01, {"skipped": "the material has no fly-out fibres option (--no-flyouts)"})
 
     if guidance:
         g = np.dstack([np.linspace(0.05, 0.6, 96)[None, :].repeat(96, 0)] * 3) * np.array([1.0, 0.8, 0.6])
         write_exr(root / "propagate" / "guidance.exr", g.astype(np.float32))
-        save_maps(root / "propagate" / "maps", _maps(rng, 96, 96), meta={"texel_mm": 0.05})
+        pm = _maps(rng, 96, 96)
+        # the propagated anisotropy spread as on the demo (0.07-0.88, most near 0.82): a robust
+        # 0.5-99.5 % colour scale would clip both ends
+        pa = np.clip(rng.normal(0.82, 0.03, (96, 96, 1)), 0, 0.88)
+        pa[:3, :3] = rng.uniform(0.07, 0.3, (3, 3, 1))
+        import torch
+
+        pm.anisotropy = torch.from_numpy(pa.astype(np.float32))
+        save_maps(root / "propagate" / "maps", pm, meta={"texel_mm": 0.05})
         _stage(root, "propagate", 61.0, {"guidance": "/data/guidance/twill.exr", "texel_mm": 0.05,
                                           "micro_box_px": [40, 30, 3.1, 3.1],
                                           "registration": {"method": "phase correlation", "scale": 0.098123456,
@@ -132,8 +149,19 @@ def make_run(root: Path, *, flyouts: bool = True, guidance: bool = True, seed: i
     else:
         _stage(root, "propagate", 0.0, {"skipped": "no guidance image given"})
 
-    (root / "export").mkdir(parents=True, exist_ok=True)
+    # the export stage's summary: per scale, the files of each format (relative to export/<scale>)
+    micro = root / "export" / "micro"
+    (micro / "gltf").mkdir(parents=True, exist_ok=True)
+    (micro / "exr").mkdir(parents=True, exist_ok=True)
+    (micro / "gltf" / "twill_micro.gltf").write_text(json.dumps({"asset": {"version": "2.0"}}))
+    (micro / "gltf" / "twill_micro.bin").write_bytes(bytes(4000))
+    (micro / "gltf" / "twill_micro_base_color.png").write_bytes(bytes(90_000))
     for n in ("albedo.exr", "normal.exr"):
-        (root / "export" / n).write_bytes((root / "fit" / "maps" / n).read_bytes())
-    _stage(root, "export", 0.31, {"files": ["export/albedo.exr", "export/normal.exr"]})
+        (micro / "exr" / n).write_bytes((root / "fit" / "maps" / n).read_bytes())
+    (micro / "exr" / "material.json").write_text(json.dumps({"name": "twill_micro", "maps": ["albedo", "normal"]}))
+    _stage(root, "export", 0.31, {"formats": ["gltf", "exr"], "exports": {"micro": {
+        "name": "twill_micro", "repeat_mm": None, "tiled": False, "tile": None,
+        "files": {"gltf": ["gltf/twill_micro.gltf", "gltf/twill_micro.bin", "gltf/twill_micro_base_color.png"],
+                  "exr": ["exr/material.json", "exr/albedo.exr", "exr/normal.exr"]}}}},
+           params={"formats": ["gltf", "exr"], "tile": False, "name": name or "twill_042"})
     return root

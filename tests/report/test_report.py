@@ -142,7 +142,7 @@ def test_run_report_content(run_report):
         assert unit in text, unit
     # every warning listed at the top and in its stage
     top = text.split("Inputs and calibration")[1]
-    assert "2 warnings" in text.split("Inputs and calibration")[0] or "2 warnings" in top.split("Run")[0]
+    assert "3 warnings" in text.split("Inputs and calibration")[0] or "3 warnings" in top.split("Run")[0]
     for w in ("3 of 254 images have more than 1% saturated", "guidance image has no colour calibration"):
         assert text.count(w) >= 3, w  # top list, its section, its stage record
     # the sections
@@ -219,6 +219,160 @@ def test_run_report_missing_required_artefact(tmp_path, missing):
     with pytest.raises(FormatError, match=re.escape(Path(missing).name)):
         write_run_report(run)
     assert not (run / "report" / "index.html").exists()
+
+
+# ---------------------------------------------------------------------------------------------
+# consistency (issue 24 Sec. 4): the title, the times, the capture stage, the file sizes
+
+def _section(page: Path, sid: str) -> str:
+    """The visible text of the page's ``<section id=sid>``."""
+    raw = page.read_text(encoding="utf-8")
+    body = raw.split(f'<section id="{sid}">', 1)[1].split("</section>", 1)[0]
+    p = _Page()
+    p.feed(body)
+    return " ".join(p.text)
+
+
+def test_run_report_title_uses_the_name(tmp_path):
+    """The title names the material by ``--name`` (it used the input folder's name), else by
+    the name the export stage gave it."""
+    from dualscale.report import write_run_report
+
+    named = make_run(tmp_path / "A", flyouts=False, guidance=False, name="denim-01")
+    text, _ = _parse(write_run_report(named))
+    title = re.search(r"<title>(.*?)</title>", (named / "report" / "index.html").read_text(encoding="utf-8")).group(1)
+    assert title == "dualscale run: denim-01" and "dualscale run: denim-01" in text
+    plain = make_run(tmp_path / "B", flyouts=False, guidance=False)
+    write_run_report(plain)
+    assert "<title>dualscale run: twill_042</title>" in (plain / "report" / "index.html").read_text(encoding="utf-8")
+
+
+def test_run_report_fit_time_is_the_records(run_report):
+    """One figure for the fit's time: the fit stage's record (the time chart's), with the
+    per-pixel fit and the cross-validation given as parts of it (the maps table said 2.7 s
+    against 41.9 s in the chart)."""
+    run, page, _ = run_report
+    text, _ = _parse(page)
+    maps = _section(page, "maps")
+    timing = _section(page, "time")
+    assert re.search(r"fit 2 min 13 s", timing), timing
+    assert "fit stage time 2 min 13 s (of which the per-pixel fit 41.7 s, the cross-validation 1 min 1 s)" in maps
+    assert not re.search(r"(?<!of which the per-pixel )fit time", maps)
+    record = _section(page, "records")
+    fit_record = record.split("fit", 1)[1].split("flyouts", 1)[0]
+    assert "of which the per-pixel fit 41.7 s" in fit_record and "seconds" not in fit_record
+
+
+def test_run_report_shows_the_capture_stage(tmp_path):
+    """digitize --rig: the capture stage (stages/capture.json, before the stages run.json lists)
+    is in the time chart, the table, the records and the total."""
+    from dualscale.report import write_run_report
+
+    run = make_run(tmp_path / "RUN", flyouts=False, guidance=False, capture_seconds=23.9)
+    page = write_run_report(run)
+    text, _ = _parse(page)
+    timing = _section(page, "time")
+    assert "capture 23.9 s" in timing, timing
+    total = 23.9 + 4.2 + 133.4 + 0.01 + 0.0 + 0.31
+    assert f"total time (capture included) {fmt.duration(total)}" in text, total
+    assert _section(page, "records").startswith("Stage records capture")
+
+
+def test_run_report_export_gives_each_files_size(run_report):
+    """Each file's own size (the table gave the format folder's total beside its main file:
+    material.json 821 kB for a 776 B file)."""
+    run, page, _ = run_report
+    text, _ = _parse(page)
+    section = _section(page, "export")
+    micro = run / "export" / "micro"
+    mj = (micro / "exr" / "material.json").stat().st_size
+    assert mj < 1000
+    assert f"export/micro/exr/material.json {mj} B" in section, section
+    gl = (micro / "gltf" / "twill_micro.gltf").stat().st_size
+    assert f"export/micro/gltf/twill_micro.gltf {gl} B" in section
+    assert "export/micro/gltf/twill_micro_base_color.png 90 kB" in section
+    total = sum(p.stat().st_size for p in (micro / "gltf").iterdir())
+    assert f"3 files, {fmt.quantity(total / 1000, 'kB')} in all" in section
+
+
+def test_run_report_propagated_anisotropy_scale_does_not_saturate(run_report):
+    """The [0, 1] maps are drawn on 0 to 1: the propagated anisotropy (spread like the demo's,
+    0.07-0.88) is not clipped (the robust 0.5-99.5 % scale clipped 1 % of it)."""
+    run, page, _ = run_report
+    section = _section(page, "propagation")
+    cap = section.split("propagated anisotropy.", 1)[1].split("propagated tangent azimuth.", 1)[0]
+    assert "colour scale 0 to 1." in cap and "Clipped" not in cap, cap
+
+
+def test_unit_range_maps_are_drawn_zero_to_one():
+    from dualscale.report import plots
+
+    rng = np.random.default_rng(3)
+    a = np.clip(rng.normal(0.83, 0.02, (64, 64, 1)), 0, 1)
+    a[:2] = 0.07  # a low tail, as on the demo's propagated anisotropy
+    for name in plots.UNIT_RANGE_MAPS:
+        f, cap = plots.map_figure(name, a, 0.01)
+        assert "colour scale 0 to 1." in cap and "Clipped" not in cap, (name, cap)
+        plots._plt().close(f)
+
+
+# ---------------------------------------------------------------------------------------------
+# fly-outs (issue 24 Sec. 4): the red overlay, and what an under-resolved texel means
+
+def _red_pixels(png: Path) -> int:
+    import matplotlib.image as mpimg
+
+    a = mpimg.imread(png)[..., :3]
+    return int(((a[..., 0] > 0.6) & (a[..., 1] < 0.15) & (a[..., 2] < 0.15)).sum())
+
+
+def test_run_report_flyout_figure_has_the_red_mask(run_report):
+    """The caption promises a red overlay of the mask: the figure has red pixels, at least one
+    per mask texel (it had none: the yellow polylines covered the mask they rasterise)."""
+    run, page, _ = run_report
+    from dualscale.formats.exr import read_exr
+
+    mask = read_exr(run / "flyouts" / "flyout_mask.exr", ("Y",))[..., 0] > 0.5
+    png = next((page.parent / "assets").glob("flyouts*.png"))
+    assert _red_pixels(png) >= mask.sum() > 0
+    assert "fly-out mask in red" in _section(page, "flyouts")
+
+
+def test_flyout_figure_keeps_thin_fibres_red_on_large_maps():
+    """A 1-texel fibre on a 2048-px map still shows red after the figure is reduced to its
+    panel (block maximum, not mean or nearest sampling)."""
+    import io
+
+    from dualscale.report import plots
+
+    mask = np.zeros((2048, 2048), bool)
+    mask[1000, 100:1900] = True
+    fig, cap = plots.flyout_figure(np.full((2048, 2048, 3), 0.4), [[[100, 1000], [1899, 1000]]], mask=mask)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png")
+    plots._plt().close(fig)
+    buf.seek(0)
+    import matplotlib.image as mpimg
+
+    a = mpimg.imread(buf)[..., :3]
+    red = (a[..., 0] > 0.6) & (a[..., 1] < 0.15) & (a[..., 2] < 0.15)
+    assert red.sum() > 200 and "red" in cap  # the line spans ~300 display pixels
+    assert plots.max_pool(mask, 300).shape == plots.block_mean(np.zeros((2048, 2048, 3)), 300).shape[:2]
+
+
+def test_run_report_says_when_the_texel_under_resolves_the_fibres(run_report):
+    """At 4.9 um a 12 um fibre is 2.4 texels across: the section and the top list say the fibres
+    are under-resolved, with the precision measured for that regime on the simulated rig and
+    where it was measured."""
+    run, page, _ = run_report
+    text, _ = _parse(page)
+    section = _section(page, "flyouts")
+    assert "under-resolves the fly-out fibres" in section and "2.4 texels across" in section
+    assert "fibres resolved by the texel no: under-resolved" in section
+    assert "resolved when the fibre is at least 5 texels across" in section
+    assert re.search(r"precision expected \(simulated rig\) 58% of the detected length within 2 px", section), section
+    assert "bench/bench_flyouts.py --resolution" in section
+    assert "under-resolves the fly-out fibres" in _section(page, "warnings")  # the top list
 
 
 # ---------------------------------------------------------------------------------------------

@@ -83,6 +83,50 @@ def test_page_loads_without_errors(browser, run, tmp_path):
     assert not external, external
 
 
+BAD_PARAMS = [  # (query, words the error must show, what is shown instead)
+    ("?object=cube", ("?object=cube", "swatch, cloth, sphere"), "swatch"),
+    ("?led=9999", ("?led=9999", "no such LED"), None),
+    ("?export=nope", ("?export=nope", "micro"), None),
+    ("?az=abc", ("?az=abc", "0 to 360"), None),
+    ("?el=0", ("?el=0", "1 to 90"), None),
+    ("?map=glitter", ("?map=glitter", "base colour"), None),
+    ("?frame=yes", ("?frame=yes", "three or ours"), None),
+    ("?objet=cloth", ("?objet", "not a parameter"), None),
+]
+
+
+def _url_error(browser) -> tuple[bool, str]:
+    return tuple(browser.evaluate("""(() => { const b = document.getElementById('url-error');
+        return [!b.hidden && b.getBoundingClientRect().height > 0, b.textContent]; })()"""))
+
+
+@pytest.mark.parametrize("query,words,shown", BAD_PARAMS, ids=[q for q, _, _ in BAD_PARAMS])
+def test_bad_url_parameter_is_a_visible_error(browser, run, query, words, shown):
+    """A bad URL parameter is a visible error naming it and what it accepts, and the page still
+    shows the material (issue 24 Sec. 4: ``?object=cube`` gave a blank 3D view captioned
+    "undefined"; ``?led=9999``, ``?export=nope`` and ``?az=abc`` were ignored)."""
+    with _serve(run) as v:
+        info = open_viewer(browser, v.url + query)
+        visible, text = _url_error(browser)
+        size_note = browser.evaluate("document.getElementById('size-note').textContent")
+    assert visible, text
+    for w in words:
+        assert w in text, (w, text)
+    assert info["url_errors"] and info["texture"] == [64, 64]
+    assert "undefined" not in size_note and size_note.startswith(shown or "swatch"), size_note
+
+
+def test_good_url_parameters_raise_no_error(browser, run):
+    with _serve(run) as v:
+        info = open_viewer(browser, v.url + "?object=cloth&led=7&export=micro&az=30&el=20&e=2&map=rough&frame=three")
+        visible, text = _url_error(browser)
+        state = browser.evaluate("""[document.getElementById('light-az').value, document.getElementById('light-el').value,
+            document.getElementById('size-note').textContent, document.getElementById('map-note').textContent]""")
+    assert not visible and info["url_errors"] == [], text
+    assert info["led"]["led"] == 7 and state[0] == "30" and state[1] == "20"
+    assert state[2].startswith("cloth") and state[3].startswith("roughness")
+
+
 def test_export_folder_gltf_without_capture(browser, tmp_path):
     """A .gltf export (JSON + .bin + PNG textures by relative URI) loads; the page says why there
     is no side-by-side."""

@@ -22,6 +22,11 @@
 Scoring against a ground-truth mask uses a tolerance of ``tol_px``: precision is the share of
 detected fibre pixels within it of a true fibre, recall the share of true fibre pixels within
 it of a detection.
+
+Resolvability (:func:`resolvability`): a fibre of :data:`FIBRE_DIAMETER_MM` is resolved when it
+is at least :data:`RESOLVED_TEXELS` texels across.  In production there is no ground truth, so
+the record states that criterion and the precision and recall measured on the simulated rig in
+the nearest regime (:data:`SIMULATED`, from ``bench/bench_flyouts.py --resolution``).
 """
 
 from __future__ import annotations
@@ -36,6 +41,31 @@ from skimage.draw import line
 
 from dualscale.errors import InputError
 from dualscale.progress import Progress, iterate
+
+#: The diameter of a fly-out fibre assumed where none is measured [mm]: 12 um, a cotton fibre (textile
+#: fibres are 10-20 um across) and the simulator's fibre (``sim.materials.fabrics.add_flyouts``).
+FIBRE_DIAMETER_MM = 0.012
+
+#: A fibre is resolved when it is at least this many texels across: the smallest ratio measured
+#: at which the median precision is above 0.85 and every simulated row scored at least 0.73
+#: (:data:`SIMULATED`); below it, precision falls to 0.4-0.7 and recall to 0.1-0.4.
+RESOLVED_TEXELS = 5.0
+
+#: Detection on the simulated rig per regime: ``(fibre diameter / texel, median precision, lowest
+#: and highest precision, median recall, rows, rows with a detection)``; precision is the share of
+#: the detected polylines' pixels within 2 px of a true fibre (over the rows with a detection),
+#: recall the share of the true centre lines within 2 px of a detection.
+SIMULATED = (
+    (6.67, 0.93, 0.78, 0.94, 0.64, 4, 4),
+    (5.00, 0.89, 0.73, 1.00, 0.60, 12, 12),
+    (3.33, 0.62, 0.46, 1.00, 0.33, 12, 12),
+    (2.50, 0.58, 0.34, 0.88, 0.38, 12, 12),
+    (1.67, 0.73, 0.37, 1.00, 0.20, 12, 10),
+    (1.25, 0.39, 0.32, 0.55, 0.08, 12, 7),
+)
+SIMULATED_SOURCE = ("bench/bench_flyouts.py --resolution 1.8,2.4,3.6,4.8,7.2,9.6: twill, plain, satin and denim, "
+                    "seeds 0-2 (1.8 um: twill 0-2 and plain 0), a 0.69 mm field, 12 um fibres, the true tangent, "
+                    "sensor noise; 2026-12-02 (docs/FITTING.md)")
 
 _DIRS = [(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)]  # (drow, dcol)
 
@@ -260,13 +290,60 @@ def score(mask: np.ndarray, gt: np.ndarray, tol_px: int = 2) -> dict[str, float]
     return {"precision": precision, "recall": recall, "tolerance_px": tol_px}
 
 
+#: The whole pipeline measured once on the simulated rig (``make demo``: ``digitize --rig sim``, twill,
+#: 128 px of 7.2 um, 1.67 texels across, quality standard, the fitted tangent), scored against the
+#: simulator's fibres: lower than :data:`SIMULATED`'s detector-only rows, which use the true tangent.
+DEMO_PIPELINE = {"texels_across": 1.67, "precision": 0.15, "recall": 0.03, "fibres_true": 8, "fibres_detected": 2,
+                 "source": "make demo (digitize --rig sim, twill 128 px of 7.2 um, standard), scored with "
+                           "fit.flyouts.score against the simulator's mask; 2026-12-02 (docs/FITTING.md)"}
+
+
+def resolvability(texel_mm: float, fibre_diameter_mm: float = FIBRE_DIAMETER_MM) -> dict[str, Any]:
+    """Whether a texel of ``texel_mm`` (mm) resolves a fly-out fibre of ``fibre_diameter_mm``
+    (mm; the default is assumed, not measured), and the precision measured on the simulated rig in
+    the nearest regime (:data:`SIMULATED`, by the log of the ratio).  Returns ``{"fibre_diameter_mm",
+    "fibre_diameter_source", "texel_mm", "texels_across", "criterion", "resolved",
+    "simulated_precision": {"texels_across", "median", "range", "recall", "rows", "rows_detected",
+    "tolerance_px", "source"[, "demo_pipeline": DEMO_PIPELINE, when under-resolved]}, "warning"}``;
+    ``warning`` is ``None`` when resolved.  Raises ``ValueError`` for a texel or diameter that is
+    not a positive number."""
+    if not (texel_mm > 0 and fibre_diameter_mm > 0):
+        raise ValueError(f"resolvability: texel {texel_mm} mm and fibre diameter {fibre_diameter_mm} mm must be > 0")
+    across = fibre_diameter_mm / texel_mm
+    row = min(SIMULATED, key=lambda r: abs(math.log(r[0] / across)))
+    resolved = across >= RESOLVED_TEXELS
+    sim = {"texels_across": row[0], "median": row[1], "range": [row[2], row[3]], "recall": row[4], "rows": row[5],
+           "rows_detected": row[6], "tolerance_px": 2, "source": SIMULATED_SOURCE}
+    if not resolved:
+        sim["demo_pipeline"] = DEMO_PIPELINE
+    warning = None
+    if not resolved:
+        warning = (f"the texel ({texel_mm * 1000:.3g} um) under-resolves the fly-out fibres: a fibre of "
+                   f"{fibre_diameter_mm * 1000:.3g} um is {across:.2g} texels across, fewer than the {RESOLVED_TEXELS:g} "
+                   f"they need; on the simulated rig at {row[0]:g} texels across, {row[1]:.0%} of the detected length "
+                   f"lay within 2 px of a true fibre (from {row[2]:.0%} to {row[3]:.0%}) and a detection passed within "
+                   f"2 px of {row[4]:.0%} of the true fibres' length (median recall), with the true tangent; the "
+                   f"whole demo pipeline at {DEMO_PIPELINE['texels_across']:g} texels across found "
+                   f"{DEMO_PIPELINE['fibres_detected']} of {DEMO_PIPELINE['fibres_true']} fibres at "
+                   f"{DEMO_PIPELINE['precision']:.0%} precision. Read the count and the polylines as indicative, and capture "
+                   f"at {fibre_diameter_mm / RESOLVED_TEXELS * 1000:.2g} um per texel or finer to resolve them")
+    return {"fibre_diameter_mm": fibre_diameter_mm,
+            "fibre_diameter_source": ("assumed: a cotton fibre, the simulator's (textile fibres are 10-20 um); "
+                                      "not measured on this sample") if fibre_diameter_mm == FIBRE_DIAMETER_MM
+            else "given",
+            "texel_mm": texel_mm, "texels_across": across,
+            "criterion": f"resolved when the fibre is at least {RESOLVED_TEXELS:g} texels across",
+            "resolved": resolved, "simulated_precision": sim, "warning": warning}
+
+
 def detect_dataset(dataset: str | Path, out: str | Path, tangent_maps: str | Path | None = None, seeds: int = 10000,
                    min_length_mm: float = 0.27, gt_dir: str | Path | None = None, seed: int = 0,
                    obs=None, progress: Progress = None) -> dict[str, Any]:
     """Run :func:`detect` on a dataset; write the fibres (:mod:`dualscale.formats.flyouts`) and
     ``confidence.exr`` to ``out``; score against the ground truth in ``gt_dir`` (a folder with
     ``flyout_mask.exr``) only when it is given.  ``obs``: observations already loaded (then
-    ``dataset`` is only recorded)."""
+    ``dataset`` is only recorded).  The report (and ``flyouts.json``) carries
+    ``resolvability``: :func:`resolvability` of the dataset's texel."""
     from dualscale.formats.exr import read_exr, write_exr
     from dualscale.formats.flyouts import read_flyouts, write_flyouts
 
@@ -288,7 +365,8 @@ def detect_dataset(dataset: str | Path, out: str | Path, tangent_maps: str | Pat
     res = detect(conf, obs.pixel_mm, seeds, min_length_mm, tan, seed=seed, progress=progress)
     out = Path(out)
     rep: dict[str, Any] = {"seeds": res["seeds"], "min_length_px": res["min_length_px"], "pixel_mm": obs.pixel_mm,
-                           "dropped": res["dropped"], "tangent_filter": tan is not None}
+                           "dropped": res["dropped"], "tangent_filter": tan is not None,
+                           "resolvability": resolvability(obs.pixel_mm)}
     if gt_dir is not None:
         _, gt = read_flyouts(gt_dir)
         rep["score"] = score(res["mask"], gt)

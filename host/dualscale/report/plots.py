@@ -2,7 +2,10 @@
 layout, colour scales that never saturate silently.
 
 Colour-scale rule: a scalar image is drawn between robust limits (by default the 0.5th and
-99.5th percentiles, or a fixed physical range where one exists, e.g. tangent 0–180°). When
+99.5th percentiles), or over its fixed physical range where one exists: tangent 0–180°, and the
+unitless maps bounded to [0, 1] by the map conventions (:data:`UNIT_RANGE_MAPS`: roughness,
+anisotropy, specular tint, opacity), which therefore never saturate and share one scale between
+the fitted and the propagated maps. When
 values fall outside, the colorbar gets end arrows and the returned caption says how many and
 where; nothing is clipped without saying so. Scatter plots of a few values (the hemisphere)
 use the data's own maximum, so no point is capped; a range over two decades switches to a
@@ -251,6 +254,10 @@ MAP_TITLES = {
 }
 
 
+#: scalar maps whose values are in [0, 1] by convention (``dualscale.bsdf.maps``): drawn 0 to 1
+UNIT_RANGE_MAPS = ("roughness", "anisotropy", "specular_tint", "opacity")
+
+
 def map_figure(name: str, arr, texel_mm: float | None = None, prefix: str = ""):
     """The figure of one SVBSDF map by the map conventions; returns ``(fig, caption)``."""
     a = np.asarray(arr, dtype=np.float64)
@@ -271,6 +278,9 @@ def map_figure(name: str, arr, texel_mm: float | None = None, prefix: str = ""):
                                 ticks=(0, 45, 90, 135, 180))
         return fig, ("Azimuth = 180°·(stored value), axial, so 0° and 180° are the same direction "
                      "(cyclic colour map). " + cap)
+    if name in UNIT_RANGE_MAPS:
+        return scalar_image(a, title=title, label=f"{MAP_TITLES.get(name, name)} (unitless)", texel_mm=texel_mm,
+                            vmin=0.0, vmax=1.0, ticks=(0, 0.25, 0.5, 0.75, 1))
     return scalar_image(a, title=title, label=f"{MAP_TITLES.get(name, name)} (unitless)", texel_mm=texel_mm)
 
 
@@ -434,33 +444,81 @@ def time_bars(stages: Sequence[str], seconds: Sequence[float | None]):
     return fig, f"Wall time per stage, total {fmt.duration(total)}."
 
 
+def max_pool(mask, max_px: int) -> np.ndarray:
+    """A boolean mask reduced by block maximum so the longer side is at most ``max_px``: a
+    1-texel line stays visible at any display size (a block mean or nearest sampling loses it).
+    The blocks are those of :func:`block_mean` with the same ``max_px``."""
+    m = np.asarray(mask, bool)
+    s = _block_side(m.shape, max_px)
+    return m if s <= 1 else _blocks(m, s).any(axis=(1, 3))
+
+
+def block_mean(arr, max_px: int) -> np.ndarray:
+    """Block mean so the longer side is at most ``max_px``; edge blocks are padded by
+    repeating the last row and column, so the shape matches :func:`max_pool`'s."""
+    a = np.asarray(arr, dtype=np.float64)
+    s = _block_side(a.shape, max_px)
+    return a if s <= 1 else _blocks(a, s).mean(axis=(1, 3))
+
+
+def _block_side(shape, max_px: int) -> int:
+    return int(math.ceil(max(shape[:2]) / max(1, max_px)))
+
+
+def _blocks(a: np.ndarray, s: int) -> np.ndarray:
+    pad = [(0, -a.shape[0] % s), (0, -a.shape[1] % s)] + [(0, 0)] * (a.ndim - 2)
+    a = np.pad(a, pad, mode="edge")
+    return a.reshape(a.shape[0] // s, s, a.shape[1] // s, s, *a.shape[2:])
+
+
+FLYOUT_RED = (0.86, 0.0, 0.0)  # the mask overlay's colour (opaque over the dimmed albedo)
+FLYOUT_YELLOW = "#ffd400"
+
+
 def flyout_figure(background, polylines_px, *, mask=None, texel_mm: float | None = None):
-    """Fly-out polylines (pixel [col, row]) over the (dimmed, sRGB) background, mask in overlay."""
+    """Fly-outs over the dimmed (sRGB) ``background`` ``(H, W[, 3])``: the mask ``(H, W)``
+    (1 on fibre texels) as a red overlay in the left panel, the polylines (pixel ``[col, row]``,
+    row 0 at the top) in yellow in the right one.  They are drawn apart because the detector's
+    mask is its polylines rasterised: a line drawn over the mask would hide it.  The mask is
+    block-max reduced to the panel's pixel size so that 1-texel fibres stay visible."""
     bg = np.asarray(background, dtype=np.float64)
     if bg.ndim == 2:
         bg = np.repeat(bg[..., None], 3, -1)
     h, w = bg.shape[:2]
-    fig = figure(4.6, 3.8)
-    ax = fig.add_subplot()
-    ext = _frame(ax, h, w, texel_mm)
-    ax.imshow(display_copy(0.35 + 0.65 * srgb_encode(bg[..., :3]) * 0.8), extent=ext)
+    dim_full = 0.35 + 0.65 * srgb_encode(bg[..., :3]) * 0.8
+    dim = display_copy(dim_full)
+    panels = 2 if mask is not None else 1
+    fig = figure(4.3 * panels + 0.3, 3.8)
+    axes = list(np.atleast_1d(fig.subplots(1, panels)))
+    ax_lines = axes[-1]
+    n_mask = 0
     if mask is not None:
+        ax = axes[0]
+        ext = _frame(ax, h, w, texel_mm)
         m = np.asarray(mask, dtype=np.float64)
-        m = m[..., 0] if m.ndim == 3 else m
-        over = np.zeros((*m.shape, 4))
-        over[..., 0] = 1.0
-        over[..., 3] = 0.45 * (m > 0.5)
-        ax.imshow(display_copy(over), extent=ext)
+        m = (m[..., 0] if m.ndim == 3 else m) > 0.5
+        n_mask = int(m.sum())
+        # about the panel's width in pixels (4 inches at the save dpi): one display pixel per block
+        px = max(64, int(3.2 * _plt().rcParams["savefig.dpi"]))
+        shown = max_pool(m, px)
+        over = np.where(shown[..., None], np.asarray(FLYOUT_RED), block_mean(dim_full, px))
+        ax.imshow(over, extent=ext, interpolation="nearest")
+        ax.set_title("fly-out mask (red)")
+    ext = _frame(ax_lines, h, w, texel_mm)
+    ax_lines.imshow(dim, extent=ext)
     for i, line in enumerate(polylines_px):
         p = np.asarray(line, float).reshape(-1, 2)
         x, y = _to_plot(p[:, 0], p[:, 1], h, texel_mm)
-        ax.plot(x, y, "-", color="#ffd400", lw=1.6, label="fly-out" if i == 0 else None)
-        ax.plot(x, y, "-", color="k", lw=0.5)
-    ax.set_title("fly-out fibres")
+        ax_lines.plot(x, y, "-", color=FLYOUT_YELLOW, lw=1.6, label="fly-out" if i == 0 else None)
+        ax_lines.plot(x, y, "-", color="k", lw=0.5)
+    ax_lines.set_title("fly-out fibres (polylines)")
+    if panels == 2:
+        ax_lines.set_ylabel("")
     if len(polylines_px):
-        ax.legend(loc="upper right", fontsize=7, framealpha=0.8)
-        cap = f"{len(polylines_px)} detected fly-out fibres (yellow polylines) over the albedo"
-        cap += "; red overlay: the fly-out mask." if mask is not None else "."
+        ax_lines.legend(loc="upper right", fontsize=7, framealpha=0.8)
+        cap = f"{len(polylines_px)} detected fly-out fibres over the albedo"
+        cap += (f": left, the fly-out mask in red ({n_mask} texels); right, the fibres as yellow polylines."
+                if mask is not None else " (yellow polylines).")
     else:
         cap = "No fly-out fibre was detected; the albedo is shown for reference."
     return fig, cap
@@ -555,5 +613,5 @@ def overlapping_texts(fig, tol_px: float = 1.0) -> list[tuple[str, str]]:
 
 __all__ = ["Range", "robust_range", "clip_note", "srgb_encode", "luminance", "display_copy", "figure",
            "scalar_image", "rgb_image", "normal_image", "map_figure", "residual_figure", "heldout_figure",
-           "hemisphere", "hemisphere_norm", "hemisphere_figure", "time_bars", "flyout_figure",
-           "guidance_figure", "overlapping_texts", "MAP_TITLES"]
+           "hemisphere", "hemisphere_norm", "hemisphere_figure", "time_bars", "flyout_figure", "max_pool", "block_mean",
+           "guidance_figure", "overlapping_texts", "MAP_TITLES", "UNIT_RANGE_MAPS"]

@@ -3,13 +3,20 @@
 :func:`write_run_report` reads only the run folder's contract:
 
 * ``run.json`` and ``stages/<stage>.json`` (stage records: params, versions, seconds, warnings,
-  summary);
+  summary); ``stages/capture.json`` too when ``digitize --rig`` captured the input (the capture
+  stage runs before the stages ``run.json`` lists).  Every time the page shows comes from the
+  records' ``seconds`` (the wall time of the whole stage); a stage's summary breaks it down
+  (``of which ...``), never stands beside it as another figure;
 * ``fit/maps/`` (maps folder, ``fit.json``), ``fit/residual.exr``, ``fit/heldout/``
   (``heldout.json``: the cross-validated error of every light and the re-rendered lights, and
   their capture/render EXR pairs; the maps are fitted on every light, so those pairs are
   re-renders of training lights and are labelled so);
 * ``flyouts/`` and ``propagate/`` when those stages ran (a skipped stage says why in its summary);
-* ``export/`` (the exports of its summary: per scale, the files of each format).
+* ``export/`` (the exports of its summary: per scale, the files of each format, each with its own
+  size).
+
+The title names the material: ``--name`` (``run.json`` options), else the name the export stage
+gave it, else the input folder's.
 
 Required: ``run.json``, the ``calibrate`` and ``fit`` stage records, the fit maps, the fit
 residual, ``heldout.json`` and the capture/render pairs it lists. A missing or unreadable required
@@ -40,6 +47,7 @@ from . import plots
 from .html import Assets, write_page
 
 STAGES = ("calibrate", "fit", "flyouts", "propagate", "export", "report")
+CAPTURE_STAGE = "capture"  # digitize --rig: recorded in stages/capture.json, before the listed stages
 REQUIRED_STAGES = ("calibrate", "fit")
 
 MAP_ORDER = ("albedo", "normal", "roughness", "anisotropy", "tangent", "ior", "specular_tint",
@@ -142,6 +150,18 @@ class Stage:
         return float(v) if isinstance(v, (int, float)) else None
 
 
+#: summary keys that are parts of the stage's wall time (``seconds`` of the record), shown as such
+_PART_SECONDS = {"seconds": "of which the per-pixel fit", "cv_seconds": "of which the cross-validation",
+                 "train_seconds": "of which the training"}
+
+
+def _summary_rows(summary: dict[str, Any]) -> list[tuple[str, str]]:
+    """A stage summary as rows; its timings are labelled as parts of the stage's time."""
+    parts = [(_PART_SECONDS[k], fmt.duration(v)) for k, v in summary.items()
+             if k in _PART_SECONDS and isinstance(v, (int, float)) and not isinstance(v, bool)]
+    return parts + fmt.rows({k: v for k, v in summary.items() if k not in _PART_SECONDS})
+
+
 def _stage_rows(st: Stage) -> dict[str, Any]:
     r = st.record or {}
     return {
@@ -154,7 +174,7 @@ def _stage_rows(st: Stage) -> dict[str, Any]:
         "versions": [(fmt.label(k), fmt.value(v)) for k, v in (r.get("versions") or {}).items()],
         "inputs": [(k, fmt.short_hash(v, 16)) for k, v in (r.get("inputs") or {}).items()],
         "outputs": [str(o) for o in (r.get("outputs") or [])],
-        "summary": fmt.rows({k: v for k, v in st.summary.items()}),
+        "summary": _summary_rows(st.summary),
         "warnings": st.warnings,
     }
 
@@ -246,6 +266,8 @@ def write_run_report(run_dir: str | Path, out: str | Path | None = None) -> Path
         raise FormatError(f"run report: {run / 'run.json'} is a {run_doc.get('format')!r} file, "
                           "not dualscale-run")
     order = [str(s) for s in (run_doc.get("stages") or STAGES)]
+    if CAPTURE_STAGE not in order and (run / "stages" / f"{CAPTURE_STAGE}.json").is_file():
+        order.insert(0, CAPTURE_STAGE)  # digitize --rig: the capture stage ran first
 
     stages: dict[str, Stage] = {}
     all_warnings: list[dict[str, str]] = []
@@ -325,8 +347,7 @@ def write_run_report(run_dir: str | Path, out: str | Path | None = None) -> Path
          fmt.percent(fit_sum.get("heldout_relative_l1"))),
         ("the same for the Lambertian baseline (same folds and pixels)",
          fmt.percent(fit_sum.get("heldout_baseline_relative_l1"))),
-        ("fit time", fmt.duration(fit_sum.get("seconds"))),
-        ("cross-validation time", fmt.duration(fit_sum.get("cv_seconds"))),
+        ("fit stage time", _stage_time(stages["fit"])),
     ]
     rad = (fit_json or {}).get("radiometry")
     if rad:  # photographs: the camera response and light intensities the maps were fitted under
@@ -342,7 +363,7 @@ def write_run_report(run_dir: str | Path, out: str | Path | None = None) -> Path
                        texel_fit)
 
     # -- fly-outs
-    fly: dict[str, Any] = {"note": "", "fig": None, "rows": []}
+    fly: dict[str, Any] = {"note": "", "fig": None, "rows": [], "resolution": None}
     st = stages.get("flyouts")
     fly["note"] = _not_done(st, "Fly-out detection was not run for this material.", "Fly-out detection")
     if not fly["note"]:
@@ -360,6 +381,11 @@ def write_run_report(run_dir: str | Path, out: str | Path | None = None) -> Path
             fly["rows"] = [("fibres found", fmt.value(fdoc.get("count", len(polys))))]
             if mask is not None:
                 fly["rows"].append(("texels on a fibre", fmt.percent(float((mask > 0.5).mean()))))
+            res = st.summary.get("resolvability") or fdoc.get("resolvability")
+            fly["rows"] += _resolvability_rows(res)
+            text = _resolvability_text(res)
+            if text and not any(w["text"] == text for w in st.warnings):  # the stage's warning says it already
+                fly["resolution"] = text
 
     # -- propagation
     prop: dict[str, Any] = {"note": "", "guidance": None, "maps": [], "rows": []}
@@ -385,14 +411,14 @@ def write_run_report(run_dir: str | Path, out: str | Path | None = None) -> Path
         prop["rows"] += [(f"registration › {k}", v) for k, v in fmt.rows(ps.get("registration") or {})]
 
     # -- export
-    exp: dict[str, Any] = {"note": "", "table": None, "formats": ""}
+    exp: dict[str, Any] = {"note": "", "table": None, "files": None, "formats": ""}
     st = stages.get("export")
     exp["note"] = _not_done(st, "The maps were not exported.", "Export")
     if not exp["note"]:
         exports = st.summary.get("exports") or {}
         if not exports:
             exp["note"] = "The export stage wrote no files."
-        rows = []
+        rows, file_rows = [], []
         for scale, e in exports.items():
             size = e.get("repeat_mm")
             for fmt_name, files in (e.get("files") or {}).items():
@@ -402,11 +428,18 @@ def write_run_report(run_dir: str | Path, out: str | Path | None = None) -> Path
                     note(f"export lists {m_}, which is not in the run folder")
                 main = next((f for f in files if Path(f).suffix in (".mtlx", ".gltf", ".glb", ".u3ma", ".json")),
                             files[0] if files else "")
-                rows.append([scale, fmt_name, f"export/{scale}/{main}", _size(sum(p.stat().st_size for p in paths
-                                                                                  if p.is_file())),
+                sizes = {f: (run / "export" / scale / f).stat().st_size for f in files
+                         if (run / "export" / scale / f).is_file()}
+                rows.append([scale, fmt_name, f"export/{scale}/{main}" if main else fmt.DASH,
+                             _size(sizes[main]) if main in sizes else "missing",
+                             _files_text(len(files), sum(sizes.values())),
                              (fmt.size_mm(size) if size else fmt.DASH) + (" (seamless tile)" if e.get("tiled") else "")])
+                file_rows += [[scale, fmt_name, f"export/{scale}/{f}", _size(sizes[f]) if f in sizes else "missing"]
+                              for f in files]
         if rows:
-            exp["table"] = Table(["scale", "format", "file", "size", "repeat"], rows, {3})
+            exp["table"] = Table(["scale", "format", "main file", "its size", "files of the format", "repeat"],
+                                 rows, {3})
+            exp["files"] = Table(["scale", "format", "file", "size"], file_rows, {3})
         if st.summary.get("formats"):
             exp["formats"] = fmt.value(st.summary["formats"])
 
@@ -422,7 +455,8 @@ def write_run_report(run_dir: str | Path, out: str | Path | None = None) -> Path
         ("Lambertian baseline, same folds", fmt.percent(fit_sum.get("heldout_baseline_relative_l1"))),
         ("maps", f"{len(names)} at {w} × {h}"),
         ("texel", fmt.length_mm(texel_fit)),
-        ("total time", fmt.duration(sum(s.seconds or 0.0 for s in timed))),
+        ("total time" + (" (capture included)" if CAPTURE_STAGE in stages and stages[CAPTURE_STAGE].record else ""),
+         fmt.duration(sum(s.seconds or 0.0 for s in timed))),
         ("warnings", fmt.number(len(all_warnings))),
     ]
     sections = [("warnings", "Warnings"), ("inputs", "Inputs and calibration"), ("selection", "Components"),
@@ -434,10 +468,9 @@ def write_run_report(run_dir: str | Path, out: str | Path | None = None) -> Path
     now = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     from dualscale import __version__
 
-    title_input = Path(str(run_doc.get("input", run.name))).name or run.name
     return write_page(
         out_dir / "index.html", "run.html",
-        title=f"dualscale run: {title_input}",
+        title=f"dualscale run: {_material_name(run, run_doc, stages)}",
         subtitle=f"{run.resolve()} · {len(order)} stages · report written {now}",
         toc=sections, footer=f"dualscale {__version__} · written {now} · this folder is self-contained and opens offline",
         headline=headline, warnings=all_warnings, stage_warn=stage_warn, inputs=inputs, selection=selection,
@@ -536,6 +569,61 @@ def _heldout(run: Path, doc: dict[str, Any], assets: Assets, texel_mm: float | N
                                           render_title="re-render of the final fit")
         out["figs"].append(Fig(assets.figure(f, f"rerender_led{lid}"), cap, title, title))
     return out
+
+
+def _material_name(run: Path, run_doc: dict[str, Any], stages: dict[str, Stage]) -> str:
+    """The material's name for the title: ``--name`` (``run.json`` options), else the name the
+    export stage used (its params), else the input folder's (its parent's for ``micro/``)."""
+    name = (run_doc.get("options") or {}).get("name")
+    if not name and stages.get("export") is not None and stages["export"].record:
+        name = (stages["export"].record.get("params") or {}).get("name")
+    if not name:
+        src = Path(str(run_doc.get("input") or run.name))
+        name = (src.parent.name if src.name == "micro" else src.name) or run.name
+    return str(name)
+
+
+def _stage_time(st: Stage) -> str:
+    """The stage's wall time from its record, with the parts its summary records."""
+    parts = [f"{_PART_SECONDS[k][len('of which '):]} {fmt.duration(v)}" for k, v in st.summary.items()
+             if k in _PART_SECONDS and isinstance(v, (int, float)) and not isinstance(v, bool)]
+    total = fmt.duration(st.seconds) if st.seconds is not None else "not recorded"
+    return total + (f" (of which {', '.join(parts)})" if parts and st.seconds is not None else "")
+
+
+def _resolvability_rows(res: Any) -> list[tuple[str, str]]:
+    """The fly-out stage's resolvability record (:func:`dualscale.fit.flyouts.resolvability`) as rows."""
+    if not isinstance(res, dict):
+        return [("fibres resolved by the texel", "not recorded (a run of an earlier dualscale)")]
+    sim = res.get("simulated_precision") or {}
+    rows = [("fibre diameter", f"{fmt.length_mm(res.get('fibre_diameter_mm'))} ({res.get('fibre_diameter_source', '')})"),
+            ("texels across a fibre", f"{fmt.number(res.get('texels_across'))} (texel {fmt.length_mm(res.get('texel_mm'))}); "
+                                      f"{res.get('criterion', '')}"),
+            ("fibres resolved by the texel", "yes" if res.get("resolved") else "no: under-resolved")]
+    if sim:
+        rows.append(("precision expected (simulated rig)",
+                     f"{fmt.percent(sim.get('median'), 2)} of the detected length within {sim.get('tolerance_px', 2)} px "
+                     f"of a true fibre (range {fmt.percent((sim.get('range') or [None])[0], 2)}–"
+                     f"{fmt.percent((sim.get('range') or [None, None])[-1], 2)}, at "
+                     f"{fmt.number(sim.get('texels_across'))} texels across; {sim.get('source', '')})"))
+    demo = sim.get("demo_pipeline")
+    if isinstance(demo, dict):
+        rows.append(("the whole pipeline on the simulated rig",
+                     f"{fmt.value(demo.get('fibres_detected'))} of {fmt.value(demo.get('fibres_true'))} fibres found, "
+                     f"precision {fmt.percent(demo.get('precision'), 2)}, at {fmt.number(demo.get('texels_across'))} "
+                     f"texels across ({demo.get('source', '')})"))
+    return rows
+
+
+def _resolvability_text(res: Any) -> str | None:
+    """The warning of an under-resolved fibre (None when resolved or not recorded)."""
+    if not isinstance(res, dict) or res.get("resolved", True):
+        return None
+    return str(res.get("warning") or "the texel under-resolves the fibres")
+
+
+def _files_text(n: int, total: int) -> str:
+    return f"{n} file{'s' if n != 1 else ''}, {_size(total)} in all"
 
 
 def _box_text(box) -> str:

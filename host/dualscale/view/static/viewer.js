@@ -401,7 +401,13 @@ function fillMaps() {
   state.maps = mapList(state.material);
   const sel = $('map-select');
   sel.replaceChildren(...state.maps.map((m, i) => new Option(m[0], String(i))));
-  const want = state.maps.findIndex((m) => m[0].startsWith(query.get('map') || '\u0000'));
+  const prefix = query.get('map');
+  const want = prefix === null ? 0 : state.maps.findIndex((m) => m[0].startsWith(prefix));
+  if (want < 0 && !state.mapErrorShown) {
+    state.mapErrorShown = true;
+    urlError(`?map=${prefix}: no map of this material starts so (it has ${state.maps.map((m) => m[0]).join('; ')}); ` +
+      `showing ${state.maps.length ? state.maps[0][0] : 'none'}`);
+  }
   sel.value = String(want >= 0 ? want : 0);
   showMap(+sel.value);
 }
@@ -500,6 +506,76 @@ async function loadExport(exp) {
   $('status').textContent = `${exp.name} (${exp.key})`;
 }
 
+// ---------------------------------------------------------------------------------------------
+// URL parameters (docs/VIEWER.md): each one is checked; a bad one is a visible error naming it,
+// what it accepts and what is shown instead, never a blank view or a silent default.
+
+const PARAMS = ['export', 'object', 'az', 'el', 'e', 'map', 'led', 'frame'];
+const urlErrors = [];
+
+function urlError(text) {
+  urlErrors.push(text);
+  const box = $('url-error');
+  box.hidden = false;
+  box.replaceChildren(...urlErrors.map((t) => Object.assign(document.createElement('div'), { textContent: t })));
+  console.warn(`dualscale view: ${text}`);
+}
+
+/** The value of a number parameter of a range input (az, el, e), or null when absent or bad
+ * (then an error says why and the default stays). */
+function numberParam(name, input) {
+  const raw = query.get(name);
+  if (raw === null) return null;
+  const lo = +input.min, hi = +input.max, v = raw.trim() === '' ? NaN : Number(raw);
+  if (!Number.isFinite(v) || v < lo || v > hi) {
+    urlError(`?${name}=${raw}: not a number from ${lo} to ${hi}; keeping ${input.value}`);
+    return null;
+  }
+  return v;
+}
+
+/** Check the URL's parameters against the scene before anything is shown; sets the controls of
+ * the good ones and returns the export to load. */
+function applyQuery(scene) {
+  for (const k of new Set(query.keys())) {
+    if (!PARAMS.includes(k)) urlError(`?${k}: not a parameter of this page (it takes ${PARAMS.join(', ')})`);
+  }
+  let first = scene.exports[0];
+  const ek = query.get('export');
+  if (ek !== null) {
+    const e = scene.exports.find((x) => x.key === ek);
+    if (e) first = e;
+    else urlError(`?export=${ek}: this folder has no such export (it has ${scene.exports.map((x) => x.key).join(', ')}); ` +
+      `showing ${first.key}`);
+  }
+  const frame = query.get('frame');
+  if (frame === 'three') $('aniso-frame').checked = false;
+  else if (frame !== null && frame !== 'ours') urlError(`?frame=${frame}: choose three or ours; showing ours`);
+  const obj = query.get('object');
+  if (obj !== null) {
+    const names = Array.from($('object-select').options, (o) => o.value);
+    if (names.includes(obj)) $('object-select').value = state.shown = obj;
+    else urlError(`?object=${obj}: not an object of this page (choose ${names.join(', ')}); showing ${state.shown}`);
+  }
+  for (const [k, id] of [['az', 'light-az'], ['el', 'light-el'], ['e', 'light-e']]) {
+    const v = numberParam(k, $(id));
+    if (v !== null) $(id).value = String(v);
+  }
+  return first;
+}
+
+/** ?led=K against the scene's LEDs (after the side-by-side is set up). */
+function checkLedParam(scene) {
+  const want = query.get('led');
+  if (want === null) return;
+  if (!scene.side_by_side) urlError(`?led=${want}: no side-by-side here (${scene.no_capture})`);
+  else if (!scene.leds.some((l) => String(l.id) === want)) {
+    const ids = scene.leds.map((l) => l.id);
+    urlError(`?led=${want}: the dataset has no such LED (it has ${ids.length} LEDs, ids ${ids[0]} to ` +
+      `${ids[ids.length - 1]}); showing LED ${$('led-select').value}`);
+  }
+}
+
 async function main() {
   const scene = await fetchJSON('scene.json');
   state.scene = scene;
@@ -508,14 +584,13 @@ async function main() {
   const sel = $('export-select');
   sel.replaceChildren(...scene.exports.map((e) => new Option(`${e.key}: ${e.name}`, e.key)));
   sel.addEventListener('change', () => loadExport(scene.exports.find((e) => e.key === sel.value)).catch(fail));
-  const first = scene.exports.find((e) => e.key === query.get('export')) || scene.exports[0];
+  const first = applyQuery(scene);
   sel.value = first.key;
-  if (query.get('frame') === 'three') $('aniso-frame').checked = false;
-  if (query.get('object')) $('object-select').value = state.shown = query.get('object');
-  for (const k of ['az', 'el', 'e']) if (query.get(k) !== null) $(k === 'e' ? 'light-e' : `light-${k}`).value = query.get(k);
   resize();
   await loadExport(first);
-  await setupLeds(scene);
+  const leds = setupLeds(scene);
+  checkLedParam(scene);
+  await leds;
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -576,6 +651,7 @@ window.dualscaleViewer = {
     maps: (state.maps || []).map((m) => m[0]),
     objects: Object.keys(state.objects),
     led: state.led || null,
+    url_errors: urlErrors.slice(),
   }),
   show: (name) => { $('object-select').value = name; showObject(name); },
   showMap: (i) => { $('map-select').value = String(i); showMap(i); },
