@@ -40,7 +40,7 @@ def test_engine_options_map_to_a_spec_or_to_in_process():
     assert engine_spec(_args()) is None and engine_spec(_args("--workers", "1")) is None
     pytest.importorskip("distributed", reason="the dask extra is not installed")
     assert engine_spec(_args("--workers", "3")) == EngineSpec(workers=3)
-    assert engine_spec(_args("--scheduler", "tcp://x:1")).scheduler == "tcp://x:1"
+    assert engine_spec(_args("--scheduler", "tcp://x:1"), reach=False).scheduler == "tcp://x:1"
     with pytest.raises(InputError, match="at least 1"):
         engine_spec(_args("--workers", "0"))
     with pytest.raises(InputError, match="job-queue"):
@@ -153,3 +153,43 @@ def test_local_workers_do_not_trim_malloc_early(monkeypatch):
         with engine.connect(EngineSpec(workers=1)) as c:
             assert c.submit(os.environ.get, "MALLOC_TRIM_THRESHOLD_", pure=False).result() is None
     assert "MALLOC_TRIM_THRESHOLD_" not in os.environ
+
+
+@pytest.mark.parametrize("kind", ["silent", "closed"])
+def test_an_unreachable_scheduler_is_told_within_5_s_before_the_list_is_read(kind, tmp_path, monkeypatch, capsys):
+    """Issue 24 §8: ``batch --scheduler`` at an address where no Dask scheduler answers -- a port
+    that accepts the connection and then says nothing (as a firewall or another service), or
+    one nobody listens on -- is one line and exit 4 within 5 s (it took the 30 s connect
+    timeout), and it is told before the sample list is read (the list here does not exist)."""
+    pytest.importorskip("distributed", reason="the dask extra is not installed")
+    import socket
+    import time
+
+    import dualscale.batch
+    from dualscale.cli import main
+
+    read = []
+    monkeypatch.setattr(dualscale.batch, "read_list", lambda *a, **k: read.append(a))
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+        if kind == "silent":
+            s.listen(4)  # the kernel completes the TCP connection; nobody ever answers Dask's handshake
+        else:
+            s.close()
+        t0 = time.perf_counter()
+        rc = main(["batch", str(tmp_path / "missing.csv"), "-o", str(tmp_path / "out"),
+                   "--scheduler", f"tcp://127.0.0.1:{port}", "--no-progress"])
+        seconds = time.perf_counter() - t0
+    err = capsys.readouterr().err.strip()
+    assert rc == 4 and seconds < 5.0, (rc, seconds, err)
+    assert len(err.splitlines()) == 1 and f"--scheduler tcp://127.0.0.1:{port}: no Dask scheduler answers" in err
+    assert read == [] and not (tmp_path / "out").exists()
+
+
+def test_a_malformed_scheduler_address_is_bad_input():
+    pytest.importorskip("distributed", reason="the dask extra is not installed")
+    from dualscale.cli.common import engine_spec
+
+    with pytest.raises(InputError, match="--scheduler 'foo://x:1'"):
+        engine_spec(_args("--scheduler", "foo://x:1"))

@@ -50,6 +50,9 @@ CLUSTERS: dict[str, str] = {"local": "LocalCluster", "slurm": "SLURMCluster", "p
 EXTRA = "pip install 'dualscale[dask]'"
 #: seconds to wait for a scheduler given by address, and for a cluster's first worker
 CONNECT_TIMEOUT_S = 30
+#: seconds :func:`check_scheduler` waits for a ``--scheduler`` to answer Dask's handshake, before
+#: any work (an unreachable address is told within 5 s of the command's start, issue 24 §8)
+SCHEDULER_TIMEOUT_S = 3.0
 #: Dask's nannies start workers with ``MALLOC_TRIM_THRESHOLD_=65536`` (return freed memory to the
 #: system early): every tile fit then page-faults its scratch arrays back in, 1.4-1.5x slower than
 #: in-process (docs/SCALE.md).  The local cluster does not set it; a value the user set is kept.
@@ -172,6 +175,39 @@ def check_jobqueue(spec: EngineSpec, submit: bool = True) -> None:
                         "commands are (a login node), or use --scheduler ADDRESS")
 
 
+def check_scheduler(address: str, timeout: float | None = None) -> None:
+    """Before any work: a Dask scheduler answers at ``address`` (``tcp://host:8786``; a bare
+    ``host:port`` is TCP, as Dask takes it) -- a connection and Dask's handshake within
+    ``timeout`` seconds (default :data:`SCHEDULER_TIMEOUT_S`), then closed.  Raises
+    :class:`~dualscale.errors.InputError` for an address Dask cannot parse and
+    :class:`~dualscale.errors.ToolError` (exit 4, the environment) when nothing answers: no
+    host, no listener, a firewall, or a port that is not a Dask scheduler's."""
+    require("--scheduler")
+    import asyncio
+
+    from distributed.comm import connect as comm_connect
+    from distributed.comm.addressing import parse_address
+
+    wait = SCHEDULER_TIMEOUT_S if timeout is None else float(timeout)
+    try:
+        parse_address(address)
+    except (TypeError, ValueError) as e:
+        raise InputError(f"--scheduler {address!r}: not a Dask address such as tcp://host:8786 ({e})") from None
+
+    async def probe() -> None:
+        comm = await comm_connect(address, timeout=wait)
+        await comm.close()
+
+    try:
+        asyncio.run(asyncio.wait_for(probe(), wait))
+    except (OSError, TimeoutError, asyncio.TimeoutError) as e:
+        why = str(e) or f"no answer within {wait:g} s"
+        raise ToolError(f"--scheduler {address}: no Dask scheduler answers there ({why}); start one "
+                        "(`dask scheduler`) or check the address") from None
+    except ValueError as e:  # e.g. an unknown protocol in the address
+        raise InputError(f"--scheduler {address!r}: {e}") from None
+
+
 def jobqueue_cluster(spec: EngineSpec):
     """A dask-jobqueue cluster object for ``spec`` (not yet scaled: no job is submitted).  Raises
     :class:`~dualscale.errors.ToolError` without dask-jobqueue, :class:`~dualscale.errors.InputError`
@@ -226,6 +262,29 @@ def _workers_ignore_sigint() -> Iterator[None]:
         signal.signal(signal.SIGINT, old)
 
 
+#: the multiprocessing resource tracker's shutdown notice: a worker process the nanny had to kill
+#: while it ran a task (the command was interrupted) leaves a semaphore registered, which the
+#: tracker then removes -- and says so in two lines after the command's one-line message
+_TRACKER_NOTICE = "ignore:resource_tracker:UserWarning"
+
+
+def _quiet_resource_tracker() -> None:
+    """Start multiprocessing's resource tracker (shared by this process and the workers it
+    spawns) with :data:`_TRACKER_NOTICE` among its warning filters: it still cleans up, without
+    printing under the command's last line.  Nothing when a tracker already runs."""
+    import sys
+    from multiprocessing import resource_tracker
+
+    if getattr(resource_tracker._resource_tracker, "_fd", None) is not None:
+        return
+    if _TRACKER_NOTICE not in sys.warnoptions:
+        sys.warnoptions.append(_TRACKER_NOTICE)  # passed on the tracker's command line (-W)
+    try:
+        resource_tracker.ensure_running()
+    finally:
+        sys.warnoptions.remove(_TRACKER_NOTICE)
+
+
 @contextmanager
 def connect(spec: EngineSpec) -> Iterator[Any]:
     """Open the cluster of ``spec`` and yield a :class:`distributed.Client` on it; closes the
@@ -249,6 +308,7 @@ def connect(spec: EngineSpec) -> Iterator[Any]:
         elif spec.cluster == "local":
             if _USER_MALLOC_TRIM is None:  # the nanny copies it into this process's environment
                 os.environ.pop(MALLOC_TRIM, None)
+            _quiet_resource_tracker()
             with _workers_ignore_sigint():
                 cluster = LocalCluster(n_workers=spec.workers, threads_per_worker=spec.threads_per_worker,
                                        processes=True, dashboard_address=":0",  # a free port: never 8787 taken

@@ -97,7 +97,10 @@ class DigitizeOptions:
     folder holding ``micro/``); ``calibration``: a calibration file (required for datasets in
     sensor units); ``guidance``: the mid-range image (an image file or a dataset folder whose
     diffuse capture is used); ``guidance_transfer``: its transfer function when display-encoded
-    (``srgb``, ``linear``, ``gamma:G``); ``until``: the last stage to run."""
+    (``srgb``, ``linear``, ``gamma:G``; only with a ``guidance`` image, else refused);
+    ``until``: the last stage to run; ``source``: where the options came from, for the hints of
+    errors (None: the ``digitize`` command line, whose options they name; ``"LIST row N"``: a
+    ``dualscale batch`` list, whose columns they name)."""
 
     input: Path
     run: Path
@@ -115,11 +118,16 @@ class DigitizeOptions:
     name: str | None = None
     engine: Any = None  # a dualscale.engine.EngineSpec: the fit stage runs in tiles on that cluster
     tile_px: int | None = None  # the side of those tiles (None: fit.tiled.TILE); the same maps at any side
+    source: str | None = None
 
     def __post_init__(self) -> None:
         self.input, self.run = Path(self.input), Path(self.run)
         self.calibration = None if self.calibration is None else Path(self.calibration)
         self.guidance = None if self.guidance is None else Path(self.guidance)
+        if self.guidance_transfer is not None and self.guidance is None:
+            raise InputError(f"{self.option('transfer')} {self.guidance_transfer}: the transfer function is that of a "
+                             f"display-encoded guidance image, and no guidance is given ({self.option('guidance')}); "
+                             f"leave out {self.option('transfer')}, or add the guidance image")
         if self.quality not in QUALITIES:
             raise InputError(f"--quality {self.quality!r}: choose one of {', '.join(QUALITIES)}")
         self.export = tuple(self.export)
@@ -143,6 +151,21 @@ class DigitizeOptions:
             from dualscale.fit.tiled import check_tile
 
             check_tile(self.tile_px)
+
+
+    def option(self, name: str) -> str:
+        """How the user gives the option ``name`` (``calibration``, ``guidance``, ``transfer``):
+        ``--calibration CAL`` on the command line, ``the list's 'calibration' column (LIST row N)``
+        in a batch (``source``)."""
+        if self.source is None:
+            return {"calibration": "--calibration CAL", "guidance": "--guidance", "transfer": "--transfer"}.get(
+                name, f"--{name.replace('_', '-')}")
+        return f"the list's {name!r} column ({self.source})"
+
+    def give(self, name: str) -> str:
+        """The words that tell the user how to give ``name``: ``with --calibration CAL``, or
+        ``in the list's 'calibration' column (LIST row N)`` (:meth:`option`)."""
+        return f"{'with' if self.source is None else 'in'} {self.option(name)}"
 
 
 @dataclass(frozen=True)
@@ -332,6 +355,90 @@ def run_stage(run: Path, name: str, inputs: dict[str, Any], params: dict[str, An
     return StageResult(name, record, False)
 
 
+#: the lock file of a folder a command is writing (:class:`FolderLock`)
+LOCK_FILE = ".dualscale-lock"
+
+
+class FolderLock:
+    """An exclusive lock on a run folder (or any output folder) that one process writes: an OS
+    lock (``fcntl.flock``) on ``FOLDER/.dualscale-lock``, which holds the holder's PID, start
+    time and command (JSON) for the message a second process gets.
+
+    The kernel releases the lock when its process ends, however it ends (``kill -9`` included),
+    so a lock file left behind never blocks: only a live holder does.  :meth:`release` removes
+    the file.  Two commands on one run folder would both write ``RUN/work/<stage>/`` (issue 24
+    §7); the second is refused instead: :meth:`acquire` raises
+    :class:`~dualscale.errors.InputError` (exit 2, like any output folder the command cannot
+    use) "``FOLDER`` is in use by PID ... (started ...)".  On a filesystem without locks
+    (``ENOLCK``, ``EOPNOTSUPP``) the folder is used unlocked, as before.  Use it as a context
+    manager; the folder must exist."""
+
+    def __init__(self, folder: str | Path, command: str) -> None:
+        self.folder, self.command = Path(folder), command
+        self.path = self.folder / LOCK_FILE
+        self._fd: int | None = None
+
+    def acquire(self) -> "FolderLock":
+        import errno
+        import fcntl
+        import json
+
+        for _ in range(100):  # retried only while another process removes the file under us
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o666)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError as e:
+                os.close(fd)
+                if e.errno in (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS):
+                    return self  # no locks on this filesystem: unlocked, as before
+                if e.errno not in (errno.EAGAIN, errno.EWOULDBLOCK, errno.EACCES):
+                    raise
+                raise InputError(self._in_use()) from None
+            try:  # the file we locked must still be the one at the path (a holder removes it on release)
+                same = os.fstat(fd).st_ino == os.stat(self.path).st_ino
+            except FileNotFoundError:
+                same = False
+            if not same:
+                os.close(fd)
+                continue
+            info = {"pid": os.getpid(), "started": datetime.now().astimezone().isoformat(timespec="seconds"),
+                    "command": self.command}
+            os.ftruncate(fd, 0)
+            os.write(fd, (json.dumps(info) + "\n").encode())
+            self._fd = fd
+            return self
+        raise InputError(self._in_use())
+
+    def _in_use(self) -> str:
+        import json
+
+        try:
+            info = json.loads(self.path.read_text())
+            who = f"PID {int(info['pid'])} (started {info.get('started')}, `dualscale {info.get('command')}`)"
+        except (OSError, ValueError, TypeError, KeyError):
+            who = "another process (starting)"
+        return (f"{self.folder} is in use by {who}: two commands writing one folder would spoil each other's "
+                "work; wait for that one to end (then run this command again to resume), or choose another folder")
+
+    def release(self) -> None:
+        """Remove the lock file and release the lock (nothing when not held)."""
+        if self._fd is None:
+            return
+        fd, self._fd = self._fd, None
+        try:
+            if os.stat(self.path).st_ino == os.fstat(fd).st_ino:
+                self.path.unlink()
+        except OSError:
+            pass
+        os.close(fd)  # closing the last descriptor releases the flock
+
+    def __enter__(self) -> "FolderLock":
+        return self.acquire()
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+
 def _calibration_key(path: Path) -> str:
     """What the calibrate stage keys on in a calibration file: its content without the time it
     was written (``created``), so that recomputing an unchanged calibration does not redo the run
@@ -374,7 +481,8 @@ class Digitizer:
         raw = {r.units for r in ds.records} - {"relative_radiance"}
         if raw and self.opts.calibration is None:
             raise UnitsError(f"{self.dataset_in}: the captures are in {', '.join(sorted(raw))} (camera counts): "
-                             "give the rig's calibration file with --calibration CAL (dualscale calibrate)")
+                             f"give the rig's calibration file {self.opts.give('calibration')} "
+                             "(dualscale calibrate)")
         _check_images(ds, "")
         if self.opts.calibration is not None:
             read_calibration(self.opts.calibration)
@@ -407,7 +515,7 @@ class Digitizer:
                 raw = {r.units for r in gds.records} - {"relative_radiance"}
                 if raw and self.opts.calibration is None:
                     raise UnitsError(f"the guidance is in {', '.join(sorted(raw))} (camera counts): give the rig's "
-                                     "calibration file with --calibration CAL")
+                                     f"calibration file {self.opts.give('calibration')}")
                 file, cam, _ = _dataset_image(g)
                 inp = open_image(file)
                 try:
@@ -742,7 +850,8 @@ def _rendered_lights(obs: Any, per_light: list[dict[str, Any]]) -> list[int]:
 
 
 def _options_json(o: DigitizeOptions) -> dict[str, Any]:
-    out = {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(o).items() if k not in ("run", "engine", "tile_px")}
+    out = {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(o).items()
+           if k not in ("run", "engine", "tile_px", "source")}
     out["engine"] = None if o.engine is None else o.engine.describe
     return out
 

@@ -40,6 +40,8 @@ class Tracker:
             if what:
                 self._bar.set_postfix_str(what, refresh=False)
             self._bar.update(n)
+            if self.total is not None and self.done >= self.total:
+                self._bar.refresh()  # drawn full even when the last units came within tqdm's redraw interval
         if self._fn is not None:
             self._fn(self.done, self.total, what or self.desc)
 

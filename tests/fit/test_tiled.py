@@ -202,3 +202,19 @@ def test_fit_cli_refuses_what_it_cannot_tile(datasets, tmp_path, capsys, monkeyp
     assert main(["fit", str(ds), "-o", str(tmp_path / "d"), "--workers", "2"]) == ToolError.exit_code
     assert "pip install 'dualscale[dask]'" in capsys.readouterr().err
     assert not any((tmp_path / x).exists() for x in "abcd")
+
+
+def test_the_tile_bar_is_full_when_every_tile_was_already_done(client, data, tmp_path, capsys):
+    """A rerun whose tiles were all saved before (issue 24 §8): the bar shows N/N, not 0/N; the
+    callable form sees every tile counted done."""
+    obs, comps, p = data["twill"], fit_components(True, True, False), get_preset("draft")
+    state = tmp_path / "tiles"
+    fit_tiled(obs, p, comps, client, tile=12, state=state)
+    assert len(list(state.glob("*.pt"))) == 4
+    capsys.readouterr()
+    seen = []
+    _, info = fit_tiled(obs, p, comps, client, tile=12, state=state, progress=lambda d, t, w: seen.append((d, t)))
+    assert info["resumed_tiles"] == 4 and seen and seen[-1] == (4, 4) and all(d > 0 for d, _ in seen)
+    _, info = fit_tiled(obs, p, comps, client, tile=12, state=state, progress=True)
+    err = capsys.readouterr().err
+    assert info["resumed_tiles"] == 4 and "4/4" in err, err

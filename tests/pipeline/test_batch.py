@@ -169,7 +169,8 @@ def test_in_process_gives_the_same_results(cluster_run, batch_list, sample, tmp_
     capsys.readouterr()
     assert main(["digitize", str(sample / "micro"), "-o", str(out / "a"), "--quality", "draft", "--export", "exr,gltf",
                  "--seed", "0", "--name", "a", "--threads", "1", "--no-progress"]) == 0
-    lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("  ")]
+    lines = [ln for ln in capsys.readouterr().out.splitlines()
+             if ln.startswith("  ") and ln.split(None, 1)[0] in STAGES]  # the stage lines, not their warnings
     assert len(lines) == len(STAGES) and all(ln.split(None, 1)[1].startswith("up to date") for ln in lines), lines
     for name in GOOD:
         m1, _ = load_maps(out / name / "fit" / "maps")
@@ -197,7 +198,30 @@ def test_batch_runs_on_a_local_cluster_by_default():
     assert (s is None) if n == 1 else (s.workers == n and s.threads_per_worker == 1 and s.cluster == "local")
     assert spec(50, workers=1) is None and spec(1, workers=4) is None
     assert spec(3, workers=8).workers == 3 and spec(3, workers=2, threads=2).threads_per_worker == 2
-    assert spec(3, scheduler="tcp://127.0.0.1:1").scheduler == "tcp://127.0.0.1:1"
+    from distributed import Scheduler  # noqa: F401 - the address must answer (engine.check_scheduler)
+    import asyncio
+    import threading
+
+    ready, stop = threading.Event(), None
+    box = {}
+
+    async def serve():
+        nonlocal stop
+        stop = asyncio.Event()
+        async with Scheduler(host="127.0.0.1", port=0, dashboard_address=":0") as sched:
+            box["address"] = sched.address
+            ready.set()
+            await stop.wait()
+
+    loop = asyncio.new_event_loop()
+    t = threading.Thread(target=loop.run_until_complete, args=(serve(),), daemon=True)
+    t.start()
+    assert ready.wait(30)
+    try:
+        assert spec(3, scheduler=box["address"]).scheduler == box["address"]
+    finally:
+        loop.call_soon_threadsafe(stop.set)
+        t.join(30)
 
 
 def test_run_batch_reports_progress_and_each_sample_as_it_ends(cluster_run, batch_list):
@@ -228,6 +252,8 @@ BAD_LISTS = {
     "bad tile": ("samples.csv", "name,input,tile\na,{micro},maybe\n", ["column 'tile'", "true or false"]),
     "png guidance without transfer": ("samples.csv", "name,input,guidance\na,{micro},guide.png\n",
                                       ["column 'transfer'", "display-encoded"]),
+    "transfer without guidance": ("samples.csv", "name,input,transfer\na,{micro},srgb\n",
+                                  ["row 1", "column 'transfer'", "no guidance"]),
     "yaml unknown key": ("samples.yaml", "- name: a\n  input: {micro}\n  colour: red\n", ["row 1", "column 'colour'"]),
     "yaml number as name": ("samples.yaml", "samples:\n  - name: 2024\n    input: {micro}\n",
                             ["row 1", "column 'name'", "quote it"]),

@@ -38,7 +38,10 @@ files at the same paths as this process (one machine, or shared storage).
 **Failures.**  A stage that raises marks its sample ``failed`` with the stage, the error's class
 and its message (the traceback goes into ``summary.json``); the sample's later stages are
 ``not run``, and every other sample goes on.  A task the cluster itself loses (a worker killed
-more often than Dask's ``allowed-failures``) counts as a failure of that stage.
+more often than Dask's ``allowed-failures``) counts as a failure of that stage.  Ctrl-C stops
+the batch (:class:`BatchInterrupted`): the summary of what finished is still written, each
+sample not ended marked ``interrupted`` at the stage that was running or next, and the same
+command resumes.
 
 **The summary** (:func:`write_summary`): ``OUTDIR/summary.csv``, ``summary.json`` and a
 self-contained ``summary.html`` (escaped; links to each sample's report and exports), written
@@ -48,9 +51,9 @@ the fit's held-out SSIM and relative L1 (Sec. 6), the propagation's in-field L1 
 registration NCC when it ran (Sec. 7), and the export files.
 """
 
-from .run import SampleResult, run_batch, stage_task
+from .run import BatchInterrupted, SampleResult, run_batch, stage_task
 from .samples import FIELDS, RESERVED, Sample, read_list
 from .summary import components_text, sample_row, table, write_summary
 
-__all__ = ["FIELDS", "RESERVED", "Sample", "SampleResult", "components_text", "read_list", "run_batch",
+__all__ = ["BatchInterrupted", "FIELDS", "RESERVED", "Sample", "SampleResult", "components_text", "read_list", "run_batch",
            "sample_row", "stage_task", "table", "write_summary"]

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-from dualscale.errors import one_line
+from dualscale.errors import Interrupted, one_line
 from dualscale.pipeline import STAGES
 
 from .samples import Sample
@@ -58,6 +58,9 @@ def stage_task(sample: Sample, outdir: str, stage: str, threads: int | None,
     the stage before returned; when it did not finish, this stage is ``not run``;
     ``quiet_exit``: the task runs in a worker process of our own local cluster (:func:`_quiet_exit`).
 
+    The stage holds the lock of the sample's run folder (:class:`~dualscale.pipeline.FolderLock`):
+    a ``digitize`` writing that folder meanwhile makes the stage fail with "... is in use by PID ...".
+
     Returns ``{"stage", "status": "done" | "up to date" | "failed" | "not run", "seconds"
     (this task's wall time), "record_seconds" (the stage's time in its record), "warnings",
     "summary" (the record's)}``, and for a failure ``"error_type", "error"`` (one line) and
@@ -72,14 +75,16 @@ def stage_task(sample: Sample, outdir: str, stage: str, threads: int | None,
             from dualscale.engine import in_worker
 
             in_worker(threads)
-        from dualscale.pipeline import Digitizer
+        from dualscale.pipeline import Digitizer, FolderLock
 
         d = Digitizer(sample.options(outdir, threads))
-        if stage == STAGES[0]:
-            d.begin()
-        st = d.stage(stage)
-        if stage == STAGES[-1]:
-            d.end()
+        d.run.mkdir(parents=True, exist_ok=True)
+        with FolderLock(d.run, "batch"):  # a `digitize -o` on this sample's folder meanwhile: this stage fails
+            if stage == STAGES[0]:
+                d.begin()
+            st = d.stage(stage)
+            if stage == STAGES[-1]:
+                d.end()
     except Exception as e:  # noqa: BLE001 - a sample's failure is its result, not the batch's
         return _failed(stage, e, round(time.perf_counter() - t0, 3))
     rec = st.record
@@ -107,10 +112,20 @@ class SampleResult:
 
     @property
     def status(self) -> str:
-        """``done`` when every stage finished (or was up to date), else ``failed``."""
+        """``done`` when every stage finished (or was up to date), ``interrupted`` when the batch
+        was stopped (Ctrl-C) before its stages ended without one failing, else ``failed``."""
         ok = len(self.stages) == len(STAGES) and all(r["status"] in ("done", "up to date")
                                                      for r in self.stages.values())
-        return "done" if ok else "failed"
+        if ok:
+            return "done"
+        if self.failure is None and any(r["status"] == "interrupted" for r in self.stages.values()):
+            return "interrupted"
+        return "failed"
+
+    @property
+    def interrupted_stage(self) -> str | None:
+        """The stage that was running (or next) when the batch was stopped, or None."""
+        return next((s for s, r in self.stages.items() if r["status"] == "interrupted"), None)
 
     def summary(self, stage: str) -> dict[str, Any]:
         r = self.stages.get(stage) or {}
@@ -133,6 +148,38 @@ def _settle(result: SampleResult) -> None:
     result.stages = out
 
 
+def _interrupt(result: SampleResult) -> None:
+    """Settle a sample the batch stopped before its end (Ctrl-C): its finished stages keep their
+    results, the first stage without one is ``interrupted`` (it was running, or next: its work
+    folder resumes on the rerun) and the later ones are ``not run``."""
+    out, first = {}, True
+    for stage in STAGES:
+        r = result.stages.get(stage)
+        if r is not None and first:
+            out[stage] = r
+            continue
+        if first:
+            out[stage] = {"stage": stage, "status": "interrupted", "seconds": None}
+            first = False
+        else:
+            out[stage] = {"stage": stage, "status": "not run", "seconds": None}
+    result.stages = out
+
+
+class BatchInterrupted(Interrupted):
+    """The batch was stopped (Ctrl-C) before every sample ended; ``results``: one
+    :class:`SampleResult` per sample, in list order, those not ended settled by
+    :func:`_interrupt` -- what the summary of what finished is written from.  Exit 130; the same
+    command resumes."""
+
+    def __init__(self, results: list[SampleResult]) -> None:
+        ended = sum(1 for r in results if r.status != "interrupted")
+        stages = sum(1 for r in results for x in r.stages.values() if x["status"] in ("done", "up to date"))
+        super().__init__(f"batch interrupted: {ended} of {len(results)} sample(s) ended, {stages} of "
+                         f"{len(results) * len(STAGES)} stage(s) finished")
+        self.results = results
+
+
 def run_batch(samples: list[Sample], outdir: str | Path, *, client: Any = None, threads: int | None = None,
               progress: Any = None, on_sample: Callable[[SampleResult], None] | None = None,
               quiet_exit: bool = False) -> list[SampleResult]:
@@ -144,7 +191,8 @@ def run_batch(samples: list[Sample], outdir: str | Path, *, client: Any = None, 
     cluster opened for this batch, which may end without the interpreter's teardown
     (:func:`_quiet_exit`; never for workers someone else runs).  Returns one :class:`SampleResult` per sample, in list order.
     A stage's error is its sample's result; only Ctrl-C (and errors of the cluster connection)
-    stop the batch."""
+    stop the batch: Ctrl-C raises :class:`BatchInterrupted`, which carries the results so far
+    (every finished stage; the cluster's tasks are cancelled)."""
     from dualscale.progress import tracker
 
     outdir = str(Path(outdir).absolute())
@@ -159,31 +207,42 @@ def run_batch(samples: list[Sample], outdir: str | Path, *, client: Any = None, 
             if on_sample is not None:
                 on_sample(r)
 
-    with tracker(progress, len(samples) * len(STAGES), "batch", unit="stage") as bar:
-        if client is None:
-            for s in samples:
-                prev = None
-                for stage in STAGES:
-                    prev = stage_task(s, outdir, stage, threads, prev)
-                    record(s.name, stage, prev, bar)
-        else:
-            from distributed import as_completed
+    futures: dict[Any, tuple[str, str]] = {}
+    try:
+        with tracker(progress, len(samples) * len(STAGES), "batch", unit="stage") as bar:
+            if client is None:
+                for s in samples:
+                    prev = None
+                    for stage in STAGES:
+                        prev = stage_task(s, outdir, stage, threads, prev)
+                        record(s.name, stage, prev, bar)
+            else:
+                from distributed import as_completed
 
-            token = uuid.uuid4().hex[:12]
-            futures = {}
-            for s in samples:
-                prev = None
-                for stage in STAGES:
-                    prev = client.submit(stage_task, s, outdir, stage, threads, prev, quiet_exit, pure=False,
-                                         key=f"dualscale-batch-{token}-{s.name}-{stage}")
-                    futures[prev] = (s.name, stage)
-            for fut in as_completed(list(futures)):
-                name, stage = futures[fut]
-                try:
-                    res = fut.result()
-                except Exception as e:  # noqa: BLE001 - the cluster lost the task (e.g. KilledWorker)
-                    res = _failed(stage, e, None)
-                record(name, stage, res, bar)
+                token = uuid.uuid4().hex[:12]
+                for s in samples:
+                    prev = None
+                    for stage in STAGES:
+                        prev = client.submit(stage_task, s, outdir, stage, threads, prev, quiet_exit, pure=False,
+                                             key=f"dualscale-batch-{token}-{s.name}-{stage}")
+                        futures[prev] = (s.name, stage)
+                for fut in as_completed(list(futures)):
+                    name, stage = futures[fut]
+                    try:
+                        res = fut.result()
+                    except Exception as e:  # noqa: BLE001 - the cluster lost the task (e.g. KilledWorker)
+                        res = _failed(stage, e, None)
+                    record(name, stage, res, bar)
+    except KeyboardInterrupt:
+        if futures:
+            import contextlib
+
+            with contextlib.suppress(Exception):
+                client.cancel(list(futures))
+        for r in results.values():
+            if len(r.stages) < len(STAGES):
+                _interrupt(r)
+        raise BatchInterrupted([results[s.name] for s in samples]) from None
     return [results[s.name] for s in samples]
 
 

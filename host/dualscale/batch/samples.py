@@ -48,7 +48,8 @@ class Sample:
         return DigitizeOptions(input=self.input, run=Path(outdir) / self.name, calibration=self.calibration,
                                guidance=self.guidance, guidance_transfer=self.transfer,
                                guidance_texel_mm=self.guidance_texel_mm, quality=self.quality, threads=threads,
-                               progress=False, seed=self.seed, export=self.export, tile=self.tile, name=self.name)
+                               progress=False, seed=self.seed, export=self.export, tile=self.tile, name=self.name,
+                               source=self.where or None)
 
 
 # ---------------------------------------------------------------------------------------- the list
@@ -171,6 +172,9 @@ def _sample(row: _Row, values: dict[str, Any], base: Path, quality: str, export:
             parse_transfer(transfer)
         except ValueError as e:
             raise row.error("transfer", str(e)) from None
+        if guidance is None:
+            raise row.error("transfer", f"{transfer!r} is the transfer function of a display-encoded guidance image, "
+                                        "and the row has no guidance: leave the cell empty, or fill the guidance")
     elif guidance is not None and guidance.is_file() and guidance.suffix.lower() != ".exr":
         raise row.error("transfer", f"the guidance {guidance.name} is display-encoded: give its transfer function "
                                     "(srgb, linear or gamma:G; dualscale never guesses it)")

@@ -49,7 +49,7 @@ def sample_row(r: SampleResult) -> dict[str, Any]:
     report = r.summary("report").get("index")
     return {
         "name": r.name, "input": str(r.sample.input), "quality": r.sample.quality, "status": r.status,
-        "failed_stage": None if fail is None else fail["stage"],
+        "failed_stage": None if fail is None else fail["stage"], "interrupted_stage": r.interrupted_stage,
         "error": None if fail is None else f"{fail.get('error_type')}: {fail.get('error')}",
         "traceback": None if fail is None else fail.get("traceback"),
         "seconds": round(sum(x["seconds"] or 0.0 for x in r.stages.values()), 3),
@@ -103,7 +103,9 @@ pre.mono { white-space: pre-wrap; overflow-wrap: anywhere; background: var(--pan
 </style>
 <section id="samples">
 <h2>Samples</h2>
-<p>{{ done }} done, {{ failed }} failed{% if up_to_date %}; {{ up_to_date }} stage(s) were up to date{% endif %}.
+{% if interrupted %}<p class="bad">The batch was interrupted (Ctrl-C) before {{ interrupted }} sample(s) ended: this
+is the summary of what finished; run the same command again to resume.</p>{% endif %}
+<p>{{ done }} done, {{ failed }} failed{% if interrupted %}, {{ interrupted }} interrupted{% endif %}{% if up_to_date %}; {{ up_to_date }} stage(s) were up to date{% endif %}.
 Times are each stage's wall time in this batch; an up-to-date stage was skipped (its record matched: hover for
 the time it took when it ran).</p>
 <table class="batch">
@@ -115,12 +117,15 @@ the time it took when it ran).</p>
 {% for r in rows %}
 <tr class="sample {{ r.status }}" data-name="{{ r.name }}">
 <td>{% if r.report %}<a href="{{ r.report }}">{{ r.name }}</a>{% else %}{{ r.name }}{% endif %}</td>
-<td>{% if r.status == "done" %}<span class="ok">done</span>{% else %}<span class="bad">failed</span>
+<td>{% if r.status == "done" %}<span class="ok">done</span>{% elif r.status == "interrupted" %}<span class="bad">interrupted</span>
+<div class="error">at {{ r.interrupted_stage }}: the batch was stopped; run it again to resume</div>{% else %}<span class="bad">failed</span>
 <div class="error">{{ r.failed_stage }}: {{ r.error }}</div>{% endif %}</td>
 <td>{{ r.quality }}</td>
 {% for s in stages %}{% set st = r.stages[s] %}<td class="num {{ st.status | replace(' ', '-') }}">
 {% if st.status == "not run" %}
 <span class="muted">not run</span>
+{% elif st.status == "interrupted" %}
+<span class="bad">interrupted</span>
 {% elif st.status == "failed" %}
 <span class="bad">failed</span> {{ st.seconds | dur }}
 {% elif st.status == "up to date" %}
@@ -161,31 +166,35 @@ def _html(doc: dict[str, Any]) -> str:
     from dualscale.report.html import environment
 
     rows = doc["samples"]
-    failures = [r for r in rows if r["status"] != "done"]
+    failures = [r for r in rows if r["status"] == "failed"]
+    stopped = sum(1 for r in rows if r["status"] == "interrupted")
     up = sum(1 for r in rows for s in r["stages"].values() if s["status"] == "up to date")
     sub = (f"{doc['list']} → {doc['outdir']} · {doc['engine']} · finished {doc['finished']} · "
-           f"{len(rows) - len(failures)}/{len(rows)} done")
+           f"{sum(1 for r in rows if r['status'] == 'done')}/{len(rows)} done"
+           + (" · interrupted" if doc.get("interrupted") else ""))
     return environment().from_string(_HTML).render(
         title="dualscale batch", subtitle=sub,
         toc=[("samples", "samples")] + ([("failures", "failures")] if failures else []),
         footer=f"dualscale batch summary (format {SUMMARY_FORMAT} v{SUMMARY_VERSION}); per-sample reports: "
                "OUTDIR/<name>/report/index.html",
-        stages=STAGES, rows=rows, failures=failures, done=len(rows) - len(failures), failed=len(failures),
-        up_to_date=up)
+        stages=STAGES, rows=rows, failures=failures, done=len(rows) - len(failures) - stopped, failed=len(failures),
+        interrupted=stopped, up_to_date=up)
 
 
 def write_summary(results: list[SampleResult], outdir: str | Path, *, list_path: str | Path, engine: str,
-                  seconds: float) -> dict[str, Any]:
+                  seconds: float, interrupted: bool = False) -> dict[str, Any]:
     """Write ``OUTDIR/summary.json``, ``summary.csv`` and ``summary.html`` atomically
     (module docstring); returns the JSON document (``{"format", "version", "list", "outdir",
-    "engine", "finished", "seconds", "samples": [sample_row ...]}``)."""
+    "engine", "finished", "seconds", "interrupted", "samples": [sample_row ...]}``).
+    ``interrupted``: the batch was stopped (Ctrl-C) and this is the summary of what finished
+    (samples not ended have the status ``interrupted``)."""
     from dualscale.formats.atomic import write_json, write_text
 
     outdir = Path(outdir)
     doc = {"format": SUMMARY_FORMAT, "version": SUMMARY_VERSION, "list": str(Path(list_path).absolute()),
            "outdir": str(outdir.absolute()), "engine": engine,
            "finished": datetime.now(timezone.utc).isoformat(timespec="seconds"), "seconds": round(seconds, 3),
-           "samples": [sample_row(r) for r in results]}
+           "interrupted": bool(interrupted), "samples": [sample_row(r) for r in results]}
     write_json(outdir / "summary.json", doc)
     write_text(outdir / "summary.csv", _csv(doc["samples"]))
     write_text(outdir / "summary.html", _html(doc))
@@ -200,6 +209,10 @@ def table(doc: dict[str, Any]) -> str:
            "exports"]
     for r in rows:
         t = f"{r['seconds']:.1f} s"
+        if r["status"] == "interrupted":
+            out.append(f"{r['name']:<{w}s}  {'STOPPED':<6s}  {t:>10s}  interrupted at {r['interrupted_stage']} "
+                       "(run the same command again to resume)")
+            continue
         if r["status"] != "done":
             out.append(f"{r['name']:<{w}s}  {'FAILED':<6s}  {t:>10s}  {r['failed_stage']}: {r['error']}")
             continue

@@ -6,8 +6,10 @@ and ``--progress/--no-progress``; and the one way a command takes its output fol
 renames and removes a probe file in it (:func:`dualscale.formats.atomic.probe_writable`): a
 folder that cannot be written fails at once, not after the work.  It then writes the folder's
 record, ``.dualscale-output.json`` (``{"format": "dualscale-output", "version": 1, "command":
-..., "inputs": [...]}``: the command and its resolved inputs, e.g. the dataset, or the material
-and seed of ``synth``).  A folder is **foreign** when it holds a record of another command or
+..., "inputs": [...], "relative": [...]}``: the command and its resolved inputs, e.g. the
+dataset, or the material and seed of ``synth``; ``relative``: each input path relative to the
+folder, ``null`` for other values, so that a project folder moved or renamed with its inputs is
+still the same run).  A folder is **foreign** when it holds a record of another command or
 other inputs, or, without a record, the outputs of an earlier dualscale run (a
 ``material.json``, ``manifest.json``, ``fit.json``, ... in it or one level down; a command may
 recognise its own earlier, unrecorded outputs: ``own``).  A foreign folder is refused (exit 2)
@@ -46,6 +48,8 @@ from typing import Iterator, Sequence
 from dualscale.errors import InputError, ToolError
 
 RECORD = ".dualscale-output.json"
+#: the lock file of a folder being written (``output_folder(lock=True)``; :class:`dualscale.pipeline.FolderLock`)
+LOCK_FILE = ".dualscale-lock"
 RECORD_FORMAT = "dualscale-output"
 #: files that mark a folder (or a subfolder one level down) as holding a dualscale run's outputs
 MARKERS = ("material.json", "manifest.json", "fit.json", "captures.json", "calibration.json", "flyouts.json",
@@ -62,13 +66,36 @@ def add_output(parser: argparse.ArgumentParser, help: str, required: bool = True
                              "the same inputs into its own folder needs none (it resumes)")
 
 
-def _identity(command: str, inputs: Sequence[object]) -> dict:
-    def norm(x: object) -> object:
-        if isinstance(x, Path) or (isinstance(x, str) and os.path.exists(x)):
-            return str(Path(x).resolve())
-        return x
+def _is_path(x: object) -> bool:
+    return isinstance(x, Path) or (isinstance(x, str) and os.path.exists(x))
 
-    return {"command": command, "inputs": [norm(x) for x in inputs if x is not None]}
+
+def _identity(command: str, inputs: Sequence[object], out: Path | None = None) -> dict:
+    """The record's identity of a run: the command and its inputs (paths resolved).  With
+    ``out``, also ``relative``: each path input relative to the output folder (``None`` for
+    values that are not paths), so that a project folder moved or renamed with its inputs and
+    outputs inside is still the same run (:func:`_same_inputs`)."""
+    inputs = [x for x in inputs if x is not None]
+    doc: dict = {"command": command, "inputs": [str(Path(x).resolve()) if _is_path(x) else x for x in inputs]}
+    if out is not None:
+        base = out.resolve()
+        doc["relative"] = [os.path.relpath(Path(x).resolve(), base) if _is_path(x) else None for x in inputs]
+    return doc
+
+
+def _same_inputs(doc: dict, ident: dict, out: Path) -> bool:
+    """Whether a folder's record ``doc`` names the inputs of ``ident``: the same resolved paths,
+    or (the folder moved or renamed with its inputs, issue 24 §7) the record's paths relative to
+    the folder lead from where the folder is now to the same inputs."""
+    before = doc.get("inputs")
+    if before == ident["inputs"]:
+        return True
+    rel = doc.get("relative")
+    if not isinstance(before, list) or not isinstance(rel, list) or len(rel) != len(before):
+        return False
+    base = out.resolve()
+    moved = [str((base / r).resolve()) if isinstance(r, str) else b for r, b in zip(rel, before)]
+    return moved == ident["inputs"]
 
 
 def _foreign(out: Path, ident: dict, own=None) -> str | None:
@@ -85,7 +112,7 @@ def _foreign(out: Path, ident: dict, own=None) -> str | None:
             return f"its record {rec.name} is unreadable"
         if doc.get("command") != ident["command"]:
             return f"it holds the outputs of 'dualscale {doc.get('command')}'"
-        if doc.get("inputs") != ident["inputs"]:
+        if not _same_inputs(doc, ident, out):
             return f"it holds the outputs of another run of {ident['command']} (inputs {doc.get('inputs')})"
         return None
     if own is not None:
@@ -128,7 +155,8 @@ def _clear(out: Path, inputs: Sequence[object]) -> Path | None:
     try:
         aside.mkdir()
         for p in res.iterdir():
-            os.rename(p, aside / p.name)
+            if p.name != LOCK_FILE:  # this command's own lock stays where it is held
+                os.rename(p, aside / p.name)
         return aside
     except OSError:  # another filesystem or an unwritable parent: delete, as before
         if aside.is_dir():
@@ -136,6 +164,8 @@ def _clear(out: Path, inputs: Sequence[object]) -> Path | None:
                 os.rename(p, res / p.name)
             aside.rmdir()
     for p in res.iterdir():
+        if p.name == LOCK_FILE:
+            continue
         if p.is_dir() and not p.is_symlink():
             shutil.rmtree(p)
         else:
@@ -146,6 +176,8 @@ def _clear(out: Path, inputs: Sequence[object]) -> Path | None:
 def _restore(out: Path, aside: Path) -> None:
     """Put back what :func:`_clear` set aside, removing what the failed command wrote."""
     for p in out.iterdir():
+        if p.name == LOCK_FILE:
+            continue
         if p.is_dir() and not p.is_symlink():
             shutil.rmtree(p, ignore_errors=True)
         else:
@@ -165,7 +197,8 @@ def _writable_error(out: Path, e: OSError) -> Exception:
 
 @contextlib.contextmanager
 def output_folder(args: argparse.Namespace, command: str, inputs: Sequence[object] = (), *,
-                  record: bool = True, folder: str | Path | None = None, own=None) -> Iterator[Path]:
+                  record: bool = True, folder: str | Path | None = None, own=None,
+                  lock: bool = False) -> Iterator[Path]:
     """Take the command's output folder (``folder``, default ``args.output``) before any work:
     refuse a foreign one unless ``args.overwrite`` (module docstring), check that it can be
     written (a probe file through :mod:`dualscale.formats.atomic`; ``InputError`` for a folder
@@ -176,11 +209,18 @@ def output_folder(args: argparse.Namespace, command: str, inputs: Sequence[objec
     ``inputs``: what identifies the run (paths are resolved; other values kept as they are).
     ``own(folder)``: for a folder without a record, ``None`` when it holds this command's own
     earlier outputs of the same inputs (written before records existed), a reason (text) when
-    another run's, ``False`` to apply the usual marker files."""
-    from dualscale.formats.atomic import probe_writable, write_json
+    another run's, ``False`` to apply the usual marker files.
 
+    The record names the inputs by their resolved paths and by their paths relative to the
+    folder: a folder moved or renamed together with its inputs (a project folder) is still this
+    run's, and resumes (issue 24 §7).
+
+    ``lock``: hold :class:`dualscale.pipeline.FolderLock` on the folder from before anything in
+    it is looked at (``--overwrite`` included) until the command ends, so that a second command
+    on the same folder is refused at once (``InputError``: "... is in use by PID ...") instead of
+    writing into the first one's work; the lock file ``.dualscale-lock`` is removed at the end,
+    and one left by a killed process does not block."""
     out = Path(folder if folder is not None else args.output)
-    ident = _identity(command, inputs)
     if out.exists() and not out.is_dir():
         raise InputError(f"-o {out} is a file, not a folder")
     created = []  # the folders made here, deepest last
@@ -188,6 +228,38 @@ def output_folder(args: argparse.Namespace, command: str, inputs: Sequence[objec
     while not p.exists():
         created.append(p)
         p = p.parent
+    if not lock:
+        yield from _output_folder(args, command, inputs, out, created, record, own)
+        return
+    from dualscale.pipeline import FolderLock
+
+    held = FolderLock(out, command)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        held.acquire()
+    except (InputError, OSError) as e:
+        for d in created:
+            with contextlib.suppress(OSError):
+                d.rmdir()  # only when empty: made here for the lock
+        if isinstance(e, InputError):
+            raise
+        raise _writable_error(out, e) from None
+    try:
+        yield from _output_folder(args, command, inputs, out, created, record, own)
+    finally:
+        held.release()
+        for d in created:  # a refused run's folder made here went with its record; its lock file too
+            if d.is_dir() and not any(d.iterdir()):
+                with contextlib.suppress(OSError):
+                    d.rmdir()
+
+
+def _output_folder(args: argparse.Namespace, command: str, inputs: Sequence[object], out: Path,
+                   created: list[Path], record: bool, own) -> Iterator[Path]:
+    """The body of :func:`output_folder` (``created``: the folders it made, deepest first)."""
+    from dualscale.formats.atomic import probe_writable, write_json
+
+    ident = _identity(command, inputs, out)
     aside: Path | None = None
     if out.is_dir() and record:
         why = _foreign(out, ident, own)
@@ -227,7 +299,7 @@ def output_folder(args: argparse.Namespace, command: str, inputs: Sequence[objec
             with contextlib.suppress(OSError):
                 (out / RECORD).unlink()
         for d in created:
-            left = [x for x in d.iterdir()] if d.is_dir() else []
+            left = [x for x in d.iterdir() if x.name != LOCK_FILE] if d.is_dir() else []
             if d == out.absolute() and all(x.name == RECORD for x in left):
                 shutil.rmtree(d, ignore_errors=True)
             elif d.is_dir() and not left:
@@ -236,8 +308,9 @@ def output_folder(args: argparse.Namespace, command: str, inputs: Sequence[objec
         raise
 
 
-THREADS_HELP = ("'auto' = the usable cores less the 1-minute load average, at least 1 (on busy cores extra "
-                "threads slow everything down); default: OMP_NUM_THREADS if set, else auto")
+AUTO_HELP = ("'auto' = the usable cores less the 1-minute load average, at least 1 (on busy cores extra "
+             "threads slow everything down)")
+THREADS_HELP = f"{AUTO_HELP}; default: OMP_NUM_THREADS if set, else auto"
 
 
 def _threads_arg(text: str) -> int | str:
@@ -265,11 +338,14 @@ class _ThreadsAction(argparse.Action):
         setattr(namespace, self.dest, n)
 
 
-def add_work_options(parser: argparse.ArgumentParser, threads_help: str | None = None) -> None:
+def add_work_options(parser: argparse.ArgumentParser, threads_help: str | None = None,
+                     defaults: str | None = None) -> None:
     """Add ``--threads N|auto`` and ``--progress/--no-progress`` to a long command
-    (``threads_help``: what the count drives, before the common words on ``auto``)."""
+    (``threads_help``: what the count drives, before the common words on ``auto``; ``defaults``:
+    the command's own default, in place of the usual one, so that the help states one)."""
+    default = f"default: {defaults}" if defaults else "default: OMP_NUM_THREADS if set, else auto"
     parser.add_argument("--threads", type=_threads_arg, action=_ThreadsAction, default=None, metavar="N|auto",
-                        help=f"{threads_help or 'CPU threads for torch, OpenCV and numba'}; {THREADS_HELP}")
+                        help=f"{threads_help or 'CPU threads for torch, OpenCV and numba'}; {AUTO_HELP}; {default}")
     parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
                         help="progress bar on stderr (default: on when stderr is a terminal)")
 
@@ -313,11 +389,15 @@ def add_engine_options(parser: argparse.ArgumentParser, workers_help: str, defau
     return g
 
 
-def engine_spec(args: argparse.Namespace):
+def engine_spec(args: argparse.Namespace, reach: bool = True):
     """The :class:`dualscale.engine.EngineSpec` the engine options ask for, or ``None`` to run
     in-process (no ``--workers`` above 1, no ``--scheduler``, no job-queue ``--cluster``).
     Raises :class:`~dualscale.errors.InputError` for unusable values and
-    :class:`~dualscale.errors.ToolError` when a cluster is asked for without the ``dask`` extra."""
+    :class:`~dualscale.errors.ToolError` when a cluster is asked for without the ``dask`` extra,
+    when a job-queue cluster's submit command is missing, or (``reach``) when a ``--scheduler``
+    does not answer within :data:`dualscale.engine.SCHEDULER_TIMEOUT_S`
+    (:func:`dualscale.engine.check_scheduler`): the commands call this before they read their
+    datasets."""
     from dualscale.engine import EngineSpec, require
 
     workers, scheduler = getattr(args, "workers", None), getattr(args, "scheduler", None)
@@ -338,4 +418,8 @@ def engine_spec(args: argparse.Namespace):
         from dualscale.engine import check_jobqueue
 
         check_jobqueue(spec)
+    if scheduler is not None and reach:  # an address nobody answers at: say so now, not 30 s after the data loaded
+        from dualscale.engine import check_scheduler
+
+        check_scheduler(scheduler)
     return spec

@@ -42,6 +42,22 @@ def _own_run(inp: str | None):
     return own
 
 
+def _empty(run: Path) -> None:
+    """Remove what a refused run wrote into the run folder it made, but the folder's lock and
+    record (:func:`.common.output_folder` removes those, and the folder, as it lets go)."""
+    import shutil
+
+    from .common import LOCK_FILE, RECORD
+
+    for p in run.iterdir() if run.is_dir() else []:
+        if p.name in (LOCK_FILE, RECORD):
+            continue
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p, ignore_errors=True)
+        else:
+            p.unlink(missing_ok=True)
+
+
 def _check_lines(res) -> list[str]:
     return [f"check: {c.text}" + ("" if c.ok is None else " ✓" if c.ok else " ✗") for c in res.checks]
 
@@ -71,15 +87,15 @@ def cmd_digitize(a: argparse.Namespace) -> int:
     ident = [Path(a.input)] if a.rig is None else [f"rig:{a.rig}", *a.camera]
     run = Path(a.output)
     fresh = not run.exists()
-    try:
-        with output_folder(a, "digitize", ident, own=_own_run(a.input)):
+    # the run folder is locked from before it is looked at until the end: a second digitize on the
+    # same RUN is refused at once ("RUN is in use by PID ...", exit 2) instead of writing RUN/work/ too
+    with output_folder(a, "digitize", ident, own=_own_run(a.input), lock=True):
+        try:
             res = _run(a, opts, start, prepared, digitize, RigCapture)
-    except InputError:
-        if fresh and run.is_dir():  # refused on its input: a run folder made by this command goes again
-            import shutil
-
-            shutil.rmtree(run, ignore_errors=True)
-        raise
+        except InputError:
+            if fresh:  # refused on its input: what this command wrote goes again (the folder too, on the way out)
+                _empty(run)
+            raise
     fit = res.record("fit")
 
     if fit is not None:
@@ -147,7 +163,8 @@ EXIT_EPILOG = """exit codes:
   0    done, and the run's own check passed (or was not measured)
   1    the run finished but failed its own check: the fit's cross-validated held-out relative L1
        is above 50 % (the last line names it; docs/DIGITIZE.md, "The run's check")
-  2    bad input: a file, a value, an output folder holding another run; nothing is written
+  2    bad input: a file, a value, an output folder holding another run, or RUN in use by another
+       command (its PID is named); nothing is written
   3    the rig or a camera (--rig)
   4    a missing tool or environment (a full disk, the dask extra for --workers)
   5    an internal error (please report it)
@@ -189,7 +206,8 @@ def register(sub) -> None:
     d.add_argument("--guidance", default=None, metavar="IMAGE",
                    help="mid-range image of the whole sample (image file or dataset folder) to propagate to")
     d.add_argument("--transfer", default=None, metavar="srgb|linear|gamma:G",
-                   help="transfer function of a display-encoded guidance image (PNG/JPEG/TIFF)")
+                   help="transfer function of a display-encoded --guidance image (PNG/JPEG/TIFF); only with "
+                        "--guidance (default: none)")
     d.add_argument("--guidance-texel-mm", type=float, default=None, metavar="MM",
                    help="texel size of the guidance image (default: from its dataset, else the mid camera)")
     d.add_argument("--quality", choices=sorted(QUALITIES), default="standard",

@@ -226,7 +226,8 @@ def fit_tiled(obs: Observations, preset: Preset, comps: Components, client, *,
     with tracker(progress, len(boxes), f"fit[{preset.name}] tiles", unit="tile") as bar, warnings.catch_warnings():
         # a task carries its tile's images on purpose (module doc: a lost worker's task can rerun)
         warnings.filterwarnings("ignore", message=r"Sending large graph", category=UserWarning)
-        bar.update(resumed)
+        if resumed:  # the tiles saved by an earlier run count as done (all of them: the bar is full)
+            bar.update(resumed, f"{resumed} tile(s) done before")
         queue = list(todo)
         futures = {}
         for box in queue[:limit]:
