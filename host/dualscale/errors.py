@@ -8,8 +8,8 @@ library callers that expect ``ValueError`` keep working.  Nothing is written whe
 
 Exit codes (``dualscale ...``): 0 success, 1 a run that finished but failed its own check,
 2 bad input (:class:`InputError`), 3 the rig or its simulator (:class:`RigError`), 4 missing
-tools or environment (:class:`ToolError`), 5 an internal failure, 130 interrupted (Ctrl-C;
-resumable).
+tools or environment (:class:`ToolError`; a full disk: :class:`OutputError`), 5 an internal
+failure, 130 interrupted (Ctrl-C; resumable).
 """
 
 from __future__ import annotations
@@ -93,6 +93,20 @@ class ToolError(DualscaleError, RuntimeError):
     """An external tool or environment requirement is missing (a flasher, a compiler, a browser)."""
 
     exit_code = 4
+
+
+class OutputError(OSError, ToolError):
+    """An output file could not be written whole: the disk (or the user's quota) is full, the
+    file-size limit was reached (``ulimit -f``), or the bytes did not reach the disk although the
+    writer reported success.  Raised by :mod:`dualscale.formats.atomic` after the temporary file
+    was removed, so nothing is left under the final name.  An ``OSError`` (``errno``: ``ENOSPC``,
+    ``EDQUOT``, ``EFBIG`` or ``EIO``; ``filename``: the final path) and an environment error:
+    exit 4, the README's "a full disk".  Constructed as ``OSError(errno, strerror, filename)``;
+    its message is ``cannot write FILENAME: STRERROR``."""
+
+    def __str__(self) -> str:
+        what = self.strerror or (self.args[0] if self.args else "the write failed")
+        return f"cannot write {self.filename}: {what}" if self.filename is not None else str(what)
 
 
 class Interrupted(DualscaleError, RuntimeError):

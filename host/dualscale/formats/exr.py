@@ -1,6 +1,7 @@
 """Image I/O through OpenImageIO: float EXR (data) and 8-bit sRGB PNG (previews only).
 
-Every write is atomic (:mod:`.atomic`).  :func:`read_exr` refuses images whose data window is
+Every write is atomic (:mod:`.atomic`) and checked whole before it takes its name
+(:func:`verify_image`; a full disk is :class:`~dualscale.errors.OutputError`).  :func:`read_exr` refuses images whose data window is
 not the display window at the origin (``oiiotool --origin`` / ``--crop`` shifted or cropped
 files), since a shifted image would be fitted misaligned; pass ``allow_window=True`` only where
 the caller handles the offset itself."""
@@ -46,10 +47,14 @@ def write_exr(path: str | Path, image: np.ndarray, channels: Sequence[str] | Non
 def write_pixels(path: str | Path, pixels: np.ndarray, spec) -> Path:
     """Write ``pixels`` ``(H, W, C)`` (dtype matching ``spec.format``) with the OpenImageIO
     ``ImageSpec`` ``spec`` (its attributes: compression, colour space, ...), atomically; the file
-    type follows the suffix.  ``OSError`` naming the file when OpenImageIO refuses."""
+    type follows the suffix.  The written file is checked (:func:`verify_image`) and flushed
+    before it takes its name.  Raises :class:`~dualscale.errors.OutputError` (exit 4) when the
+    disk is full, the file-size limit is reached or the file reads back short (OpenImageIO
+    reports success for a PNG that a full disk truncated); ``OSError`` naming the file when
+    OpenImageIO refuses for another reason.  Nothing is left under ``path`` by a failed write."""
     import OpenImageIO as oiio
 
-    with atomic_path(path) as tmp:
+    with atomic_path(path, verify=lambda tmp: verify_image(tmp, spec, path)) as tmp:
         out = oiio.ImageOutput.create(str(tmp))
         if out is None or not out.open(str(tmp), spec):
             raise OSError(f"cannot write {path}: {oiio.geterror()}")
@@ -61,6 +66,57 @@ def write_pixels(path: str | Path, pixels: np.ndarray, spec) -> Path:
         if not closed:
             raise OSError(f"cannot write {path}: {out.geterror() or 'closing the file failed'}")
     return Path(path)
+
+
+_PNG_END = b"\x00\x00\x00\x00IEND\xaeB`\x82"  # PNG's last chunk: IEND, no data, its CRC
+
+
+def verify_image(tmp: str | Path, spec, final: str | Path | None = None) -> None:
+    """Check that the image file ``tmp`` that a writer just closed is whole: it re-opens with
+    ``spec``'s width, height, channel count and pixel type, and its pixels read back -- all of
+    them (a PNG also ends in its ``IEND`` chunk, the 12 bytes a truncated PNG loses first and
+    that a reader does not miss), or, for a scanline EXR (whose chunks are written in order, so
+    a short file lacks the last), the last scanline.  Raises
+    :class:`~dualscale.errors.OutputError` naming ``final`` (default ``tmp``) with the cause
+    (:func:`dualscale.formats.atomic.output_error`; ``EIO`` when neither a full disk nor the
+    file-size limit explains it)."""
+    import OpenImageIO as oiio
+
+    from .atomic import output_error
+
+    tmp = Path(tmp)
+    final = Path(final) if final is not None else tmp
+
+    def fail(why: str):
+        raise output_error(final, why, tmp, short=True)
+
+    size = tmp.stat().st_size
+    if size == 0:
+        fail("the writer reported success but the file is empty")
+    if tmp.suffix.lower() == ".png":
+        with open(tmp, "rb") as f:
+            f.seek(max(0, size - len(_PNG_END)))
+            if f.read() != _PNG_END:
+                fail(f"the PNG is truncated at {size} bytes (no IEND chunk)")
+    inp = oiio.ImageInput.open(str(tmp))
+    if inp is None:
+        fail(f"the written file does not re-open ({_oiio_error(oiio.geterror())})")
+    try:
+        got = inp.spec()
+        want = (spec.width, spec.height, spec.nchannels, str(spec.format))
+        have = (got.width, got.height, got.nchannels, str(got.format))
+        if have != want:
+            fail(f"the written file re-opens as {have[0]}x{have[1]}x{have[2]} {have[3]}, "
+                 f"not {want[0]}x{want[1]}x{want[2]} {want[3]}")
+        if tmp.suffix.lower() == ".exr" and got.tile_width == 0:
+            data = inp.read_scanlines(0, 0, got.y + got.height - 1, got.y + got.height, 0, 0, got.nchannels,
+                                      got.format)
+        else:
+            data = inp.read_image(0, 0, 0, got.nchannels, got.format)
+        if data is None:
+            fail(f"the written file's pixels do not read back ({_oiio_error(inp.geterror())})")
+    finally:
+        inp.close()
 
 
 def open_image(path: str | Path):

@@ -33,7 +33,7 @@ from dualscale.bsdf import MAP_CHANNELS, MaterialMaps, validate_maps
 from dualscale.errors import FormatError, GeometryError
 
 from .atomic import atomic_path, remove_file, write_json
-from .exr import read_exr, srgb_encode, write_exr, write_png_preview
+from .exr import read_exr, srgb_encode, verify_image, write_exr, write_png_preview
 from .versioned import read_versioned_json
 
 FORMAT = "dualscale-maps"
@@ -146,7 +146,8 @@ class MapsWriter:
     Entering removes an earlier ``material.json`` (as :func:`save_maps` does before its first
     map).  Every ``<name>.exr`` (float32, zip, OpenImageIO ``write_scanlines``) and preview goes
     to a temporary file (:func:`dualscale.formats.atomic.atomic_path`); a clean exit after all
-    ``H`` rows closes them (a full disk shows here, ``OSError`` naming the file), renames them
+    ``H`` rows closes them, checks each whole (:func:`dualscale.formats.exr.verify_image`; a full
+    disk shows here, :class:`~dualscale.errors.OutputError` naming the file), renames them
     into place and writes ``material.json`` last.  An exit on an error or an interrupt
     (``KeyboardInterrupt``) closes and deletes the temporary files: no new file appears under a
     final name.  Rows must come in order and every call gives every map, finite (``ValueError``
@@ -194,7 +195,8 @@ class MapsWriter:
     def _open(self, final: Path, spec) -> None:
         import OpenImageIO as oiio
 
-        tmp = self._stack.enter_context(atomic_path(final))
+        # checked whole before it takes its name (OpenImageIO reports success for a PNG a full disk truncated)
+        tmp = self._stack.enter_context(atomic_path(final, verify=lambda t: verify_image(t, spec, final)))
         out = oiio.ImageOutput.create(str(tmp))
         if out is None or not out.open(str(tmp), spec):
             raise OSError(f"cannot write {final}: {oiio.geterror()}")
