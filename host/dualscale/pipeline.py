@@ -53,17 +53,17 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Callable
 
+from dualscale.capture.stage import RigCapture, capture_spec, check_rig_calibration
 from dualscale.errors import InputError, UnitsError
 from dualscale.formats.atomic import clean_stale, write_text
-from dualscale.formats.run import (file_sha256, json_sha256, read_stage, stage_path, tree_sha256, write_run,
-                                   write_stage)
+from dualscale.formats.run import (CAPTURE_STAGE, STAGES, file_sha256, json_sha256, read_stage, stage_path, tree_sha256,
+                                   write_run, write_stage)
 
 #: the run's check: the largest cross-validated held-out relative L1 of the fit a run passes with
 #: (module docstring; the figures of docs/DIGITIZE.md and docs/PHOTOS.md are 0.02-0.25, random
 #: noise gives 1.0 and more)
 HELDOUT_L1_GOAL = 0.5
 CHECKPOINT_EVERY = 2  # fit iterations between checkpoints (the LM presets run 11-21 iterations in all)
-STAGES = ("calibrate", "fit", "flyouts", "propagate", "export", "report")
 # rough share of a run's time per stage, for the overall ETA (measured in docs/DIGITIZE.md)
 _WEIGHTS = {"calibrate": 1.0, "fit": 10.0, "flyouts": 1.0, "propagate": 8.0, "export": 0.5, "report": 1.0}
 
@@ -353,90 +353,6 @@ def run_stage(run: Path, name: str, inputs: dict[str, Any], params: dict[str, An
               "summary": summary}
     write_stage(run, name, record)
     return StageResult(name, record, False)
-
-
-#: the lock file of a folder a command is writing (:class:`FolderLock`)
-LOCK_FILE = ".dualscale-lock"
-
-
-class FolderLock:
-    """An exclusive lock on a run folder (or any output folder) that one process writes: an OS
-    lock (``fcntl.flock``) on ``FOLDER/.dualscale-lock``, which holds the holder's PID, start
-    time and command (JSON) for the message a second process gets.
-
-    The kernel releases the lock when its process ends, however it ends (``kill -9`` included),
-    so a lock file left behind never blocks: only a live holder does.  :meth:`release` removes
-    the file.  Two commands on one run folder would both write ``RUN/work/<stage>/`` (issue 24
-    §7); the second is refused instead: :meth:`acquire` raises
-    :class:`~dualscale.errors.InputError` (exit 2, like any output folder the command cannot
-    use) "``FOLDER`` is in use by PID ... (started ...)".  On a filesystem without locks
-    (``ENOLCK``, ``EOPNOTSUPP``) the folder is used unlocked, as before.  Use it as a context
-    manager; the folder must exist."""
-
-    def __init__(self, folder: str | Path, command: str) -> None:
-        self.folder, self.command = Path(folder), command
-        self.path = self.folder / LOCK_FILE
-        self._fd: int | None = None
-
-    def acquire(self) -> "FolderLock":
-        import errno
-        import fcntl
-        import json
-
-        for _ in range(100):  # retried only while another process removes the file under us
-            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o666)
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except OSError as e:
-                os.close(fd)
-                if e.errno in (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS):
-                    return self  # no locks on this filesystem: unlocked, as before
-                if e.errno not in (errno.EAGAIN, errno.EWOULDBLOCK, errno.EACCES):
-                    raise
-                raise InputError(self._in_use()) from None
-            try:  # the file we locked must still be the one at the path (a holder removes it on release)
-                same = os.fstat(fd).st_ino == os.stat(self.path).st_ino
-            except FileNotFoundError:
-                same = False
-            if not same:
-                os.close(fd)
-                continue
-            info = {"pid": os.getpid(), "started": datetime.now().astimezone().isoformat(timespec="seconds"),
-                    "command": self.command}
-            os.ftruncate(fd, 0)
-            os.write(fd, (json.dumps(info) + "\n").encode())
-            self._fd = fd
-            return self
-        raise InputError(self._in_use())
-
-    def _in_use(self) -> str:
-        import json
-
-        try:
-            info = json.loads(self.path.read_text())
-            who = f"PID {int(info['pid'])} (started {info.get('started')}, `dualscale {info.get('command')}`)"
-        except (OSError, ValueError, TypeError, KeyError):
-            who = "another process (starting)"
-        return (f"{self.folder} is in use by {who}: two commands writing one folder would spoil each other's "
-                "work; wait for that one to end (then run this command again to resume), or choose another folder")
-
-    def release(self) -> None:
-        """Remove the lock file and release the lock (nothing when not held)."""
-        if self._fd is None:
-            return
-        fd, self._fd = self._fd, None
-        try:
-            if os.stat(self.path).st_ino == os.fstat(fd).st_ino:
-                self.path.unlink()
-        except OSError:
-            pass
-        os.close(fd)  # closing the last descriptor releases the flock
-
-    def __enter__(self) -> "FolderLock":
-        return self.acquire()
-
-    def __exit__(self, *exc) -> None:
-        self.release()
 
 
 def _calibration_key(path: Path) -> str:
@@ -856,87 +772,12 @@ def _options_json(o: DigitizeOptions) -> dict[str, Any]:
     return out
 
 
-@dataclass
-class RigCapture:
-    """``digitize --rig``: the opened rig (:class:`dualscale.rig.client.RigClient`), its cameras
-    by role (:class:`dualscale.capture.camera.Camera`, opened), the micro plan's LED selection and
-    the capture options (:class:`dualscale.capture.session.CaptureOptions`)."""
-
-    rig: Any
-    cameras: dict[str, Any]
-    lights: str = "ALL"
-    options: Any = None
-
-
-CAPTURE_STAGE = "capture"
-
-
 def capture_stage(run: Path, rc: RigCapture, progress: Callable[[int, int, str], None] | None = None) -> StageResult:
-    """The stage before ``calibrate`` when digitizing from the rig: the micro plan (and the mid
-    plan when a mid camera is given) captured into ``RUN/capture/{micro,mid}/``
-    (:class:`dualscale.capture.session.CaptureSession`).  Its inputs are the rig's identification
-    and the cameras' specs and serials, its parameters the plans and options; an interrupted
-    capture resumes from its journal in ``RUN/work/capture/``."""
-    from dualscale.capture.plan import make_plan
-    from dualscale.capture.session import CaptureOptions, CaptureSession, stable_spec
-
-    plans = [make_plan("micro", rc.lights)] + ([make_plan("mid")] if "mid" in rc.cameras else [])
-    opts = rc.options or CaptureOptions()
-    ident = rc.rig.identity
-    inputs = {"rig": None if ident is None else ident.text,
-              "cameras": {r: [stable_spec(c.spec), c.serial] for r, c in sorted(rc.cameras.items())}}
-    params = {"lights": rc.lights, "plans": [p.name for p in plans],
-              "options": {k: v for k, v in asdict(opts).items() if k != "timeout_margin_s"}}
-
-    def fn(work: Path) -> dict[str, Any]:
-        out = {}
-        for plan in plans:
-            cams = {r: rc.cameras[r] for r in plan.roles}
-            summary = CaptureSession(rc.rig, cams, plan, work / plan.name, opts, resume=True, progress=progress).run()
-            out[plan.name] = {k: v for k, v in asdict(summary).items() if k != "dataset"}
-        return out
-
+    """The stage before ``calibrate`` when digitizing from the rig (:mod:`dualscale.capture.stage`):
+    the plans captured into ``RUN/capture/{micro,mid}/``; an interrupted capture resumes from its
+    journal in ``RUN/work/capture/``."""
+    inputs, params, fn = capture_spec(rc, progress)
     return run_stage(run, CAPTURE_STAGE, inputs, params, versions(), fn)
-
-
-def _check_rig_calibration(rc: RigCapture, calibration: Path) -> None:
-    """Before capturing: the calibration must be of this rig (its id and dome layout) and cover
-    every LED of the micro plan, or the capture would be refused by calibrate afterwards.  Records
-    the calibration's id (file name and content hash) as the capture's ``calibration_id`` unless
-    one was given."""
-    from dataclasses import replace
-
-    from dualscale.capture.plan import make_plan
-    from dualscale.capture.session import CaptureOptions
-    from dualscale.errors import CalibrationError
-    from dualscale.formats.calibration import read_calibration
-    from dualscale.geometry.dome import DomeGeometry
-
-    opts = rc.options or CaptureOptions()
-    ident = rc.rig.identity
-    rig_id = opts.rig_id or (ident.text if ident is not None else None)
-    cal = read_calibration(calibration, rig_id=rig_id, layout=DomeGeometry.from_regmap().signature())
-    leds = {s.index for s in make_plan("micro", rc.lights).shots if s.kind == "led"}
-    have = _calibrated_leds(cal)
-    if have is not None and not leds <= have:
-        missing = sorted(leds - have)
-        raise CalibrationError(f"{calibration}: no white-sheet capture for LED(s) {missing[:8]}"
-                               f"{' ...' if len(missing) > 8 else ''} of --lights {rc.lights}: capture those lights "
-                               "with the calibration, or choose --lights the calibration covers")
-    if opts.calibration_id is None:
-        rc.options = replace(opts, calibration_id=f"{calibration.name}#sha256:{file_sha256(calibration)[:12]}")
-
-
-def _calibrated_leds(cal: dict[str, Any]) -> set[int] | None:
-    """The LED ids the calibration's micro camera has an ``r_c`` for, or None if it does not say."""
-    rc = (cal.get("r_c") or {}).get("micro")
-    if not isinstance(rc, dict):
-        return None
-    out = set()
-    for key in rc:
-        if str(key).startswith("led") and str(key)[3:].isdigit():
-            out.add(int(str(key)[3:]))
-    return out or None
 
 
 def digitize(opts: DigitizeOptions, on_stage: Callable[[StageResult], None] | None = None,
@@ -961,7 +802,7 @@ def digitize(opts: DigitizeOptions, on_stage: Callable[[StageResult], None] | No
                              "--calibration CAL (dualscale calibrate)")
         if opts.calibration is not None and not opts.calibration.is_file():
             raise FileNotFoundError(f"calibration file not found: {opts.calibration}")
-        _check_rig_calibration(rig, opts.calibration)
+        check_rig_calibration(rig, opts.calibration)
         opts.run.mkdir(parents=True, exist_ok=True)
         captured = capture_stage(opts.run, rig)
         if on_stage is not None:

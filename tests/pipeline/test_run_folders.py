@@ -146,7 +146,7 @@ def test_a_second_digitize_on_a_run_folder_in_use_is_refused_and_a_killed_ones_l
 
 def test_a_folder_in_use_by_a_batch_is_refused_to_digitize_and_to_another_batch(tiny, tmp_path):
     """The lock is the OS's (fcntl.flock), held by a live process; the message names it."""
-    from dualscale.pipeline import FolderLock
+    from dualscale.formats.lock import FolderLock
 
     run = tmp_path / "run"
     run.mkdir()
@@ -154,7 +154,7 @@ def test_a_folder_in_use_by_a_batch_is_refused_to_digitize_and_to_another_batch(
     with FolderLock(run, "batch"):
         info = json.loads((run / ".dualscale-lock").read_text())
         assert info["pid"] == os.getpid() and info["command"] == "batch"
-        code = ("import sys; from dualscale.pipeline import FolderLock\n"
+        code = ("import sys; from dualscale.formats.lock import FolderLock\n"
                 "try:\n    FolderLock(sys.argv[1], 'digitize').acquire()\n"
                 "except Exception as e:\n    print(type(e).__name__, e); sys.exit(2)\n")
         r = subprocess.run([sys.executable, "-c", code, str(run)], capture_output=True, text=True, timeout=120)

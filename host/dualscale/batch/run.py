@@ -58,7 +58,7 @@ def stage_task(sample: Sample, outdir: str, stage: str, threads: int | None,
     the stage before returned; when it did not finish, this stage is ``not run``;
     ``quiet_exit``: the task runs in a worker process of our own local cluster (:func:`_quiet_exit`).
 
-    The stage holds the lock of the sample's run folder (:class:`~dualscale.pipeline.FolderLock`):
+    The stage holds the lock of the sample's run folder (:class:`~dualscale.formats.lock.FolderLock`):
     a ``digitize`` writing that folder meanwhile makes the stage fail with "... is in use by PID ...".
 
     Returns ``{"stage", "status": "done" | "up to date" | "failed" | "not run", "seconds"
@@ -75,7 +75,8 @@ def stage_task(sample: Sample, outdir: str, stage: str, threads: int | None,
             from dualscale.engine import in_worker
 
             in_worker(threads)
-        from dualscale.pipeline import Digitizer, FolderLock
+        from dualscale.formats.lock import FolderLock
+        from dualscale.pipeline import Digitizer
 
         d = Digitizer(sample.options(outdir, threads))
         d.run.mkdir(parents=True, exist_ok=True)

@@ -46,10 +46,9 @@ from pathlib import Path
 from typing import Iterator, Sequence
 
 from dualscale.errors import InputError, ToolError
+from dualscale.formats.lock import LOCK_FILE  # the lock of a folder being written (output_folder(lock=True))
 
 RECORD = ".dualscale-output.json"
-#: the lock file of a folder being written (``output_folder(lock=True)``; :class:`dualscale.pipeline.FolderLock`)
-LOCK_FILE = ".dualscale-lock"
 RECORD_FORMAT = "dualscale-output"
 #: files that mark a folder (or a subfolder one level down) as holding a dualscale run's outputs
 MARKERS = ("material.json", "manifest.json", "fit.json", "captures.json", "calibration.json", "flyouts.json",
@@ -215,7 +214,7 @@ def output_folder(args: argparse.Namespace, command: str, inputs: Sequence[objec
     folder: a folder moved or renamed together with its inputs (a project folder) is still this
     run's, and resumes (issue 24 §7).
 
-    ``lock``: hold :class:`dualscale.pipeline.FolderLock` on the folder from before anything in
+    ``lock``: hold :class:`dualscale.formats.lock.FolderLock` on the folder from before anything in
     it is looked at (``--overwrite`` included) until the command ends, so that a second command
     on the same folder is refused at once (``InputError``: "... is in use by PID ...") instead of
     writing into the first one's work; the lock file ``.dualscale-lock`` is removed at the end,
@@ -231,7 +230,7 @@ def output_folder(args: argparse.Namespace, command: str, inputs: Sequence[objec
     if not lock:
         yield from _output_folder(args, command, inputs, out, created, record, own)
         return
-    from dualscale.pipeline import FolderLock
+    from dualscale.formats.lock import FolderLock
 
     held = FolderLock(out, command)
     try:

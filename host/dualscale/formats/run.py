@@ -23,6 +23,11 @@ from .atomic import TMP_PREFIX, write_json
 from .versioned import read_versioned_json
 
 RUN_FORMAT, STAGE_FORMAT, VERSION = "dualscale-run", "dualscale-stage", 1
+#: the stages of ``dualscale digitize``, in order (:mod:`dualscale.pipeline`)
+STAGES = ("calibrate", "fit", "flyouts", "propagate", "export", "report")
+#: the stage of ``digitize --rig`` before the listed stages (``stages/capture.json``; not in
+#: ``run.json``'s ``stages``): :mod:`dualscale.capture.stage`
+CAPTURE_STAGE = "capture"
 _CHUNK = 1 << 20
 
 

@@ -41,13 +41,12 @@ from typing import Any
 import numpy as np
 
 from dualscale.errors import FormatError, InputError
+from dualscale.formats.run import CAPTURE_STAGE, STAGES
 
 from . import format as fmt
 from . import plots
 from .html import Assets, write_page
 
-STAGES = ("calibrate", "fit", "flyouts", "propagate", "export", "report")
-CAPTURE_STAGE = "capture"  # digitize --rig: recorded in stages/capture.json, before the listed stages
 REQUIRED_STAGES = ("calibrate", "fit")
 
 MAP_ORDER = ("albedo", "normal", "roughness", "anisotropy", "tangent", "ior", "specular_tint",
