@@ -18,7 +18,7 @@ from dualscale.formats.maps import save_maps
 
 from .cut import Tile, choose_cell, make_tile
 from .lattice import Lattice, NoRepeatError, find_lattice
-from .seam import GOAL, maps_seam_scores, seam_score
+from .seam import GOAL, maps_seam_scores, seam_score, worst_seam
 
 
 def save_tile(tile: Tile, out_dir: str | Path, meta: dict | None = None, previews: bool = True) -> Path:
@@ -31,4 +31,4 @@ def save_tile(tile: Tile, out_dir: str | Path, meta: dict | None = None, preview
 
 
 __all__ = ["GOAL", "Lattice", "NoRepeatError", "Tile", "choose_cell", "find_lattice", "make_tile",
-           "maps_seam_scores", "save_tile", "seam_score"]
+           "maps_seam_scores", "save_tile", "seam_score", "worst_seam"]

@@ -16,8 +16,10 @@ Issue 12 Sec. 2 ("cut the tile").  Steps:
    the warp's in-plane linear map ``J`` (physical units): a tangent direction ``d -> J d``, a
    normal through its slope ``g -> J^-T g`` (renormalised).  For an axis-aligned cell ``J`` is
    the identity up to the sub-texel rescale.
-3. **Origin.**  Of a grid of candidate origins in one cell, the one whose plain warp has the
-   lowest seam score of the signal (border mismatch) is used.
+3. **Origin.**  The crop origin whose feathered tile has the lowest seam score of its worst map
+   (a user's tile wraps every map; issue 24 Sec. 6): a grid over one primitive cell scored on
+   each candidate's exact border lines, the best cut whole and scored exactly, the search
+   refined where none meets the goal (:func:`_best_origin`).
 4. **Feather.**  The tile is sampled with a band of ``blend`` texels beyond each border; each
    border band is blended with the content one repeat away (the same weave position), with a
    weight falling linearly from 1/2 at the border to 0 at the band's inner edge, first along x
@@ -41,12 +43,17 @@ from scipy import ndimage
 from dualscale.bsdf import MaterialMaps, validate_maps
 from dualscale.errors import InputError
 
-from .lattice import Lattice, NoRepeatError, find_lattice, signals_from_maps
-from .seam import GOAL, maps_seam_scores, seam_score
+from .lattice import Lattice, NoRepeatError, find_lattice
+from .seam import GOAL, border_energy, maps_seam_scores, scored_channels, seam_score, worst_seam
 
 MAX_MULTIPLE = 6
 AXIS_TOL_PX = 0.35
 MIN_TILE_PX = 32  # by default a side of the tile spans whole repeats of at least this many texels
+ORIGIN_STEP_PX = 0.5  # candidate crop origins about this far apart along each primitive vector,
+MAX_ORIGIN_GRID = 8  # at most this many along each
+ORIGIN_FINALISTS = 6  # candidates refined and cut whole when the first half cut whole misses the goal
+PROXY_LINES = 8  # rows and columns that estimate a candidate tile's inside energy,
+PROXY_SEGMENT_PX = 48  # each at most this long
 
 
 @dataclass
@@ -118,9 +125,10 @@ def _stack(maps: MaterialMaps) -> tuple[np.ndarray, list[tuple[str, int]]]:
     return np.concatenate(parts, -1), layout
 
 
-def _unstack(arr: np.ndarray, layout: list[tuple[str, int]], J: np.ndarray, like: MaterialMaps) -> MaterialMaps:
-    """Inverse of :func:`_stack` after the warp; carries normals and tangents through ``J``
-    (2 x 2, physical, in the maps' (x, y-up) frame)."""
+def _carry(arr: np.ndarray, layout: list[tuple[str, int]], J: np.ndarray) -> dict[str, np.ndarray]:
+    """Inverse of :func:`_stack` after the warp, on any ``(..., C)`` array: each map's values
+    ``(..., c)`` (float64) by name; normals and tangents carried through ``J`` (2 x 2, physical,
+    in the maps' (x, y-up) frame) and renormalised, other maps clipped to [0, 1]."""
     out, k = {}, 0
     for name, c in layout:
         a = arr[..., k:k + c]
@@ -136,24 +144,43 @@ def _unstack(arr: np.ndarray, layout: list[tuple[str, int]], J: np.ndarray, like
             g = g @ np.linalg.inv(J)  # g_out = J^-T g_in (row vectors: g @ J^-1)
             n = np.concatenate([-g, np.ones_like(nz)[..., None]], -1)
             a = n / np.linalg.norm(n, axis=-1, keepdims=True)
-        elif name != "tangent":
+        else:
             a = np.clip(a, 0.0, 1.0)
-        out[name] = torch.from_numpy(np.ascontiguousarray(a.astype(np.float32)))
-    return replace(like, **out)
+        out[name] = a
+    return out
 
 
-def _sample(arr: np.ndarray, origin: np.ndarray, A: np.ndarray, n1: int, n2: int, pad: int, order: int) -> np.ndarray:
-    """``arr`` sampled at ``origin + A (i, j)`` for output texels ``i in [-pad, n1 + pad)``,
-    ``j in [-pad, n2 + pad)``; ``A`` columns: input (col, row) per output (col, row) step."""
-    i = np.arange(-pad, n1 + pad) + 0.5
-    j = np.arange(-pad, n2 + pad) + 0.5
-    I, Jj = np.meshgrid(i, j)
-    col = origin[0] + A[0, 0] * I + A[0, 1] * Jj - 0.5
-    row = origin[1] + A[1, 0] * I + A[1, 1] * Jj - 0.5
-    if arr.ndim == 2:
-        return ndimage.map_coordinates(arr, [row, col], order=order, mode="nearest")
-    return np.stack([ndimage.map_coordinates(arr[..., c], [row, col], order=order, mode="nearest")
-                     for c in range(arr.shape[-1])], -1)
+def _unstack(arr: np.ndarray, layout: list[tuple[str, int]], J: np.ndarray, like: MaterialMaps) -> MaterialMaps:
+    """The tile's maps (float32 tensors) from the warped stack ``arr`` (:func:`_carry`)."""
+    return replace(like, **{k: torch.from_numpy(np.ascontiguousarray(a.astype(np.float32)))
+                            for k, a in _carry(arr, layout, J).items()})
+
+
+class _Spline:
+    """The cubic-spline coefficients of an ``(H, W, C)`` field, computed once: the prefilter
+    that ``scipy.ndimage.map_coordinates(order=3, mode="nearest")`` runs on every call (the
+    field edge-padded by :attr:`PAD` texels, then ``spline_filter``), so that sampling many
+    candidate tiles costs only the interpolation."""
+
+    PAD = 12
+
+    def __init__(self, arr: np.ndarray):
+        pad = ((self.PAD, self.PAD), (self.PAD, self.PAD))
+        self.coef = [ndimage.spline_filter(np.pad(arr[..., c], pad, mode="edge"), 3, output=np.float64,
+                                           mode="nearest") for c in range(arr.shape[-1])]
+
+    def at(self, origin: np.ndarray, A: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        """The field at output texels ``(i, j)`` (1-D arrays of column and row indices, any
+        integers) of the tile at ``origin``: ``(len(j), len(i), C)``, sampled at ``origin + A
+        (i + 1/2, j + 1/2)`` (continuous input coordinates, texel ``(c, r)`` spanning ``[c, c +
+        1) x [r, r + 1)``); ``origin`` ``(K, 2)`` gives ``(K, len(j), len(i), C)``."""
+        o = np.asarray(origin, float)
+        I, Jj = np.meshgrid(np.asarray(i, float) + 0.5, np.asarray(j, float) + 0.5)
+        oc, orow = (o[..., k].reshape(o.shape[:-1] + (1, 1)) for k in (0, 1))
+        col = oc + (A[0, 0] * I + A[0, 1] * Jj - 0.5 + self.PAD)
+        row = orow + (A[1, 0] * I + A[1, 1] * Jj - 0.5 + self.PAD)
+        return np.stack([ndimage.map_coordinates(c, [row.ravel(), col.ravel()], order=3, mode="nearest",
+                                                 prefilter=False).reshape(row.shape) for c in self.coef], -1)
 
 
 def _feather(ext: np.ndarray, n1: int, n2: int, b: int) -> np.ndarray:
@@ -161,25 +188,25 @@ def _feather(ext: np.ndarray, n1: int, n2: int, b: int) -> np.ndarray:
     repeat away; returns the ``(n2, n1, C)`` tile (module step 4)."""
     if b == 0:
         return ext
-    r = 0.5 * (1 - np.arange(b) / b)  # 1/2 at the border, falling to 0 inward
-
-    def along_x(a):
-        t = a[:, b:b + n1].copy()
-        k = np.arange(b)
-        t[:, k] = (1 - r)[None, :, None] * a[:, b + k] + r[None, :, None] * a[:, b + n1 + k]
-        t[:, n1 - 1 - k] = (1 - r)[None, :, None] * a[:, b + n1 - 1 - k] + r[None, :, None] * a[:, b - 1 - k]
-        return t
-
-    x = along_x(ext)  # (n2 + 2b, n1, C)
-    return _along_y(x, n2, b, r)
+    r = _ramp(b)
+    return _blend_axis(_blend_axis(ext, n1, b, r, 1), n2, b, r, 0)  # along x: (n2 + 2b, n1, C); then along y
 
 
-def _along_y(a: np.ndarray, n2: int, b: int, r: np.ndarray) -> np.ndarray:
-    t = a[b:b + n2].copy()
+def _ramp(b: int) -> np.ndarray:
+    """The blend weight of the content one repeat away: 1/2 at the border, falling to 0 inward."""
+    return 0.5 * (1 - np.arange(b) / b)
+
+
+def _blend_axis(a: np.ndarray, n: int, b: int, r: np.ndarray, axis: int) -> np.ndarray:
+    """Step 4 along ``axis`` of ``a`` (``n + 2 b`` samples, pad ``b``): the ``n`` inner samples,
+    the first and last ``b`` blended with the samples one repeat (``n``) away by weights ``r``."""
+    a = np.moveaxis(a, axis, 0)
+    t = a[b:b + n].copy()
     k = np.arange(b)
-    t[k] = (1 - r)[:, None, None] * a[b + k] + r[:, None, None] * a[b + n2 + k]
-    t[n2 - 1 - k] = (1 - r)[:, None, None] * a[b + n2 - 1 - k] + r[:, None, None] * a[b - 1 - k]
-    return t
+    w = r.reshape((b,) + (1,) * (a.ndim - 1))
+    t[k] = (1 - w) * a[b + k] + w * a[b + n + k]
+    t[n - 1 - k] = (1 - w) * a[b + n - 1 - k] + w * a[b - 1 - k]
+    return np.moveaxis(t, 0, axis)
 
 
 def _plan(cell: np.ndarray, nx: int, ny: int, blend_px: int | None, shape: tuple[int, int]) -> dict:
@@ -227,15 +254,19 @@ def make_tile(maps: MaterialMaps, texel_mm: float | None, lattice: Lattice | Non
     is shorter than :data:`MIN_TILE_PX` texels (a weave period of a few texels), enough cells
     to reach it (fewer where the field is too short); ``blend_px``: the feathered band
     (default: an eighth of the tile's shorter side, at least 2 texels and at most half of it,
-    ``0`` = none).  ``Tile.resampling`` records the affine map, the tile's texel and the
-    lattice in tile texels.
+    ``0`` = none); ``origin_candidates``: the least number of candidate crop origins along each
+    primitive vector (more where the vector is longer, up to :data:`MAX_ORIGIN_GRID`).
+    ``Tile.resampling`` records the affine map, the tile's texel and the lattice in tile texels.
 
-    ``Tile.seam``: ``{"tile": s, "untreated": s0, "maps": {...}, "goal": 1.1, "signal": ...}``
-    -- the seam score (:func:`~dualscale.tile.seam.seam_score`) of the tile's albedo luminance,
-    of the untreated crop of the same size (the plain crop at the field's top-left corner), and
-    of each of the tile's maps.  Raises :class:`~dualscale.tile.lattice.NoRepeatError` (no
-    repeat) or :class:`~dualscale.errors.InputError` (the tile with its band does not fit in
-    the field; bad ``repeats``/``blend_px``).
+    ``Tile.seam``: ``{"tile": s, "untreated": s0, "maps": {...}, "worst": {"map", "score"},
+    "goal": 1.1, "signal": ..., "untreated_maps": {...}, "origin_search": {...}}`` -- the seam
+    score (:func:`~dualscale.tile.seam.seam_score`) of the tile's albedo luminance, of the
+    untreated crop of the same size (the plain crop at the field's top-left corner), of each of
+    the tile's maps and the worst of them (the one the origin is chosen on; a
+    ``RuntimeWarning`` when it is above the goal), and the search's record.  Raises
+    :class:`~dualscale.tile.lattice.NoRepeatError` (no repeat) or
+    :class:`~dualscale.errors.InputError` (the tile with its band does not fit in the field; bad
+    ``repeats``/``blend_px``).
     """
     validate_maps(maps)
     if texel_mm is not None and not (np.isfinite(texel_mm) and texel_mm > 0):
@@ -267,37 +298,25 @@ def make_tile(maps: MaterialMaps, texel_mm: float | None, lattice: Lattice | Non
                          f"needs {need[0]} x {need[1]} texels of the field, which is {w} x {h}: give a larger field, or "
                          f"cut it with `dualscale tile` and fewer --repeats or a smaller --blend")
     stack, layout = _stack(maps)
-    sig = np.mean([s / (s.std() + 1e-12) for s in signals_from_maps(maps, "albedo")], 0)
-    # candidate origins: a grid over one primitive cell, kept inside the allowed box
-    best = None
-    centre = 0.5 * (lo + hi)
-    g = (np.arange(origin_candidates) + 0.5) / origin_candidates - 0.5
-    for a in g:
-        for c in g:
-            o = centre + a * lattice.vectors_px[0] + c * lattice.vectors_px[1]
-            o = np.clip(o, lo, hi)
-            s = seam_score(_sample(sig, o, A, n1, n2, 0, 1))
-            if best is None or s < best[0]:
-                best = (s, o)
-    origin = best[1]
-    ext = _sample(stack, origin, A, n1, n2, b, 3)
-    tile_arr = _feather(ext, n1, n2, b)
     size_px = (float(np.linalg.norm(u)), float(np.linalg.norm(wv)))
     J = _physical_map(A, n1, n2, size_px)
-    tmaps = _unstack(tile_arr, layout, J, maps)
+    origin, tmaps, scores, searched = _best_origin(_Spline(stack), layout, J, maps, lattice.vectors_px, plan,
+                                                   origin_candidates)
     validate_maps(tmaps)
     cos = float(u @ wv / (np.linalg.norm(u) * np.linalg.norm(wv)))
     shear = math.degrees(math.acos(np.clip(cos, -1, 1))) - 90.0
     untreated = maps.crop(0, n2, 0, n1)
     lum = _luma(tmaps)
+    worst_map, worst = worst_seam(scores)
     seam = {"tile": round(seam_score(lum), 4), "untreated": round(seam_score(_luma(untreated)), 4),
-            "signal": "albedo luminance", "goal": GOAL, "maps": maps_seam_scores(tmaps),
-            "untreated_maps": maps_seam_scores(untreated), "origin_search": round(float(best[0]), 4)}
-    if seam["tile"] > GOAL:
+            "signal": "albedo luminance", "goal": GOAL, "maps": scores,
+            "worst": {"map": worst_map, "score": None if worst_map is None else round(worst, 4)},
+            "untreated_maps": maps_seam_scores(untreated), "origin_search": searched}
+    if worst_map is not None and worst > GOAL:
         import warnings
 
-        warnings.warn(f"the tile's seam score {seam['tile']:.3g} is above the goal {GOAL} (blend band {b} texels): "
-                      "its border will show when it repeats", RuntimeWarning, stacklevel=2)
+        warnings.warn(f"the tile's seam score {worst:.3g} ({worst_map} map) is above the goal {GOAL} (blend band {b} "
+                      "texels): its border will show when it repeats", RuntimeWarning, stacklevel=2)
     tmm = None if texel_mm is None else float(texel_mm)
     size_mm = None if tmm is None else (size_px[0] * tmm, size_px[1] * tmm)
     tile_texel = None if tmm is None else 0.5 * (size_mm[0] / n1 + size_mm[1] / n2)
@@ -317,6 +336,110 @@ def make_tile(maps: MaterialMaps, texel_mm: float | None, lattice: Lattice | Non
     }
     return Tile(tmaps, size_mm, size_px, tile_texel, lattice, (nx, ny), np.stack([u, wv]), aligned, shear,
                 (float(origin[0]), float(origin[1])), b, seam, resampling)
+
+
+def _border_lines(field: _Spline, origins: np.ndarray, A: np.ndarray, n1: int, n2: int, b: int
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """The first and last columns ``(K, n2, 2, C)`` and rows ``(K, 2, n1, C)`` of the feathered
+    tiles at ``origins`` ``(K, 2)``, exactly as :func:`_feather` gives them, from eight sampled
+    lines each: the feather at a border mixes the lines just inside and one repeat away (weight
+    1/2 each)."""
+    if b == 0:
+        return (field.at(origins, A, np.array([0, n1 - 1]), np.arange(n2)),
+                field.at(origins, A, np.arange(n1), np.array([0, n2 - 1])))
+    r = _ramp(b)
+    c = field.at(origins, A, np.array([-1, 0, n1 - 1, n1]), np.arange(-b, n2 + b))  # (K, n2 + 2b, 4, C)
+    cols = _blend_axis(np.stack([0.5 * (c[:, :, 1] + c[:, :, 3]), 0.5 * (c[:, :, 2] + c[:, :, 0])], 2), n2, b, r, 1)
+    x = _blend_axis(field.at(origins, A, np.arange(-b, n1 + b), np.array([-1, 0, n2 - 1, n2])), n1, b, r, 2)
+    return cols, np.stack([0.5 * (x[:, 1] + x[:, 3]), 0.5 * (x[:, 2] + x[:, 0])], 1)
+
+
+def _origin_grid(B: np.ndarray, centre: np.ndarray, least: int) -> tuple[np.ndarray, float]:
+    """A grid of crop origins over one primitive cell of ``B`` around ``centre``: ``least`` to
+    :data:`MAX_ORIGIN_GRID` points along each vector, about :data:`ORIGIN_STEP_PX` apart.
+    Returns ``(K, 2)`` and the grid's finest spacing in texels."""
+    ks = [max(least, min(MAX_ORIGIN_GRID, math.ceil(float(np.linalg.norm(v)) / ORIGIN_STEP_PX))) for v in B]
+    g1, g2 = ((np.arange(k) + 0.5) / k - 0.5 for k in ks)
+    a, c = (x.ravel() for x in np.meshgrid(g1, g2))
+    return centre + a[:, None] * B[0] + c[:, None] * B[1], min(float(np.linalg.norm(v)) / k for v, k in zip(B, ks))
+
+
+def _proxy_seams(field: _Spline, origins: np.ndarray, layout: list[tuple[str, int]], J: np.ndarray, plan: dict
+                 ) -> np.ndarray:
+    """The worst map's seam score of the feathered tile at each of ``origins`` ``(K, 2)``,
+    estimated cheaply: the border energy exact (:func:`_border_lines`), the inside energy from
+    the neighbours along :data:`PROXY_LINES` rows and as many columns spread over the tile,
+    each its middle :data:`PROXY_SEGMENT_PX` texels inside the blend bands.
+    The inside energy is estimated per origin because it depends on the origin's sub-texel
+    part: a cubic spline sampled half way between texels attenuates a pattern near the
+    sampling limit (a normal map of 2.1-texel yarns loses 90 % of its neighbour-difference
+    energy there)."""
+    A, n1, n2, b = plan["A"], plan["n1"], plan["n2"], plan["band"]
+    cols, rows = (_carry(a, layout, J) for a in _border_lines(field, origins, A, n1, n2, b))
+    # segments of rows and columns inside the bands (untouched by the feather), spread over the tile
+    lines = []
+    for n in (n1, n2):
+        q, (s0, s1) = min(PROXY_LINES, n - 2 * b), _middle(b, n - b, PROXY_SEGMENT_PX)
+        lines.append((b + (np.arange(q) + 0.5) * (n - 2 * b) // q, np.arange(s0, s1)))
+    lr = _carry(field.at(origins, A, lines[0][1], lines[1][0]), layout, J)  # (K, rows, segment, C)
+    lc = _carry(field.at(origins, A, lines[0][0], lines[1][1]), layout, J)  # (K, segment, columns, C)
+    k = len(origins)
+    worst = np.zeros(k)
+    for name in cols:
+        dx = (np.diff(scored_channels(name, lr[name]), axis=2) ** 2).sum(-1).reshape(k, -1)
+        dy = (np.diff(scored_channels(name, lc[name]), axis=1) ** 2).sum(-1).reshape(k, -1)
+        e_in = np.concatenate([dx, dy], 1).mean(1)
+        e_b = border_energy(scored_channels(name, cols[name]), scored_channels(name, rows[name]))
+        ok = e_in > 1e-12 * max(1.0, float(np.max(e_in)))  # a constant map scores nan: it takes no part
+        worst = np.maximum(worst, np.where(ok, e_b / np.where(ok, e_in, 1.0), 0.0))
+    return worst
+
+
+def _middle(lo: int, hi: int, most: int) -> tuple[int, int]:
+    """The middle ``min(most, hi - lo)`` integers of ``[lo, hi)`` as ``(start, stop)``."""
+    k = min(most, hi - lo)
+    start = lo + (hi - lo - k) // 2
+    return start, start + k
+
+
+def _best_origin(field: _Spline, layout: list[tuple[str, int]], J: np.ndarray, like: MaterialMaps, B: np.ndarray,
+                 plan: dict, least: int) -> tuple[np.ndarray, MaterialMaps, dict, dict]:
+    """Module step 3: the crop origin whose feathered tile has the lowest seam score over every
+    map (the worst map's; a user's tile wraps all of them).  Candidates: a grid over one
+    primitive cell (:func:`_origin_grid`) and the centre of the allowed box, scored by
+    :func:`_proxy_seams`; the best half of :data:`ORIGIN_FINALISTS` are cut whole and scored exactly
+    (:func:`~dualscale.tile.seam.maps_seam_scores`).  When none meets the goal
+    (:data:`~dualscale.tile.seam.GOAL`), a grid a quarter of the spacing fine around each of
+    the :data:`ORIGIN_FINALISTS` best is scored the same way and its best
+    :data:`ORIGIN_FINALISTS` are cut whole too.  Returns the origin, its tile's maps, their seam scores
+    and a record of the search."""
+    A, n1, n2, b = plan["A"], plan["n1"], plan["n2"], plan["band"]
+    lo, hi = plan["lo"], plan["hi"]
+    centre = 0.5 * (lo + hi)
+
+    def whole(o):
+        tm = _unstack(_feather(field.at(o, A, np.arange(-b, n1 + b), np.arange(-b, n2 + b)), n1, n2, b), layout, J,
+                      like)
+        sc = maps_seam_scores(tm)
+        v = worst_seam(sc)[1]
+        return (v if np.isfinite(v) else 0.0), tm, sc, o  # every map constant: any origin will do
+
+    coarse, spacing = _origin_grid(B, centre, least)
+    coarse = np.concatenate([centre[None], np.clip(coarse, lo, hi)])
+    ranked = coarse[np.argsort(_proxy_seams(field, coarse, layout, J, plan), kind="stable")]
+    cut_whole = [whole(o) for o in ranked[:ORIGIN_FINALISTS // 2]]
+    searched = len(coarse)
+    if min(f[0] for f in cut_whole) > GOAL:
+        d = np.arange(-2, 3) * spacing / 4
+        dd = np.stack([x.ravel() for x in np.meshgrid(d, d)], 1)
+        fine = np.clip((ranked[:ORIGIN_FINALISTS, None, :] + dd[None]).reshape(-1, 2), lo, hi)
+        fine = fine[np.argsort(_proxy_seams(field, fine, layout, J, plan), kind="stable")]
+        cut_whole += [whole(o) for o in fine[:ORIGIN_FINALISTS]]
+        searched += len(fine)
+    best = min(cut_whole, key=lambda f: f[0])
+    record = {"candidates": searched, "cut_whole": len(cut_whole), "score": "the worst map's seam score",
+              "best": round(best[0], 4), "refined": len(cut_whole) > ORIGIN_FINALISTS // 2}
+    return best[3], best[1], best[2], record
 
 
 def _physical_map(A: np.ndarray, n1: int, n2: int, size_px: tuple[float, float]) -> np.ndarray:

@@ -23,6 +23,12 @@ Issue 12 Sec. 2 ("find the repeat").  The method:
    peaks (one yarn pitch in a twill, where half the floats match) are not lattice vectors: a
    shift by a true lattice vector maps the weave onto itself, so its peak is as high as the
    best one, up to noise.
+4b. **Weave sub-lattice.**  A shift by one yarn also correlates (the yarns repeat every pitch),
+   so every sub-lattice of index 2 .. ``max_index`` of the finest basis is scored: mean ``rho``
+   on its points minus that on the other points, leaving out the two lattice lines through the
+   origin along the finest vectors (a yarn keeps its own shade along its length, which raises
+   ``rho`` along those lines for any sub-lattice containing one).  Taken when that contrast is
+   at least ``min_contrast`` (0.01) and 5 standard errors (``_best_sublattice``).
 5. **Least squares.**  Every lattice point ``n1 v1 + n2 v2`` inside the search window is
    re-located on ``rho`` (the local maximum within a third of the shorter vector, refined as in
    3), and the basis is the least-squares fit ``p = B n`` over those points, weighted by
@@ -255,7 +261,7 @@ def _canonical(v: np.ndarray) -> np.ndarray:
 
 def find_lattice(image_or_maps, texel_mm: float | None = None, source: str = "all", strong: float = 0.5,
                  min_strength: float = 0.3, min_period_px: float = 2.0, max_index: int = 12,
-                 min_contrast: float = 0.03, min_step: float = 0.05) -> Lattice:
+                 min_contrast: float = 0.01, min_step: float = 0.05) -> Lattice:
     """The primitive lattice of a periodic map (see the module docstring for the method).
 
     ``image_or_maps``: a :class:`~dualscale.bsdf.MaterialMaps` (searched on ``source``:
@@ -264,7 +270,9 @@ def find_lattice(image_or_maps, texel_mm: float | None = None, source: str = "al
     image or photo; RGB is reduced to luminance).  ``texel_mm``: texel size in mm, or ``None``
     (then the lattice is known in texels only).  ``strong``: fraction of the best peak's
     autocorrelation a lattice candidate must reach; ``min_strength``: refusal threshold;
-    ``min_period_px``: shorter shifts are ignored (the texel-scale correlation of any image).
+    ``min_period_px``: shorter shifts are ignored (the texel-scale correlation of any image);
+    ``max_index``, ``min_contrast``: the weave sub-lattices searched and the contrast one needs
+    (module step 4b); ``min_step``: the 1-D test of step 6.
 
     Raises :class:`NoRepeatError` (an ``InputError``, exit 2) when no repeat is found or fewer
     than two repeats fit in the field, :class:`~dualscale.errors.InputError` for a bad input.
@@ -491,11 +499,19 @@ def _in_sublattice(n: np.ndarray, M: np.ndarray) -> np.ndarray:
 def _best_sublattice(ac: np.ndarray, B0: np.ndarray, max_index: int, min_contrast: float, min_t: float = 5.0,
                      max_len: float | None = None):
     """The sub-lattice of ``B0`` (index 1 .. ``max_index``) whose points stand out most: the
-    largest mean ``rho`` on its points minus the mean on the other points of ``B0``; index 1
-    (``B0`` itself) unless that contrast reaches ``min_contrast``.  ``max_len``: sub-lattices
-    whose reduced basis has a longer vector are not considered (too few of their points in a
-    small window to judge them)."""
+    largest mean ``rho`` on its points minus the mean on the other points of ``B0`` (the
+    contrast), over the points of ``B0`` off the two lattice lines through the origin along its
+    vectors; index 1 (``B0`` itself) unless that contrast reaches ``min_contrast`` and is
+    significant, at least ``min_t`` standard errors (from the spread of ``rho`` over the
+    points in and out of the sub-lattice).  ``max_len``: sub-lattices whose reduced basis has a
+    longer vector are not considered (too few of their points in a small window to judge
+    them)."""
     n, _, v = _relocate(ac, B0)
+    # the lattice lines through the origin along v1 and v2 carry the 1-D correlation of what runs
+    # along them (a yarn keeps its own shade along its length; stripes): every sub-lattice that
+    # contains such a line would gain from it, weave repeat or not, so they are left out
+    off_axes = (n[:, 0] != 0) & (n[:, 1] != 0)
+    n, v = n[off_axes], v[off_axes]
     scored = []
     for k in range(2, max_index + 1):
         for M in sublattices(k):
