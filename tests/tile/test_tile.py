@@ -100,8 +100,12 @@ def test_cli_end_to_end(tmp_path, capsys):
 
     save_maps(tmp_path / "maps", generate("satin", 256, 0.01, seed=0).maps, texel_mm=0.01)
     assert _cli("tile", str(tmp_path / "maps"), "-o", str(tmp_path / "tile"), "--repeats", "1x1") == 0
-    assert "1.500 x 1.500 mm" in capsys.readouterr().out
-    assert json.loads((tmp_path / "tile" / "material.json").read_text())["meta"]["tile"]["size_mm"]
+    out = capsys.readouterr().out
+    assert "1.500 x 1.500 mm" in out
+    meta = json.loads((tmp_path / "tile" / "material.json").read_text())["meta"]["tile"]
+    assert meta["size_mm"]
+    worst = meta["seam"]["worst"]  # the score the origin is chosen on is the one printed beside the albedo's
+    assert worst["map"] == "albedo" or f"its worst map, {worst['map']}, {worst['score']:.3f}" in out, out
 
 
 def test_cli_refuses_a_map_without_repeat(tmp_path, capsys):

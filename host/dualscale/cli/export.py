@@ -63,6 +63,9 @@ def cmd_export(args: argparse.Namespace) -> int:
         if "tile" in seam:
             print(f"  tile seam score {seam['tile']:.3g} (goal <= {seam.get('goal', 1.1)}; the untreated crop of the "
                   f"same size: {seam['untreated']:.3g}; 1 = a border like the inside, docs/TILE.md)")
+            worst = seam.get("worst") or {}
+            if worst.get("score") is not None and worst.get("map") != "albedo":
+                print(f"  its worst map, {worst['map']}: {worst['score']:.3g}")
     return 0
 
 

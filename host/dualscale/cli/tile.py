@@ -51,8 +51,11 @@ def cmd_tile(args: argparse.Namespace) -> int:
             f"{tile.size_px[0]:.2f} x {tile.size_px[1]:.2f} texels (texel size unknown: no mm)")
     print(f"tile: {tile.repeats[0]} x {tile.repeats[1]} repeats, {tile.maps.shape[1]} x {tile.maps.shape[0]} texels, "
           f"{size}{'' if tile.axis_aligned else f', sheared onto the axes ({tile.shear_deg:+.1f} deg)'}")
+    worst = tile.seam.get("worst") or {}
+    also = (f"; its worst map, {worst['map']}, {worst['score']:.3f}" if worst.get("score") is not None
+            and worst.get("map") != "albedo" else "")
     print(f"seam score: {tile.seam['tile']:.3f} (untreated crop {tile.seam['untreated']:.3f}; goal <= "
-          f"{tile.seam['goal']})")
+          f"{tile.seam['goal']}{also})")
     print(f"wrote {Path(args.output) / 'material.json'}")
     return 0
 
