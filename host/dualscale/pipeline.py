@@ -536,8 +536,8 @@ class Digitizer:
                                      progress=self.opts.progress, seed=self.opts.seed, obs=obs,
                                      checkpoint_every=CHECKPOINT_EVERY, engine=self.opts.engine,
                                      **({} if self.opts.tile_px is None else {"tile_px": self.opts.tile_px}))
-        for w in caught:  # to the stage's record, with advice that fits where these images came from
-            warnings.warn_explicit(self._fit_advice(str(w.message)), w.category, w.filename, w.lineno)
+        for w in caught:  # to the stage's record
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
         write_exr(work / "residual.exr", residual_map(res.maps, res.comps, obs).numpy()[..., None], ("Y",))
         lights = extra["lights"]
         cv = extra["cross_validation"]
@@ -573,27 +573,6 @@ class Digitizer:
                "lights": per_light, "renders": renders}
         write_json(work / "heldout" / "heldout.json", doc)
         return summary
-
-    def _fit_advice(self, message: str) -> str:
-        """A fit warning as the user of this run should read it: the fit's advice to import the
-        photographs with ``dualscale import`` is replaced, for a dataset that came from it, by what
-        to check in that import."""
-        import re
-
-        from dualscale.formats.dataset import read_dataset
-
-        if "`dualscale import`" not in message:
-            return message
-        try:
-            imported = "import" in (read_dataset(self.dataset_in).manifest.get("extra") or {})
-        except (InputError, OSError):
-            return message
-        if not imported:
-            return message
-        return re.sub(r"Import photographs with `dualscale import`.*$",
-                      "These photographs came from `dualscale import`, which already scaled them by the lights: "
-                      "check the import's --lights, --intensities and --transfer (docs/RADIOMETRY.md), and that "
-                      "the photographs show one sample under those lights", message, flags=re.S)
 
     def flyouts(self) -> StageResult:
         params = {"enabled": self.quality.flyouts, "seed": self.opts.seed}

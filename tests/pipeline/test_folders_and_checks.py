@@ -153,6 +153,14 @@ def test_a_run_that_fails_its_check_exits_1_naming_it(tmp_path, capsys):
     warns = json.loads((run / "stages" / "fit.json").read_text())["warnings"]
     assert not any("Import photographs with `dualscale import`" in w for w in warns), warns
     assert "Import photographs with `dualscale import`" not in cap.out + cap.err
+    # the advice comes from the fit itself (fit/init.py: the observations know they were imported),
+    # so a plain `dualscale fit` of the import gives it too
+    assert any("came from `dualscale import`" in w for w in warns), warns
+    capsys.readouterr()
+    main(["fit", str(ds), "-o", str(tmp_path / "fit"), "--preset", "draft", "--no-progress", "--cv-pixels", "0"])
+    err = capsys.readouterr().err
+    assert "came from `dualscale import`" in err and "Import photographs with" not in err, err
+    assert len(set(err.splitlines())) == len(err.splitlines()), err  # each warning once
     # a rerun (every stage up to date) fails the same check again
     assert main(["digitize", str(ds), "-o", str(run), "--until", "fit", *ARGS]) == 1
 

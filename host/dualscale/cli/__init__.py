@@ -201,9 +201,14 @@ def main(argv: list[str] | None = None) -> int:
     cmd = " ".join(x for x in (args.cmd, getattr(args, "propagate_cmd", None), getattr(args, "study", None)) if x)
     import warnings
 
+    seen: set[str] = set()
+
     def one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
-        print(f"dualscale {cmd}: warning: {one_line(message) if isinstance(message, BaseException) else message}",
-              file=sys.stderr)
+        text = one_line(message) if isinstance(message, BaseException) else str(message)
+        if text in seen:  # the same warning from another pass (the folds of the cross-validation, the final fit)
+            return
+        seen.add(text)
+        print(f"dualscale {cmd}: warning: {text}", file=sys.stderr)
 
     shown, warnings.showwarning = warnings.showwarning, one_line_warning
     restore = None

@@ -84,10 +84,14 @@ def check_albedo_range(obs: Observations, normal: Tensor) -> float:
     if share > BRIGHT_SHARE:
         import warnings
 
+        advice = ("These photographs came from `dualscale import`, which already scaled them by the lights: check "
+                  "the import's --lights, --intensities and --transfer (docs/RADIOMETRY.md), and that the photographs "
+                  "show one sample under those lights") if obs.imported else (
+                  "Import photographs with `dualscale import` (it sets the light scale) or give the lights their "
+                  "intensity")
         warnings.warn(f"{100 * share:.0f} % of the pixels have a Lambertian albedo >= 1: the images are not "
                       "radiance relative to the lights (unknown light power or exposure?); the fit clips the albedo "
-                      "at 1. Import photographs with `dualscale import` (it sets the light scale) or give the "
-                      "lights their intensity", RuntimeWarning, stacklevel=3)
+                      f"at 1. {advice}", RuntimeWarning, stacklevel=3)
     return share
 
 

@@ -74,7 +74,8 @@ class Observations:
     """LED images ``(N, H, W, 3)`` with directions ``(N, 3)`` and weights ``(N,)``, plus an
     optional back-lit image ``(H, W, 3)`` (``back_wd`` = its diffuse weight); ``valid``
     ``(N, H, W)`` bool and ``back_valid`` ``(H, W)`` bool mark the usable samples (module doc;
-    ``None`` = all)."""
+    ``None`` = all).  ``imported``: the images are photographs from ``dualscale import``
+    (decoded and scaled by the lights there), which the fit's advice names."""
 
     images: Tensor
     dirs: Tensor
@@ -89,6 +90,7 @@ class Observations:
     valid: Tensor | None = None
     back_valid: Tensor | None = None
     whole: WholeMap | None = None  # set on a tile of a tiled Adam fit (WholeMap)
+    imported: bool = False  # photographs from `dualscale import` (already scaled by the lights' intensities)
 
     def __post_init__(self) -> None:
         if self.view is None:
@@ -251,7 +253,8 @@ def load_observations(root: str | Path, camera: str | None = None, dtype: torch.
                         w_s=torch.tensor(ws, **f), w_p=torch.tensor(wp, **f), w_d=torch.tensor(wd, **f),
                         led_ids=torch.tensor(ids, dtype=torch.long),
                         backlight=None if back is None else torch.from_numpy(back).to(**f), back_wd=back_wd,
-                        pixel_mm=pixel_mm, valid=valid, back_valid=bv)
+                        pixel_mm=pixel_mm, valid=valid, back_valid=bv,
+                        imported="import" in (ds.manifest.get("extra") or {}))
 
 
 def _load(ds: Dataset, index: int) -> tuple[np.ndarray, np.ndarray | None]:
