@@ -422,7 +422,7 @@ class Digitizer:
         from dualscale.formats.dataset import read_dataset
         from dualscale.formats.exr import open_image
         from dualscale.propagate.guidance import _dataset_image, read_guidance
-        from dualscale.propagate.stage import MIN_TRAIN_PX, RIG_GUIDANCE_FIELD_MM
+        from dualscale.propagate.stage import RIG_GUIDANCE_FIELD_MM, require_coverage
 
         opt = f"--guidance {g}"
         try:
@@ -456,11 +456,9 @@ class Digitizer:
             return  # the propagate stage refuses it, naming the missing texel size
         rec = ds.records[0]
         cam = (ds.manifest.get("cameras") or {}).get(rec.camera) or {}
-        side = min(int(cam.get("width") or 0), int(cam.get("height") or 0)) * micro / tex
-        if side and side < MIN_TRAIN_PX:
-            raise InputError(f"{opt}: the micro field covers only {side:.0f} guidance pixels (a {width}x{height} "
-                             f"guidance at {tex:.4g} mm/px); propagation needs at least {MIN_TRAIN_PX} px: a finer guidance, or "
-                             "its true texel size (--guidance-texel-mm)")
+        if cam.get("width") and cam.get("height"):
+            require_coverage((int(cam["height"]), int(cam["width"])), micro, tex, f"{opt} (a {width}x{height} guidance)",
+                             "a finer guidance, or its true texel size (--guidance-texel-mm)")
 
     # -- paths of the finished stages
     def out(self, stage: str) -> Path:

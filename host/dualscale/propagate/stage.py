@@ -40,6 +40,23 @@ RIG_GUIDANCE_FIELD_MM = 100.0  # the mid-range camera's field (seed Sec. 7.2: 10
 SUMMARY = "propagate.json"
 
 
+def require_coverage(micro_hw: tuple[int, int], micro_texel_mm: float, guidance_texel_mm: float, where: str,
+                     hint: str) -> tuple[int, int]:
+    """The micro field's size in guidance pixels, ``(h, w)`` (:func:`.resample.new_size` of the
+    micro ``(h, w)`` texels at ``micro_texel_mm / guidance_texel_mm``), which the network trains
+    on.  Raises :class:`~dualscale.errors.InputError` naming ``where`` (and ending with ``hint``,
+    the way out) when its shorter side is under :data:`MIN_TRAIN_PX`.  The one coverage rule of
+    the propagate stage and of ``digitize``'s check before any stage."""
+    from .resample import new_size
+
+    h, w = new_size(int(micro_hw[0]), int(micro_hw[1]), micro_texel_mm / guidance_texel_mm)
+    if min(h, w) < MIN_TRAIN_PX:
+        raise InputError(f"{where}: the micro field ({micro_hw[1] * micro_texel_mm:.3g} x "
+                         f"{micro_hw[0] * micro_texel_mm:.3g} mm) covers only {w}x{h} guidance pixels at "
+                         f"{guidance_texel_mm:.4g} mm/px; propagation needs at least {MIN_TRAIN_PX} px: {hint}")
+    return h, w
+
+
 def training_crop(side: int, preset_crop: int) -> int:
     """The crop for a training image of ``side`` px: the preset's, else the largest multiple of 16
     that leaves at least 16 px of room to move (a crop the size of the whole image always shows
@@ -144,12 +161,11 @@ def run_propagation(dataset: Path, maps: Path, guidance: Path, out: Path, *, pre
     warnings += reg.warnings
 
     # 4. the micro data at the guidance's texel size
+    require_coverage((h_m, w_m), src.texel_mm, tex, str(dataset),
+                     "capture a larger micro field or a finer guidance (or state the guidance's true texel size: "
+                     "--guidance-texel-mm / --texel-mm)")
     small = resample_source(src, scale)
     side = min(small.size)
-    if side < MIN_TRAIN_PX:
-        raise InputError(f"{dataset}: the micro field ({w_m * src.texel_mm:.3g} x {h_m * src.texel_mm:.3g} mm) covers "
-                         f"only {small.size[1]}x{small.size[0]} guidance pixels at {tex:.4g} mm/px; propagation needs "
-                         f"at least {MIN_TRAIN_PX} px: capture a larger micro field or a finer guidance (or state the guidance's true texel size: --guidance-texel-mm / --texel-mm)")
     if scale > 1:
         warnings.append(f"the guidance ({tex:.4g} mm/px) is finer than the micro capture ({src.texel_mm:.4g} mm/px): "
                         "the micro data were enlarged, and the maps hold no detail finer than the micro texel")
