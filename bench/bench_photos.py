@@ -487,8 +487,11 @@ def tables(objs: list[dict], lights_table: str, args, seconds: float, meta: dict
                        f"{'–' if es is None else f'{es:.1f}'} | {r['seconds_import']:.1f} |")
     stated = [k for k in keys if k != "auto"]
     if stated:
+        from dualscale.calib.response import CONTRADICTION_CURVE, CONTRADICTION_LOSS
+
         out += ["", "The other decodings, as the import checked them against that estimate (a contradiction warns: "
-                "consistency loss >= 1.25 x the estimate's and curves >= 3 % of full scale apart):", "",
+                f"consistency loss >= {CONTRADICTION_LOSS:.2f} x the estimate's and curves >= "
+                f"{100 * CONTRADICTION_CURVE:.0f} % of full scale apart at their best common scale):", "",
                 "| object | decoding | response used | its consistency vs the estimate's | curves apart (codes used) | "
                 "import warns | import [s] |", "|---|---|---|---|---|---|---|"]
         for o in objs:
