@@ -24,6 +24,31 @@ def light_paths(out: str | Path) -> tuple[Path, Path]:
     return out.with_name(out.name + ".json"), out.with_name(out.name + ".lp")
 
 
+def _check_targets(json_path: Path, lp_path: Path, overwrite: bool) -> None:
+    """Refuse (``InputError``, exit 2) light-file targets that exist: any existing file without
+    ``--overwrite``; with it, a file that is not a light file of ours (a dataset's
+    ``manifest.json``, a ``material.json``: ``-o DATASET/manifest`` must never replace them)."""
+    from dualscale.errors import InputError
+    from dualscale.formats.lightfile import read_lights_json, read_lp
+
+    for p, read in ((json_path, read_lights_json), (lp_path, read_lp)):
+        if not (p.exists() or p.is_symlink()):
+            continue
+        if p.is_dir() or not p.is_file():
+            raise InputError(f"-o: {p} exists and is not a file; choose another LIGHTS name")
+        try:
+            read(p)
+            ours = True
+        except Exception:  # noqa: BLE001 - unreadable or another format: not a light file
+            ours = False
+        if not ours:
+            raise InputError(f"-o: {p} exists and is not a light file (dualscale lights sphere writes "
+                             f"{json_path.name} and {lp_path.name}); choose another LIGHTS name (nothing written)")
+        if not overwrite:
+            raise InputError(f"-o: {p} exists; pass --overwrite to replace the light files, or choose another "
+                             "LIGHTS name (nothing written)")
+
+
 def cmd_lights_sphere(a: argparse.Namespace) -> int:
     from dualscale.calib.lightsphere import LightSphereError, recover_from_folder
     from dualscale.formats.lightfile import write_lights_json, write_lp
@@ -34,11 +59,12 @@ def cmd_lights_sphere(a: argparse.Namespace) -> int:
     mask = None if a.mask in (None, "") else ("auto" if a.mask == "auto" else Path(a.mask))
     if isinstance(mask, Path) and not mask.is_file():
         raise FileNotFoundError(f"--mask {mask}: no such file")
+    json_path, lp_path = light_paths(a.output)
+    _check_targets(json_path, lp_path, bool(getattr(a, "overwrite", False)))  # before any work
     try:
         res = recover_from_folder(folder, mask, pattern=a.pattern)
     except LightSphereError as e:
         raise CalibrationError(str(e)) from e
-    json_path, lp_path = light_paths(a.output)
     below = [f for f, d in zip(res.files, res.directions) if d[2] <= 0]
     if below:
         raise GeometryError(f"{folder}: the lights of {', '.join(below)} are at or below the horizon (z <= 0); "
@@ -127,6 +153,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                                                   "in DIR is the sphere's mask unless --mask says otherwise")
     s.add_argument("-o", "--output", required=True, metavar="LIGHTS",
                    help="writes LIGHTS.json (ours) and LIGHTS.lp (RTI)")
+    s.add_argument("--overwrite", action="store_true",
+                   help="replace LIGHTS.json / LIGHTS.lp when they exist and are light files (default: off, an "
+                        "existing file is refused; a file that is not a light file is refused either way)")
     s.add_argument("--mask", metavar="MASK|auto", default=None,
                    help="the sphere's mask image, or 'auto' to find the sphere without one "
                         "(default: DIR's one '*mask*' image, else auto)")

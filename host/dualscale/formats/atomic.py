@@ -141,7 +141,10 @@ def atomic_path(path: str | Path, verify: Callable[[Path], None] | None = None,
     came after the rename: a folder fsync that fails removes the new file)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f"{TMP_PREFIX}{path.stem}-", suffix=path.suffix, dir=path.parent)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f"{TMP_PREFIX}{path.stem}-", suffix=path.suffix, dir=path.parent)
+    except OSError as e:  # name the file the user asked for, not the temporary name that could not be made
+        raise type(e)(e.errno, e.strerror or str(e), str(path)) from e
     os.close(fd)
     tmp_path = Path(tmp)
     renamed = False
