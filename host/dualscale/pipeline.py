@@ -705,8 +705,53 @@ class Digitizer:
                              "checks": [c.to_json() for c in checks]})
         return checks
 
+    def _snapshot(self) -> tuple[bytes | None, set[Path], dict[Path, bytes]]:
+        """What a refused rerun puts back (:meth:`_put_back`): ``run.json``'s bytes (``None``: none),
+        the paths under ``RUN/work/`` and the bytes of its stage keys."""
+        doc = self.run / "run.json"
+        work = self.run / "work"
+        before = set(work.rglob("*")) if work.is_dir() else set()
+        keys = {p: p.read_bytes() for p in before if p.name == ".stage-key" and p.is_file()}
+        return (doc.read_bytes() if doc.is_file() else None), before, keys
+
+    def _put_back(self, snap: tuple[bytes | None, set[Path], dict[Path, bytes]], run_json: bool) -> None:
+        """Undo what this process wrote before a stage refused its input (issue 24 trial: a refused
+        run leaves the run folder as it was): the work files and folders it made go, the stage
+        keys it rewrote come back, and (``run_json``: no stage finished in this process) so does
+        ``run.json``."""
+        import contextlib
+
+        from dualscale.formats.atomic import write_bytes
+
+        doc_bytes, before, keys = snap
+        work = self.run / "work"
+        made = sorted((p for p in (work.rglob("*") if work.is_dir() else []) if p not in before),
+                      key=lambda p: len(p.parts), reverse=True)
+        for p in made:
+            with contextlib.suppress(OSError):
+                if p.is_dir() and not p.is_symlink():
+                    shutil.rmtree(p)
+                else:
+                    p.unlink()
+        for p, b in keys.items():
+            with contextlib.suppress(OSError):
+                if p.parent.is_dir() and (not p.is_file() or p.read_bytes() != b):
+                    write_bytes(p, b)
+        if not before and work.is_dir():
+            with contextlib.suppress(OSError):
+                work.rmdir()
+        if run_json:
+            doc = self.run / "run.json"
+            with contextlib.suppress(OSError):
+                if doc_bytes is None:
+                    doc.unlink(missing_ok=True)
+                elif not doc.is_file() or doc.read_bytes() != doc_bytes:
+                    write_bytes(doc, doc_bytes)
+
     def digitize(self, on_stage: Callable[[StageResult], None] | None = None) -> RunResult:
-        """Run (or skip) every stage up to ``until``; returns what each did."""
+        """Run (or skip) every stage up to ``until``; returns what each did.  A stage that refuses
+        its input (:class:`InputError`) leaves the run folder as it was: :meth:`_put_back`."""
+        snap = self._snapshot()
         names = self.begin()
         result = RunResult(self.run)
         bar = _Progress(names, self.opts.progress)
@@ -718,6 +763,9 @@ class Digitizer:
                 bar.done(name)
                 if on_stage is not None:
                     on_stage(st)
+        except InputError:
+            self._put_back(snap, run_json=all(st.skipped for st in result.stages))
+            raise
         finally:
             bar.close()
         self.end()

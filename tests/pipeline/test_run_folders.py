@@ -250,3 +250,22 @@ def test_digitize_transfer_without_guidance_is_refused_before_anything(tiny, tmp
     assert rc == 2 and out == "" and len(err.strip().splitlines()) == 1, err
     assert "--transfer srgb" in err and "no guidance" in err and "--guidance" in err
     assert not run.exists()
+
+
+def _tree(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_a_rerun_refused_on_a_damaged_image_leaves_the_run_folder_as_it_was(tiny, tmp_path):
+    """issue 24 trial: a rerun whose calibrate stage refuses a truncated image (exit 2) rewrote
+    run.json and left work/calibrate/.stage-key; now the run folder is byte for byte as before."""
+    ds, run = tmp_path / "syn", tmp_path / "R"
+    assert main(["synth", "twill", "-o", str(ds), "--size", "32", "--texel-um", "9", "--dataset", "--lights", "mod4",
+                 "--no-previews", "--no-progress"]) == 0  # images large enough to cut after their header
+    assert _main("digitize", str(ds), "-o", str(run), "--until", "calibrate", "--no-progress", "--threads", "1")[0] == 0
+    before = _tree(run)
+    exr = sorted((ds / "micro" / "images").glob("*led*.exr"))[0]
+    exr.write_bytes(exr.read_bytes()[:exr.stat().st_size // 2])  # the header whole: the check before any stage passes
+    rc, _, err = _main("digitize", str(ds), "-o", str(run), *DRAFT, "--until", "calibrate", "--threads", "1")
+    assert rc == 2 and exr.name in err, err
+    assert _tree(run) == before

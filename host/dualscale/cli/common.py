@@ -125,6 +125,15 @@ def _foreign(out: Path, ident: dict, own=None) -> str | None:
     return None
 
 
+def _read_record(out: Path) -> dict | None:
+    """The folder's record as written, or ``None`` (none, or unreadable)."""
+    try:
+        doc = json.loads((out / RECORD).read_text())
+    except (OSError, ValueError):
+        return None
+    return doc if isinstance(doc, dict) else None
+
+
 def _is_within(a: Path, b: Path) -> bool:
     """Whether ``a`` is ``b`` or inside it."""
     try:
@@ -272,8 +281,8 @@ def _output_folder(args: argparse.Namespace, command: str, inputs: Sequence[obje
     had_record = (out / RECORD).is_file()
     try:
         probe_writable(out)
-        if record:
-            write_json(out / RECORD, {"format": RECORD_FORMAT, "version": 1, **ident})
+        if record and _read_record(out) != {"format": RECORD_FORMAT, "version": 1, **ident}:
+            write_json(out / RECORD, {"format": RECORD_FORMAT, "version": 1, **ident})  # (the same one is left be)
     except OSError as e:
         if aside is not None:
             _restore(out, aside)
