@@ -259,13 +259,25 @@ def test_flash_with_a_missing_tool_refuses_before_building(monkeypatch, capsys):
     assert "openocd is not installed" in capsys.readouterr().err and ran == []
 
 
+#: options whose help does not yet give their default, in files being fixed elsewhere
+#: (cli/__init__.py, cli/sim.py, cli/capture.py, cli/calib.py, cli/importer.py); empty it as they are
+_DEFAULT_NOT_YET_IN_HELP = {
+    "sim --speed", "demo --speed",
+    "synth --texel-um", "synth --lights", "synth --analyzers", "synth --mid-field-mm", "render --texel-um",
+    *(f"{c} {o}" for c in ("capture", "digitize") for o in ("--trigger", "--retakes", "--sim-speed")),
+    *(f"synth-targets {o}" for o in ("--led-step", "--parts", "--collimation", "--analyzer-offset", "--blur-um")),
+    "import --intensities", "import --match",
+}
+
+
 def test_every_option_has_help():
-    """Issue 24 §5: every option of every command says what it does in --help."""
+    """Issue 24 §5: every option of every command says what it does in --help, and an option
+    that takes a value and has a default (not None, not an empty list) says that default."""
     import argparse
 
     from dualscale.cli import build_parser
 
-    missing = []
+    missing, no_default = [], []
 
     def walk(p, path):
         for a in p._actions:
@@ -274,9 +286,13 @@ def test_every_option_has_help():
                     walk(sp, path + [n])
             elif a.option_strings and a.dest != "help" and not a.help:  # SUPPRESS: hidden on purpose
                 missing.append(f"{' '.join(path)} {'/'.join(a.option_strings)}")
+            elif (a.option_strings and a.help is not argparse.SUPPRESS and a.nargs != 0  # flags take no value
+                  and a.default not in (None, [], argparse.SUPPRESS) and "default" not in a.help.lower()):
+                no_default.append(f"{' '.join(path)} {a.option_strings[-1]}")
 
     walk(build_parser(), [])
     assert not missing, missing
+    assert not set(no_default) - _DEFAULT_NOT_YET_IN_HELP, sorted(set(no_default) - _DEFAULT_NOT_YET_IN_HELP)
 
 
 def test_digitize_names_the_command_line_the_user_can_run(monkeypatch, tmp_path):

@@ -101,8 +101,11 @@ def test_cgroup_limit_is_the_smallest_over_the_process_cgroups(tmp_path):
 def test_default_is_omp_num_threads_when_set_else_auto(machine, monkeypatch):
     machine(2, 1.5)
     assert threads.resolve(None) == threads.default_threads() == 1
-    monkeypatch.setenv("OMP_NUM_THREADS", "3")
-    assert threads.resolve(None) == 3
+    monkeypatch.setenv("OMP_NUM_THREADS", "2")
+    assert threads.resolve(None) == 2
+    monkeypatch.setenv("OMP_NUM_THREADS", "3")  # above the 2 cores: lowered, with a notice (issue 24)
+    with pytest.warns(UserWarning, match="OMP_NUM_THREADS=3 is more than this machine's 2 cores: using 2"):
+        assert threads.resolve(None) == 2
     monkeypatch.setenv("OMP_NUM_THREADS", "lots")  # not a count: ignored
     assert threads.resolve(None) == 1
 

@@ -30,7 +30,8 @@ numba's pool first, and a numba kernel that may be the first to start it calls
 :func:`sync_numba` before it runs.
 
 **The default** (no ``--threads``): ``OMP_NUM_THREADS`` when the environment sets it to a whole
-number >= 1 (the libraries' own convention, so one variable sets every library), else ``auto``.
+number >= 1 (the libraries' own convention, so one variable sets every library), else ``auto``;
+like ``--threads N``, a value above the machine's cores is lowered to them, with a notice.
 
 Bottom layer: imports nothing of dualscale but :mod:`dualscale.errors` and no heavy library
 (torch, cv2 and numba are only *set* here, and only when the process has already imported them).
@@ -168,10 +169,23 @@ def auto_threads(root: str | Path | None = None, proc_cgroup: str | Path | None 
 
 def default_threads() -> int:
     """The count when ``--threads`` is not given: ``OMP_NUM_THREADS`` if it is a whole number
-    >= 1, else :func:`auto_threads`."""
+    >= 1, else :func:`auto_threads`.  A value above :func:`machine_cores` is lowered to them as
+    ``--threads`` is (:func:`clamp`), with the same kind of notice (a :class:`UserWarning`, which
+    the command line prints as ``dualscale CMD: warning: ...``), and lowered in ``os.environ``
+    too, so that the processes started later (simulator, Dask workers) inherit the lowered count
+    and the notice is given once."""
     env = os.environ.get("OMP_NUM_THREADS", "").strip()
     if env.isdigit() and int(env) >= 1:
-        return int(env)
+        n = int(env)
+        cores = machine_cores()
+        if n > cores:
+            import warnings
+
+            warnings.warn(f"OMP_NUM_THREADS={n} is more than this machine's {cores} core{'s' if cores > 1 else ''}: "
+                          f"using {cores}", stacklevel=2)
+            os.environ["OMP_NUM_THREADS"] = str(cores)
+            return cores
+        return n
     return auto_threads()
 
 

@@ -76,7 +76,8 @@ def rig_and_cameras(port: str, cameras: list[str], roles: tuple[str, ...], parit
             typed = spec
             if spec.startswith("sim:"):
                 if hw is None and "hw=" not in spec:
-                    raise InputError(f"--camera {spec}: a sim camera needs the simulated rig (--port sim) or hw=SOCKET")
+                    raise InputError(f"--camera {spec}: a sim camera needs the simulated rig, port 'sim' "
+                                     f"(capture --port sim, digitize --rig sim), not {port}; or hw=SOCKET")
                 if hw is not None:
                     spec = _with_option(spec, "hw", str(hw))
             try:

@@ -20,17 +20,32 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
     from dualscale.fit.api import fit_dataset
     from dualscale.fit.holdout import describe, parse_folds
-    from dualscale.fit.presets import get_preset
+    from dualscale.fit.presets import PRESETS, get_preset
 
     from dualscale.errors import InputError
 
+    # the values a user types, checked before any work (and named as typed, not as the preset's fields)
+    if args.checkpoint_every < 1:
+        raise InputError(f"--checkpoint-every {args.checkpoint_every}: give a number of iterations >= 1")
+    if args.tile_px < 1:
+        raise InputError(f"--tile-px {args.tile_px}: give a tile side in pixels >= 1")
+    if args.ior_prior is not None and not args.ior_prior >= 0:
+        raise InputError(f"--ior-prior {args.ior_prior:g}: give a standard deviation >= 0 (0 = no prior)")
+    if args.shadow_ratio is not None and not 0 <= args.shadow_ratio < 1:
+        raise InputError(f"--shadow-ratio {args.shadow_ratio:g}: give a ratio in [0, 1) (0 = fit every capture)")
+    preset = get_preset(args.preset)
+    for option, field, value in (("--ior-prior", "ior_prior_sd", args.ior_prior),
+                                 ("--shadow-ratio", "shadow_ratio", args.shadow_ratio)):
+        if value is None:
+            continue
+        try:
+            preset = replace(preset, **{field: value})
+        except ValueError:  # the preset's check names its field; the user typed the option
+            lm = ", ".join(n for n, p in PRESETS.items() if p.optimizer == "lm")
+            raise InputError(f"{option} {value:g}: the {args.preset} preset's {preset.optimizer} optimiser has "
+                             f"no such term (implemented for the LM optimiser only: presets {lm})") from None
     apply_threads(args)
     engine = engine_spec(args)
-    preset = get_preset(args.preset)
-    if args.ior_prior is not None:
-        preset = replace(preset, ior_prior_sd=args.ior_prior)
-    if args.shadow_ratio is not None:
-        preset = replace(preset, shadow_ratio=args.shadow_ratio)
     if args.compile and args.kernel not in (None, "compiled"):
         raise InputError(f"--compile is --kernel compiled; it contradicts --kernel {args.kernel}")
     if args.kernel is not None and args.preset == "standard-compiled" and args.kernel != "compiled":
@@ -136,7 +151,8 @@ def register(subparsers) -> None:
     f.add_argument("--cv-folds", default="auto", metavar="auto|loo|K",
                    help="folds of that pass: 'loo' (leave-one-light-out), K (K folds, lights dealt round-robin in "
                         "id order) or 'auto' (the default: loo for at most 16 lights, else 8 folds)")
-    f.add_argument("--checkpoint-every", type=int, default=50, help="iterations between checkpoints")
+    f.add_argument("--checkpoint-every", type=int, default=50, metavar="N",
+                   help="iterations between checkpoints, for a rerun to resume from (default: 50)")
     f.add_argument("--restart", action="store_true", help="ignore an existing checkpoint")
     f.add_argument("--stop-after", type=int, default=None, help=argparse.SUPPRESS)
     f.add_argument("--gt", default=None, metavar="MAPS",
@@ -168,7 +184,7 @@ def register(subparsers) -> None:
     fo.add_argument("dataset")
     add_output(fo, "output directory (flyouts.json, flyouts.svg, flyout_mask.exr, confidence.exr)")
     fo.add_argument("--tangent", default=None, help="maps directory with tangent.exr (fitted or ground truth)")
-    fo.add_argument("--seeds", type=int, default=10000, help="seeds for a 1 Mpx image (scaled with the image size)")
+    fo.add_argument("--seeds", type=int, default=10000, help="seeds for a 1 Mpx image (scaled with the image size; default: 10000)")
     fo.add_argument("--min-length-mm", type=float, default=0.27, help="shortest fibre reported, in mm (default: 0.27)")
     fo.add_argument("--gt", default=None, help="ground-truth folder with flyouts.json and flyout_mask.exr to score against")
     fo.add_argument("--seed", type=int, default=0, help="seed of the detection's random choices (default: 0)")

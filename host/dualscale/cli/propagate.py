@@ -141,8 +141,8 @@ def register(subparsers) -> None:
     t.add_argument("--crop", type=int, help="override the 128 px crop (multiple of 16)")
     t.add_argument("--width", type=int, help="width factor W (default 16 for one dataset, 32 for several)")
     t.add_argument("--perceptual", choices=sorted(PERCEPTUAL), default="gram",
-                   help="perceptual loss of the style term (lpips_alex needs local weights)")
-    t.add_argument("--blur-sigma-max", type=float, default=3.0, help="blur sigma ~ U(0.1, MAX) px (paper: 11)")
+                   help="perceptual loss of the style term (lpips_alex needs local weights; default: gram)")
+    t.add_argument("--blur-sigma-max", type=float, default=3.0, help="blur sigma ~ U(0.1, MAX) px (default: 3; paper: 11)")
     t.add_argument("--init", help="warm-start model file (e.g. models/warmstart_w16.dsp)")
     t.add_argument("--resume", action="store_true", help="continue from OUTPUT.ckpt")
     t.add_argument("--checkpoint-every", type=int, default=50, help="write OUTPUT.ckpt every N steps, for --resume (default: 50)")
@@ -172,10 +172,10 @@ def register(subparsers) -> None:
     add_output(r, "output maps folder")
     r.add_argument("--tile", type=int, default=512, help="side of the inference tiles in guidance pixels (default: 512)")
     r.add_argument("--overlap", type=int, default=64, help="overlap of neighbouring tiles in pixels, blended (default: 64)")
-    r.add_argument("--batch", type=int, default=1, help="tiles per onnxruntime call")
+    r.add_argument("--batch", type=int, default=1, help="tiles per onnxruntime call (default: 1)")
     r.add_argument("--precision", choices=("auto", "fp32", "fp16", "int8"), default="auto",
                    help="auto: fp16 on CUDA, fp32 on CPU; int8: the export made by 'propagate export --int8' "
-                        "(refused when absent or stale)")
-    r.add_argument("--exposure", default="auto", help="'auto' (match the training diffuse mean) or a gain")
+                        "(refused when absent or stale); default: auto")
+    r.add_argument("--exposure", default="auto", help="'auto' (match the training diffuse mean) or a gain (default: auto)")
     add_work_options(r, "onnxruntime (and torch/OpenCV) intra-op threads")
     r.set_defaults(fn=cmd_run)

@@ -60,7 +60,10 @@ Checks at read (:func:`read_dataset`; the writer refuses the same at ``add``): d
 and colour spaces; LED directions are unit vectors strictly above the sample plane (``z > 0``,
 :class:`~dualscale.errors.GeometryError`); LED, back-light and diffuse records have intensity
 > 0 (:class:`~dualscale.errors.InputError`); ``exposure_s`` finite and > 0 and ``saturation``
-finite and > 0 (:class:`~dualscale.errors.UnitsError`); the mask matches the image sizes.
+finite and > 0 (:class:`~dualscale.errors.UnitsError`); the mask matches the image sizes;
+numbers are JSON numbers (``"width": "64"`` is refused), widths and heights whole; no two
+records name the same file; every image file (and the mask) is inside the dataset folder: no
+``..``, no absolute path, no symbolic link that leads out of it (:class:`FormatError`).
 Every error names the file and the field.  Directions are in the sample's macro frame (see
 ``dualscale.geometry.dome``).
 """
@@ -68,6 +71,7 @@ Every error names the file and the field.  Directions are in the sample's macro 
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import asdict, dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import Any
@@ -138,9 +142,34 @@ def check_transfer(transfer: Any, where: str) -> str | None:
     return str(transfer)
 
 
+def _is_number(value: Any) -> bool:
+    """A JSON number (numpy's too), not a string that reads as one, nor a boolean."""
+    return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
+
+
+def _whole(value: Any, name: str, where: str) -> int:
+    """A manifest's pixel count: a whole number (``64``, not ``"64"``), else :class:`FormatError`."""
+    if not _is_number(value) or not math.isfinite(value) or value != int(value):
+        raise FormatError(f"{where}: {name} must be a whole number, got {value!r}")
+    return int(value)
+
+
+def _check_camera_numbers(name: str, c: Any, where: str) -> None:
+    """The camera record's numbers are JSON numbers (``Camera.from_json`` would read ``"64"``)."""
+    if not isinstance(c, dict):
+        return  # Camera.from_json refuses it, naming it
+    w = f"{where}: camera {name!r}"
+    for key in ("width", "height"):
+        if key in c:
+            _whole(c[key], key, w)
+    for key in ("field_mm", "position_mm"):
+        if isinstance(c.get(key), list) and not all(_is_number(v) for v in c[key]):
+            raise FormatError(f"{w}: {key} must be a list of numbers in mm, got {c[key]!r}")
+
+
 def _positive(value: Any, name: str, where: str, error: type[InputError]) -> float:
     try:
-        v = float(value)
+        v = float(value) if not isinstance(value, (str, bytes, bool)) else float("nan")
     except (TypeError, ValueError):
         v = float("nan")
     if not math.isfinite(v) or v <= 0:
@@ -205,8 +234,11 @@ class ImageRecord:
                        analyzer_deg=None if d.get("analyzer_deg") is None else float(d["analyzer_deg"]),
                        analyzer_relative=bool(d.get("analyzer_relative", False)), exposure_s=d["exposure_s"],
                        units=d.get("units", defaults.get("units")),
-                       colour_space=d.get("colour_space", defaults.get("colour_space")), width=int(d["width"]),
-                       height=int(d["height"]), saturation=sat)
+                       colour_space=d.get("colour_space", defaults.get("colour_space")),
+                       width=_whole(d["width"], "width", f"{where}: image {d.get('file')!r}"),
+                       height=_whole(d["height"], "height", f"{where}: image {d.get('file')!r}"), saturation=sat)
+        except FormatError:
+            raise
         except (KeyError, TypeError, ValueError) as e:
             raise FormatError(f"{where}: malformed image record {d!r}: {e}") from e
 
@@ -422,6 +454,9 @@ def _read_mask(root: Path, name: Any, cameras: dict[str, Any], where: str) -> np
     path = root / name
     if not path.is_file():
         raise FileNotFoundError(f"{path} (the manifest's mask) is missing")
+    real, inside = path.resolve(), root.resolve()
+    if inside not in real.parents:
+        raise FormatError(f"{where}: mask {name!r} is a link to {real}, outside the dataset folder")
     m = read_exr(path)
     if not np.isfinite(m).all():
         raise ValueError(f"{path}: the mask contains NaN or Inf")
@@ -469,15 +504,27 @@ def read_dataset(root: str | Path) -> Dataset:
     if not isinstance(cameras, dict):
         raise FormatError(f"{where}: cameras must be an object of camera records")
     for name, c in cameras.items():
+        _check_camera_numbers(name, c, where)
         try:
             Camera.from_json(name, c, where)
         except ValueError as e:
             raise FormatError(str(e)) from e
-    for r in records:
+    inside = root.resolve()
+    seen: dict[PurePosixPath, int] = {}
+    for i, r in enumerate(records):
         rel = PurePosixPath(r.file.replace("\\", "/"))
         if rel.is_absolute() or ".." in rel.parts or Path(r.file).is_absolute() or str(rel)[1:3] == ":/":
             raise FormatError(f"{where}: image file {r.file!r} is not inside the dataset folder (a manifest names "
                               "its images by paths relative to it, without '..')")
+        if rel in seen:
+            j = seen[rel]
+            raise FormatError(f"{where}: images {j} ({records[j].file}) and {i} ({r.file}) name the same file; "
+                              "each image record needs its own file")
+        seen[rel] = i
+        real = (root / r.file).resolve()
+        if real != inside and inside not in real.parents:  # a symbolic link out of the dataset: as '..'
+            raise FormatError(f"{where}: image file {r.file!r} is a link to {real}, outside the dataset folder "
+                              "(a manifest's images are files inside it)")
         if r.camera not in cameras:
             raise FormatError(f"{where}: image {r.file} is from camera {r.camera!r}, which the manifest's cameras "
                               f"({', '.join(sorted(cameras)) or 'none'}) do not define")

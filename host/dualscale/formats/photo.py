@@ -17,8 +17,14 @@ float inputs), which no stage fits as valid.
 
 from __future__ import annotations
 
+import contextlib
+import os
+import sys
+import tempfile
+import threading
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 
@@ -65,6 +71,57 @@ class Codes:
     bits: int
 
 
+_FD2_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def library_stderr() -> Iterator[list[str]]:
+    """Keep what the image libraries print to the process's stderr (libpng's ``libpng error:
+    IDAT: ...`` on a truncated PNG: OpenImageIO lets it print) out of the terminal: file
+    descriptor 2 goes to a temporary file for the block; the text is appended to the yielded
+    list on the way out, for the caller to fold into its error.  Text left unclaimed by an error
+    is for the caller to pass on (:func:`_pass_on`).  One block at a time (fd 2 is the process's)."""
+    out: list[str] = []
+    with _FD2_LOCK:
+        try:
+            sys.stderr.flush()
+        except (AttributeError, OSError, ValueError):
+            pass
+        try:
+            saved = os.dup(2)
+        except OSError:  # no fd 2 to redirect: nothing can reach a terminal
+            yield out
+            return
+        with tempfile.TemporaryFile() as tmp:
+            os.dup2(tmp.fileno(), 2)
+            try:
+                yield out
+            finally:
+                os.dup2(saved, 2)
+                os.close(saved)
+                tmp.seek(0)
+                out.append(tmp.read().decode("utf-8", "replace").strip())
+
+
+def _pass_on(text: list[str]) -> None:
+    """Print, after all, what a block of :func:`library_stderr` caught when no error took it."""
+    msg = "\n".join(t for t in text if t)
+    if msg:
+        print(msg, file=sys.stderr)
+
+
+def _detail(*texts: str) -> str:
+    """Error texts joined, each distinct line once (libpng's line repeats OpenImageIO's)."""
+    lines: list[str] = []
+    for t in texts:
+        for ln in (t or "").splitlines():
+            ln = ln.strip()
+            bare = ln.removeprefix("libpng error:").strip()
+            if ln and not any(bare in seen for seen in lines):
+                lines.append(ln)
+    return "; ".join(lines)
+
+
 def open_unassociated(path: Path):
     """An ``ImageInput`` that reads the colour *as stored*: OpenImageIO associates
     (premultiplies) alpha on read by default, which would darken every pixel of an RGBA or
@@ -75,9 +132,12 @@ def open_unassociated(path: Path):
         raise FileNotFoundError(f"image not found: {path}")
     config = oiio.ImageSpec()
     config.attribute("oiio:UnassociatedAlpha", 1)
-    inp = oiio.ImageInput.open(str(path), config)
+    with library_stderr() as printed:
+        inp = oiio.ImageInput.open(str(path), config)
+        error = oiio.geterror() if inp is None else ""
     if inp is None:
-        raise FormatError(f"{path}: not a readable image ({oiio.geterror() or 'unknown format'})")
+        raise FormatError(f"{path}: not a readable image ({_detail(error, *printed) or 'unknown format'})")
+    _pass_on(printed)
     return inp
 
 
@@ -93,12 +153,15 @@ def read_codes(path: str | Path, clip: float = 1.0) -> Codes:
         spec = inp.spec()
         check_window(path, spec)
         fmt = str(spec.format)
-        native = inp.read_image(0, 0, 0, spec.nchannels, "float")
-        inp_error = inp.geterror() if native is None else ""
+        with library_stderr() as printed:  # libpng prints its error besides returning it
+            native = inp.read_image(0, 0, 0, spec.nchannels, "float")
+            inp_error = inp.geterror() if native is None else ""
     finally:
         inp.close()
     if native is None:
-        raise FormatError(f"{path}: cannot read its pixels (truncated or corrupt image: {inp_error or 'no detail'})")
+        raise FormatError(f"{path}: cannot read its pixels (truncated or corrupt image: "
+                          f"{_detail(inp_error, *printed) or 'no detail'})")
+    _pass_on(printed)
     data = np.asarray(native, np.float32).reshape(spec.height, spec.width, spec.nchannels)
     alpha = spec.alpha_channel
     colour_idx = [i for i in range(spec.nchannels) if i != alpha][:3]
@@ -149,11 +212,15 @@ def read_mask(path: str | Path, shape: tuple[int, int] | None = None) -> np.ndar
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"mask not found: {path}")
-    buf = oiio.ImageBuf(str(path))
-    if buf.has_error:
-        raise FormatError(f"{path}: not a readable mask image ({buf.geterror()})")
+    with library_stderr() as printed:
+        buf = oiio.ImageBuf(str(path))
+        pixels = None if buf.has_error else buf.get_pixels(oiio.FLOAT)
+        error = buf.geterror() if buf.has_error or pixels is None else ""
+    if error or pixels is None:
+        raise FormatError(f"{path}: not a readable mask image ({_detail(error, *printed) or 'no detail'})")
+    _pass_on(printed)
     check_window(path, buf.spec())
-    arr = np.asarray(buf.get_pixels(oiio.FLOAT), np.float32).reshape(buf.spec().height, buf.spec().width, -1)
+    arr = np.asarray(pixels, np.float32).reshape(buf.spec().height, buf.spec().width, -1)
     mask = arr[..., 0] > 0.5
     if shape is not None and mask.shape != tuple(shape):
         raise GeometryError(f"{path}: mask is {mask.shape[1]}x{mask.shape[0]}, the images are {shape[1]}x{shape[0]}")
