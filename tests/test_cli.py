@@ -264,9 +264,6 @@ def test_flash_with_a_missing_tool_refuses_before_building(monkeypatch, capsys):
 _DEFAULT_NOT_YET_IN_HELP = {
     "sim --speed", "demo --speed",
     "synth --texel-um", "synth --lights", "synth --analyzers", "synth --mid-field-mm", "render --texel-um",
-    *(f"{c} {o}" for c in ("capture", "digitize") for o in ("--trigger", "--retakes", "--sim-speed")),
-    *(f"synth-targets {o}" for o in ("--led-step", "--parts", "--collimation", "--analyzer-offset", "--blur-um")),
-    "import --intensities", "import --match",
 }
 
 

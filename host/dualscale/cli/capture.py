@@ -238,7 +238,8 @@ def add_capture_options(p: argparse.ArgumentParser) -> None:
                    help="a camera: sim:micro, genicam:SERIAL, gphoto2:, uvc:0 (ROLE = micro|mid|polar0|polar1 when "
                         "the spec does not say it); repeat for several")
     p.add_argument("--trigger", choices=("device", "camera"), default="device",
-                   help="device: the rig times every exposure (gate triggers, HDR brackets); camera: camera-master")
+                   help="device: the rig times every exposure (gate triggers, HDR brackets); camera: camera-master "
+                        "(default device)")
     p.add_argument("--lights", default="ALL", metavar="ALL|MODn|ROWa+b|FILE",
                    help="the LEDs of the micro plan and of the white-sheet, chart and polarization plans "
                         "(default ALL; synth-targets' --led-step N is MODN)")
@@ -246,12 +247,12 @@ def add_capture_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-exposure", type=float, default=4.0, metavar="S",
                    help="longest exposure a bracket may have [s] (default 4)")
     p.add_argument("--batch", type=int, default=64, metavar="STEPS", help="steps per device sequence (default 64)")
-    p.add_argument("--retakes", type=int, default=3, help="how often a shot is taken again before giving up")
+    p.add_argument("--retakes", type=int, default=3, help="how often a shot is taken again before giving up (default 3)")
     p.add_argument("--rig-id", default=None, help="the rig's id in the dataset (checked against calibrations); "
                                                   "default: the device's identification")
     p.add_argument("--calibration-id", default=None, help="the calibration this capture is for (recorded)")
     p.add_argument("--sim-speed", type=float, default=1.0,
-                   help="--port sim: simulator speed (1 = real time, 0 = as fast as possible)")
+                   help="--port sim: simulator speed (1 = real time, 0 = as fast as possible; default 1)")
     from . import _serial_format_options
 
     _serial_format_options(p)

@@ -61,7 +61,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="refuse (exit 2) a stated transfer that the photographs contradict, instead of warning")
     p.add_argument("--intensities", choices=("auto", "estimate", "file", "equal"), default="auto",
                    help="lights' relative intensities: auto = the light file's, else estimated from the "
-                        "photographs; estimate; file (1 where absent); equal")
+                        "photographs; estimate; file (1 where absent); equal (default auto)")
     p.add_argument("--mask", default="auto", metavar="MASK|auto|none",
                    help="sample mask image (default auto: the folder's one '*mask*' image, if any)")
     p.add_argument("--texel-mm", type=float, default=None, metavar="T",
@@ -71,6 +71,6 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "albedo 0.8)")
     p.add_argument("--match", choices=("auto", "name", "number"), default="auto",
                    help="how light-file names find the images: by name, by the numbers in the names "
-                        "(chrome.3.png -> cat.3.png), or auto (name, else number when no name matches)")
+                        "(chrome.3.png -> cat.3.png), or auto (name, else number when no name matches; the default)")
     add_work_options(p)
     p.set_defaults(fn=cmd_import)
