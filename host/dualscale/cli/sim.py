@@ -21,10 +21,26 @@ if TYPE_CHECKING:
     import torch
 
 
-def _analyzers(text: str | None) -> list[float | None]:
+def _analyzers(text: str | None, option: str = "--analyzer") -> list[float | None]:
+    """The analyser angles of ``option`` (comma-separated degrees, or ``none``); anything else,
+    an angle given twice included, is one line naming the option (``InputError``, exit 2)."""
+    import math
+
     if text is None or text == "none":
         return [None]
-    return [float(x) for x in text.split(",")]
+    out: list[float | None] = []
+    for x in text.split(","):
+        try:
+            a = float(x)
+        except ValueError:
+            a = math.nan
+        if not math.isfinite(a):
+            raise InputError(f"{option} {text}: {x.strip()!r} is not an angle in degrees; give comma-separated "
+                             "angles (e.g. 0,90) or 'none'")
+        out.append(a)
+    if len(set(out)) != len(out):
+        raise InputError(f"{option} {text}: an angle is given twice")
+    return out
 
 
 def _write_capture(writer, img: torch.Tensor, cam, png_dir: Path | None, kind: str, lid: int | None, direction,
@@ -119,19 +135,83 @@ def check_synth_args(args: argparse.Namespace) -> None:
     texel or field that is not a positive finite length (``--mid-field-mm inf``)."""
     _check_size(args.size, "--size")
     _check_length(args.texel_um, "--texel-um", MAX_TEXEL_UM, "micrometres")
+    if not 0 <= args.seed < 2**63:
+        raise InputError(f"--seed {args.seed}: choose a whole number 0..{2**63 - 1}")
+    _leds(args.lights)
+    _analyzers(args.analyzers, "--analyzers")
     if args.mid:
         _check_size(args.mid_size, "--mid-size")
         _check_length(args.mid_field_mm, "--mid-field-mm", MAX_FIELD_MM, "mm")
 
 
+def synth_identity(args: argparse.Namespace) -> list[str]:
+    """What identifies a ``synth`` run in its folder's record: every option that changes its
+    outputs (a rerun with other ones is another run, refused unless ``--overwrite``, so that 32^2
+    maps never lie beside a 64^2 dataset; issue 24 trial)."""
+    ident = [f"material:{args.material}", f"seed:{args.seed}", f"size:{args.size}", f"texel_um:{args.texel_um:g}",
+             f"previews:{not args.no_previews}"]
+    if args.dataset:
+        ans = _analyzers(args.analyzers, "--analyzers")
+        ident.append(f"dataset:lights={args.lights},analyzers={','.join('none' if a is None else f'{a:g}' for a in ans)},"
+                     f"shadows={bool(args.shadows)}")
+    if args.mid:
+        ident.append(f"mid:size={args.mid_size},field_mm={args.mid_field_mm:g}")
+    if args.dataset or args.mid:
+        ident.append(f"realistic:{bool(args.realistic)}")
+    return ident
+
+
+#: synth's memory, calibrated with ``/usr/bin/time -v`` (peak RSS) of ``synth twill`` at 256..1024
+#: texels: the interpreter with torch/numpy/OpenImageIO loaded, then per texel of a side^2 material
+#: its generation and saving (the rendering of ``--dataset`` streams image by image, under it;
+#: the number of lights does not change the peak); the micro maps stay loaded while ``--mid``'s
+#: material is made.  Rounded up (1024: 0.70 GB measured, 0.73 GB estimated).
+MEM_BASE = 350 * 2**20
+MEM_PER_TEXEL = 400
+MEM_KEPT_PER_TEXEL = 17 * 4 + 3 * 8  # the float32 maps, and one float64 image of --dataset
+
+
+def synth_memory(args: argparse.Namespace) -> int:
+    """The estimated peak memory (bytes) of ``synth`` with ``args`` (:data:`MEM_PER_TEXEL`)."""
+    micro = MEM_PER_TEXEL * args.size ** 2
+    if args.mid:
+        micro = max(micro, MEM_KEPT_PER_TEXEL * args.size ** 2 + MEM_PER_TEXEL * args.mid_size ** 2)
+    return MEM_BASE + micro
+
+
+def _check_memory(args: argparse.Namespace) -> None:
+    """Refuse, before any work (exit 2), a ``synth`` whose estimated memory (:func:`synth_memory`)
+    exceeds what this machine has available (``MemAvailable``) or the process may use (``ulimit
+    -v``); the message names the option, the estimate and the largest side that fits.  It used to
+    be killed by the kernel's OOM killer (exit 137) or to fail with a ``MemoryError``."""
+    import math
+
+    from dualscale.cli import available_memory, memory_text
+
+    args.memory_hint = "use a smaller --size or --mid-size"
+    need = synth_memory(args)
+    avail, limit = available_memory()
+    room = min(avail, limit) if limit is not None else avail
+    if avail <= 0 or need <= room:
+        return
+    mid_big = args.mid and MEM_PER_TEXEL * args.mid_size ** 2 > MEM_KEPT_PER_TEXEL * args.size ** 2
+    option, side = ("--mid-size", args.mid_size) if mid_big else ("--size", args.size)
+    other = need - MEM_BASE - MEM_PER_TEXEL * side ** 2
+    fits = int(math.sqrt(max(room - MEM_BASE - other, 0) / MEM_PER_TEXEL)) // 64 * 64
+    advice = f"choose {option} {fits} or less" if fits >= MIN_SIZE else "free memory first"
+    raise InputError(f"{option} {side}: synth would need about {need / 2**30:.1f} GiB of memory and "
+                     f"{memory_text()}; {advice}")
+
+
 def cmd_synth(args: argparse.Namespace) -> int:
     check_synth_args(args)
+    _check_memory(args)
     apply_threads(args)
     progress = want_progress(args)
     out = Path(args.output)
     texel = args.texel_um / 1000.0
     leds = _leds(args.lights)
-    with output_folder(args, "synth", [f"material:{args.material}", f"seed:{args.seed}"]):
+    with output_folder(args, "synth", synth_identity(args)):
         return _synth(args, out, texel, leds, progress)
 
 
@@ -197,6 +277,12 @@ def _render_lights(args: argparse.Namespace) -> list[tuple[str, int | None]]:
         lights.append(("diffuse", None))
     if not lights:
         raise InputError("choose at least one light: --led ID, --backlight ID or --diffuse")
+    for opt, kind in (("--led", "led"), ("--backlight", "backlight")):
+        ids = [i for k, i in lights if k == kind]
+        twice = sorted({i for i in ids if ids.count(i) > 1})
+        if twice:
+            raise InputError(f"{opt}: {'id' if len(twice) == 1 else 'ids'} {', '.join(map(str, twice))} given twice "
+                             "(one image each)")
     bad = [i for k, i in lights if k == "led" and not 0 <= i < regmap.N_LEDS]
     if bad:
         raise InputError(f"--led: LED ids out of range 0..{regmap.N_LEDS - 1}: {bad}")
@@ -214,8 +300,9 @@ def cmd_render(args: argparse.Namespace) -> int:
 
     _check_size(args.size, "--size")
     _check_length(args.texel_um, "--texel-um", MAX_TEXEL_UM, "micrometres")
-    apply_threads(args)
     lights = _render_lights(args)
+    analyzers = _analyzers(args.analyzer)  # every option is checked before the maps are read
+    apply_threads(args)
     maps, meta = load_maps(args.maps, dtype=torch.float64 if args.float64 else torch.float32)
     h, w = maps.shape
     if args.camera == "micro":
@@ -227,12 +314,9 @@ def cmd_render(args: argparse.Namespace) -> int:
         size = args.size or 512
         cam = mid_camera(size) if args.camera == "mid" else polar_camera(int(args.camera[-1]), size)
         texel = args.texel_um / 1000.0
-    analyzers = _analyzers(args.analyzer)
     if not cam.has_analyzer and analyzers != [None]:
         raise InputError(f"--analyzer {args.analyzer}: the {args.camera} camera has no analyser (the micro and polar "
                          "cameras have one); drop --analyzer, or give --analyzer none")
-    if len(set(analyzers)) != len(analyzers):
-        raise InputError(f"--analyzer {args.analyzer}: an angle is given twice")
     geometry = _shadow_geometry(args, maps.shape) if args.shadows else None
     with output_folder(args, "render", [args.maps]):
         path = _capture_set(maps, cam, Path(args.output), lights, analyzers, args.relative, texel,
