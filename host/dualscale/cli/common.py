@@ -227,7 +227,9 @@ def output_folder(args: argparse.Namespace, command: str, inputs: Sequence[objec
     it is looked at (``--overwrite`` included) until the command ends, so that a second command
     on the same folder is refused at once (``InputError``: "... is in use by PID ...") instead of
     writing into the first one's work; the lock file ``.dualscale-lock`` is removed at the end,
-    and one left by a killed process does not block."""
+    and one left by a killed process does not block.  Without ``lock`` the folder's lock is still
+    tried before anything in it is cleared or written: a folder that another live process holds
+    (a running digitize) is refused the same way, ``--overwrite`` or not."""
     out = Path(folder if folder is not None else args.output)
     if out.exists() and not out.is_dir():
         raise InputError(f"-o {out} is a file, not a folder")
@@ -236,10 +238,16 @@ def output_folder(args: argparse.Namespace, command: str, inputs: Sequence[objec
     while not p.exists():
         created.append(p)
         p = p.parent
+    from dualscale.formats.lock import FolderLock
+
     if not lock:
+        if out.is_dir():  # a folder another command holds (a digitize running in it) is refused, --overwrite or not
+            try:
+                FolderLock(out, command).acquire().release()
+            except OSError:
+                pass  # a folder that cannot be written: the probe below says so
         yield from _output_folder(args, command, inputs, out, created, record, own)
         return
-    from dualscale.formats.lock import FolderLock
 
     held = FolderLock(out, command)
     try:
