@@ -9,7 +9,8 @@ library callers that expect ``ValueError`` keep working.  Nothing is written whe
 Exit codes (``dualscale ...``): 0 success, 1 a run that finished but failed its own check,
 2 bad input (:class:`InputError`), 3 the rig or its simulator (:class:`RigError`), 4 missing
 tools or environment (:class:`ToolError`; a full disk: :class:`OutputError`), 5 an internal
-failure, 130 interrupted (Ctrl-C; resumable).
+failure (an out-of-memory ``MemoryError`` is the environment: 4), 130 interrupted (Ctrl-C, or a
+stop request: SIGTERM, SIGHUP, :class:`StopRequest`; resumable).
 """
 
 from __future__ import annotations
@@ -114,6 +115,17 @@ class Interrupted(DualscaleError, RuntimeError):
     rerun resumes it."""
 
     exit_code = 130
+
+
+class StopRequest(KeyboardInterrupt):
+    """A stop request: SIGTERM (``kill``, ``timeout``, Slurm/PBS at the end of a job's time) or
+    SIGHUP (the terminal went away), raised in the main thread by the handler that
+    :func:`dualscale.cli.main` installs.  A ``KeyboardInterrupt``, so every command stops,
+    saves and cleans up exactly as on Ctrl-C (exit 130, resumable); ``signal``: its name."""
+
+    def __init__(self, signal: str):
+        super().__init__(f"stopped by {signal}")
+        self.signal = signal
 
 
 def one_line(e: BaseException) -> str:

@@ -15,7 +15,10 @@ import signal
 import sys
 import time
 
-from dualscale.errors import EXIT_CODES, DualscaleError, one_line
+from dualscale.errors import EXIT_CODES, DualscaleError, StopRequest, one_line
+
+#: the signals that are a stop request, handled like Ctrl-C (:class:`~dualscale.errors.StopRequest`)
+STOP_SIGNALS = ("SIGTERM", "SIGHUP")
 
 
 def cmd_sim(a: argparse.Namespace) -> int:
@@ -26,9 +29,11 @@ def cmd_sim(a: argparse.Namespace) -> int:
     def handler(_signum, _frame):
         stop["now"] = True
 
-    # before the device line goes out: a caller may signal as soon as it has read it
+    # before the device line goes out: a caller may signal as soon as it has read it; Ctrl-C
+    # and a stop request (SIGTERM, SIGHUP) end the simulator the same way (exit 0)
     signal.signal(signal.SIGINT, handler)
-    signal.signal(signal.SIGTERM, handler)
+    for name in STOP_SIGNALS:
+        signal.signal(getattr(signal, name), handler)
     rig = SimulatedRig(a.target, link=a.link, speed=a.speed, hw_socket=a.hw_socket, icount=a.icount,
                        parity=a.parity, stop_bits=a.stopbits)
     rig.start()
@@ -170,15 +175,66 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def out_of_memory(e: BaseException) -> bool:
+    """Whether ``e`` says the process ran out of memory: a ``MemoryError`` (numpy's "Unable to
+    allocate ...") or torch's CPU allocator failure (a ``RuntimeError`` "can't allocate memory")."""
+    if isinstance(e, MemoryError):
+        return True
+    return isinstance(e, RuntimeError) and not isinstance(e, DualscaleError) and (
+        type(e).__name__ == "OutOfMemoryError" or "can't allocate memory" in str(e))
+
+
+def available_memory() -> tuple[int, int | None]:
+    """``(available, limit)`` in bytes: the memory this machine can give a new process now
+    (``MemAvailable`` of /proc/meminfo; elsewhere ``SC_AVPHYS_PAGES``), and this process's
+    address-space limit (``ulimit -v``; ``None`` when unlimited)."""
+    avail = None
+    try:
+        with open("/proc/meminfo") as f:
+            for ln in f:
+                if ln.startswith("MemAvailable:"):
+                    avail = int(ln.split()[1]) * 1024
+                    break
+    except OSError:
+        pass
+    if avail is None:
+        try:
+            avail = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+        except (ValueError, OSError, AttributeError):
+            avail = 0
+    limit = None
+    try:
+        import resource
+
+        soft = resource.getrlimit(resource.RLIMIT_AS)[0]
+        limit = None if soft == resource.RLIM_INFINITY else int(soft)
+    except (ImportError, OSError, ValueError):
+        pass
+    return avail, limit
+
+
+def memory_text() -> str:
+    """'this machine has N GiB available' (and the ``ulimit -v`` limit when one is set)."""
+    avail, limit = available_memory()
+    text = f"this machine has {avail / 2**30:.1f} GiB available"
+    if limit is not None:
+        text += f" and this process may use {limit / 2**30:.1f} GiB of address space (ulimit -v)"
+    return text
+
+
 def exit_code(e: BaseException) -> int:
     """The one mapping from errors to exit codes (the table is :data:`dualscale.errors.EXIT_CODES`):
-    an error of the tree carries its own; Ctrl-C is ``interrupted``; a foreign ``ValueError``
+    an error of the tree carries its own; Ctrl-C and a stop request (SIGTERM, SIGHUP:
+    :class:`~dualscale.errors.StopRequest`) are ``interrupted``; a foreign ``ValueError``
     or a missing/unreadable file is bad ``input``; another ``OSError`` (disk full, no device)
-    is the environment (``tool``); anything else is ``internal``."""
+    and running out of memory (:func:`out_of_memory`) are the environment (``tool``); anything
+    else is ``internal``."""
     if isinstance(e, DualscaleError):
         return e.exit_code
     if isinstance(e, KeyboardInterrupt):
         return EXIT_CODES["interrupted"]
+    if out_of_memory(e):
+        return EXIT_CODES["tool"]
     if isinstance(e, (ValueError, FileNotFoundError, NotADirectoryError, IsADirectoryError, PermissionError)):
         return EXIT_CODES["input"]
     if isinstance(e, OSError):
@@ -186,17 +242,63 @@ def exit_code(e: BaseException) -> int:
     return EXIT_CODES["internal"]
 
 
+class _StopSignals:
+    """While active (in the main thread): SIGTERM and SIGHUP raise
+    :class:`~dualscale.errors.StopRequest` there, so a command stops, saves and cleans up as on
+    Ctrl-C.  After the first, further stop requests are ignored (a job scheduler may repeat
+    SIGTERM; the command's cleanup -- a checkpoint, the batch's summary -- is not cut short;
+    SIGKILL still ends it).  ``received``: the name of the signal that came, else ``None``.
+    The previous handlers come back on exit (``main`` runs in-process in tests)."""
+
+    def __init__(self) -> None:
+        self.received: str | None = None
+        self._old: dict[int, object] = {}
+
+    def _handler(self, signum, _frame) -> None:
+        name = signal.Signals(signum).name
+        if self.received is not None:
+            return
+        self.received = name
+        raise StopRequest(name)
+
+    def __enter__(self) -> "_StopSignals":
+        import threading
+
+        if threading.current_thread() is threading.main_thread():
+            for name in STOP_SIGNALS:
+                if hasattr(signal, name):
+                    sig = getattr(signal, name)
+                    self._old[sig] = signal.signal(sig, self._handler)
+        return self
+
+    def ignore(self) -> None:
+        """Ignore further stop requests (while the last line is printed)."""
+        for sig in self._old:
+            signal.signal(sig, signal.SIG_IGN)
+
+    def __exit__(self, *_) -> None:
+        for sig, old in self._old.items():
+            signal.signal(sig, old)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run ``dualscale ARGV`` and return its exit code; every error becomes one line on stderr
-    and the code of :func:`exit_code` (no traceback; ``DUALSCALE_DEBUG=1`` re-raises)."""
+    and the code of :func:`exit_code` (no traceback; ``DUALSCALE_DEBUG=1`` re-raises).
+    SIGTERM and SIGHUP are a stop request, handled like Ctrl-C (:class:`_StopSignals`)."""
+    with _StopSignals() as stops:
+        return _main(argv, stops)
+
+
+def _main(argv: list[str] | None, stops: _StopSignals) -> int:
     try:
         args = build_parser().parse_args(argv)
     except SystemExit as e:  # --help (0) or a usage error (2, already printed on one line)
         return e.code if isinstance(e.code, int) else EXIT_CODES["input"]
-    except KeyboardInterrupt:  # Ctrl-C while the subcommands' modules load: nothing started yet
+    except KeyboardInterrupt as e:  # Ctrl-C while the subcommands' modules load: nothing started yet
         if os.environ.get("DUALSCALE_DEBUG"):
             raise
-        print("dualscale: interrupted before the command started; run the same command again", file=sys.stderr)
+        how = str(e) if isinstance(e, StopRequest) else "interrupted"
+        print(f"dualscale: {how} before the command started; run the same command again", file=sys.stderr)
         return EXIT_CODES["interrupted"]
     cmd = " ".join(x for x in (args.cmd, getattr(args, "propagate_cmd", None), getattr(args, "study", None)) if x)
     import warnings
@@ -219,11 +321,22 @@ def main(argv: list[str] | None = None) -> int:
             raise
         with contextlib.suppress(ValueError):  # a second Ctrl-C must not cut the one line short
             restore = signal.signal(signal.SIGINT, signal.SIG_IGN)  # (ValueError: not the main thread)
+            stops.ignore()  # nor a stop request
         code = exit_code(e)
         if code == EXIT_CODES["interrupted"]:
             msg = one_line(e) if str(e) else "interrupted"
+            if stops.received is not None and not isinstance(e, StopRequest):
+                msg = f"stopped by {stops.received}: {msg}"  # the command's own message (what it saved)
             how = getattr(args, "resume_hint", "run the same command again to resume")
             print(f"dualscale {cmd}: {msg}; {how}", file=sys.stderr)
+        elif out_of_memory(e):
+            import re
+
+            what = one_line(e) if str(e) else "an allocation failed"
+            m = re.search(r"tried to allocate (\d+) bytes", what)  # torch's allocator: one short clause
+            what = f"could not allocate {int(m.group(1)) / 2**30:.2f} GiB" if m else what
+            how = getattr(args, "memory_hint", "use smaller inputs, or fewer --threads/--workers")
+            print(f"dualscale {cmd}: error: out of memory: {what}; {memory_text()}; {how}", file=sys.stderr)
         elif code == EXIT_CODES["internal"] and not isinstance(e, DualscaleError):
             print(f"dualscale {cmd}: internal error: {type(e).__name__}: {one_line(e)} "
                   "(rerun with DUALSCALE_DEBUG=1 for the traceback, and please report it)", file=sys.stderr)

@@ -161,8 +161,54 @@ def synth_identity(args: argparse.Namespace) -> list[str]:
     return ident
 
 
+#: synth's memory, calibrated with ``/usr/bin/time -v`` (peak RSS) of ``synth twill`` at 256..1024
+#: texels: the interpreter with torch/numpy/OpenImageIO loaded, then per texel of a side^2 material
+#: its generation and saving (the rendering of ``--dataset`` streams image by image, under it;
+#: the number of lights does not change the peak); the micro maps stay loaded while ``--mid``'s
+#: image is made, whose diffuse-group render takes far more per pixel (``--size 512 --mid
+#: --mid-size 1024``: 3.9 GB).  Rounded up (1024: 0.70 GB measured, 0.73 GB estimated).
+MEM_BASE = 350 * 2**20
+MEM_PER_TEXEL = 400
+MEM_MID_PER_PIXEL = 3600
+MEM_KEPT_PER_TEXEL = 17 * 4 + 3 * 8  # the float32 maps, and one float64 image of --dataset
+
+
+def synth_memory(args: argparse.Namespace) -> int:
+    """The estimated peak memory (bytes) of ``synth`` with ``args`` (:data:`MEM_PER_TEXEL`)."""
+    micro = MEM_PER_TEXEL * args.size ** 2
+    if args.mid:
+        micro = max(micro, MEM_KEPT_PER_TEXEL * args.size ** 2 + MEM_MID_PER_PIXEL * args.mid_size ** 2)
+    return MEM_BASE + micro
+
+
+def _check_memory(args: argparse.Namespace) -> None:
+    """Refuse, before any work (exit 2), a ``synth`` whose estimated memory (:func:`synth_memory`)
+    exceeds what this machine has available (``MemAvailable``) or the process may use (``ulimit
+    -v``); the message names the option, the estimate and the largest side that fits.  It used to
+    be killed by the kernel's OOM killer (exit 137) or to fail with a ``MemoryError``."""
+    import math
+
+    from dualscale.cli import available_memory, memory_text
+
+    args.memory_hint = "use a smaller --size or --mid-size"
+    need = synth_memory(args)
+    avail, limit = available_memory()
+    room = min(avail, limit) if limit is not None else avail
+    if avail <= 0 or need <= room:
+        return
+    mid_big = args.mid and MEM_MID_PER_PIXEL * args.mid_size ** 2 > MEM_PER_TEXEL * args.size ** 2
+    option, side, per = ("--mid-size", args.mid_size, MEM_MID_PER_PIXEL) if mid_big else \
+        ("--size", args.size, MEM_PER_TEXEL)
+    other = MEM_KEPT_PER_TEXEL * args.size ** 2 if mid_big else 0
+    fits = int(math.sqrt(max(room - MEM_BASE - other, 0) / per)) // 64 * 64
+    advice = f"choose {option} {fits} or less" if fits >= MIN_SIZE else "free memory first"
+    raise InputError(f"{option} {side}: synth would need about {need / 2**30:.1f} GiB of memory and "
+                     f"{memory_text()}; {advice}")
+
+
 def cmd_synth(args: argparse.Namespace) -> int:
     check_synth_args(args)
+    _check_memory(args)
     apply_threads(args)
     progress = want_progress(args)
     out = Path(args.output)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from dualscale.errors import EXIT_CODES, InputError, ToolError
+from dualscale.errors import EXIT_CODES, InputError, StopRequest, ToolError
 
 
 def cmd_view(args: argparse.Namespace) -> int:
@@ -39,6 +39,9 @@ def cmd_view(args: argparse.Namespace) -> int:
 
             webbrowser.open(url)
         server.serve_forever()
+    except StopRequest:  # SIGTERM, SIGHUP: the cache is removed below; main prints the one line
+        args.resume_hint = "run the same command again to serve it again"
+        raise
     except KeyboardInterrupt:
         print("", file=sys.stderr)
         return EXIT_CODES["interrupted"]
@@ -66,7 +69,7 @@ def register(subparsers) -> None:
         description="Serve the web viewer (three.js, no network access) of a digitize RUN folder or an export "
                     "folder OUT on 127.0.0.1 and open it in the browser: the glTF on its swatch, a draped cloth "
                     "or a sphere, a movable light, the maps in false colour and, for a run, each LED's captured "
-                    "image beside our renderer's image of the fitted maps (docs/VIEWER.md). Ctrl-C stops it.")
+                    "image beside our renderer's image of the fitted maps (docs/VIEWER.md). Ctrl-C (or SIGTERM, SIGHUP) stops it.")
     v.add_argument("path", metavar="RUN|OUT", help="digitize run folder (run.json) or export folder (export.json) "
                                                   "with a glb or gltf export")
     v.add_argument("--port", type=_port, default=0, help="port on 127.0.0.1 (default: any free port)")
