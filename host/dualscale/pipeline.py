@@ -33,10 +33,12 @@ function stated; a dataset folder's manifest and diffuse image header -- and the
 cover at least :data:`dualscale.propagate.stage.MIN_TRAIN_PX` guidance pixels).  Errors about
 the guidance name ``--guidance``.
 
-**The run's own check** (:func:`run_checks`, docs/DIGITIZE.md "The run's check"): a run that
-finished its fit passes when the fitted maps predict the lights they were not fitted on --
-the fit's cross-validated held-out relative L1, ``Σ|prediction − capture| / Σ capture``, is at
-most :data:`HELDOUT_L1_GOAL` (predicting black scores 1).  The checks are recorded in
+**The run's own checks** (:func:`run_checks`, :mod:`dualscale.report.checks`, docs/DIGITIZE.md
+"The run's check"): a run that finished its fit passes when the fitted maps predict the lights
+they were not fitted on -- the fit's cross-validated held-out relative L1,
+``Σ|prediction − capture| / Σ capture``, is at most :data:`HELDOUT_L1_GOAL` (predicting black
+scores 1) and below :data:`CONSTANT_MARGIN` times that of the per-pixel constant predictor (a
+prediction that ignores the light).  The checks are recorded in
 ``run.json`` (``checks``); ``dualscale digitize`` exits 1 when one fails, its last line naming
 it.  A fit without a cross-validation pass (too few lights) is not checked.
 """
@@ -58,11 +60,8 @@ from dualscale.errors import InputError, UnitsError
 from dualscale.formats.atomic import clean_stale, write_text
 from dualscale.formats.run import (CAPTURE_STAGE, STAGES, file_sha256, json_sha256, read_stage, stage_path, tree_sha256,
                                    write_run, write_stage)
+from dualscale.report.checks import CONSTANT_MARGIN, HELDOUT_L1_GOAL, Check, run_checks  # noqa: F401 (re-exported)
 
-#: the run's check: the largest cross-validated held-out relative L1 of the fit a run passes with
-#: (module docstring; the figures of docs/DIGITIZE.md and docs/PHOTOS.md are 0.02-0.25, random
-#: noise gives 1.0 and more)
-HELDOUT_L1_GOAL = 0.5
 CHECKPOINT_EVERY = 2  # fit iterations between checkpoints (the LM presets run 11-21 iterations in all)
 # rough share of a run's time per stage, for the overall ETA (measured in docs/DIGITIZE.md)
 _WEIGHTS = {"calibrate": 1.0, "fit": 10.0, "flyouts": 1.0, "propagate": 8.0, "export": 0.5, "report": 1.0}
@@ -166,42 +165,6 @@ class DigitizeOptions:
         """The words that tell the user how to give ``name``: ``with --calibration CAL``, or
         ``in the list's 'calibration' column (LIST row N)`` (:meth:`option`)."""
         return f"{'with' if self.source is None else 'in'} {self.option(name)}"
-
-
-@dataclass(frozen=True)
-class Check:
-    """One of the run's own checks: ``name``, the measured ``value`` (``None``: not measured), the
-    ``goal`` as text, ``ok`` (``None`` when not measured) and ``text``: one line for the user."""
-
-    name: str
-    value: float | None
-    goal: str
-    ok: bool | None
-    text: str
-
-    def to_json(self) -> dict[str, Any]:
-        return asdict(self)
-
-
-def run_checks(fit_record: dict[str, Any] | None) -> list[Check]:
-    """The run's own checks (module docstring) from the fit stage's record (``None``: the fit did
-    not run, nothing is checked)."""
-    if fit_record is None:
-        return []
-    s = fit_record.get("summary") or {}
-    rel = s.get("heldout_relative_l1")
-    goal = f"at most {100 * HELDOUT_L1_GOAL:.0f} %"
-    if not isinstance(rel, (int, float)):
-        return [Check("fit held-out error", None, goal, None,
-                      f"fit held-out relative L1 not measured ({s.get('heldout_method', 'no cross-validation')})")]
-    ok = bool(rel <= HELDOUT_L1_GOAL)
-    text = (f"fit held-out relative L1 {100 * rel:.1f} % ({'within' if ok else 'above'} the goal of {goal}; "
-            f"{s.get('heldout_method', 'cross-validated')})")
-    if not ok:
-        text += (": the fitted maps do not predict the lights they were not fitted on, so they do not describe "
-                 "the sample under other lights. Check that the images are one sample under the stated lights "
-                 "(directions, intensities, camera response), registered and unclipped")
-    return [Check("fit held-out error", float(rel), goal, ok, text)]
 
 
 @dataclass
@@ -546,6 +509,7 @@ class Digitizer:
             "fitted_leds": lights["fitted_leds"],
             "heldout_relative_l1": cv["relative_l1"] if done else None,
             "heldout_baseline_relative_l1": cv["baseline_relative_l1"] if done else None,
+            "heldout_constant_relative_l1": cv.get("constant_relative_l1") if done else None,
             "heldout_method": (f"{cv['scheme']} cross-validation over {cv['lights']} lights on {cv['pixels']} "
                                "sample pixels" if done else
                                "none (no cross-validation pass)" if cv is None else f"none ({cv['skipped']})"),

@@ -155,6 +155,10 @@ def test_cli_fit_cv_options_and_summary(datasets, tmp_path, capsys):
     assert "held-out relative L1" in out and "(cross-validated, 4-fold over 127 lights on 48 sample pixels" in out
     rec = json.loads((tmp_path / "a" / "fit.json").read_text())["cross_validation"]
     assert rec["folds"] == 4 and len(rec["ours"]) == 127 and rec["requested_folds"] == 4
+    # issue 24 trial: the per-pixel constant predictor (a prediction that ignores the light), on the same folds
+    assert len(rec["constant"]) == 127 and rec["constant_relative_l1"] == pytest.approx(np.mean(rec["constant"]))
+    assert rec["relative_l1"] < 0.8 * rec["constant_relative_l1"]
+    assert f"per-pixel constant predictor {rec['constant_relative_l1']:.4g}" in out
     assert main(base + ["-o", str(tmp_path / "b"), "--cv-pixels", "0"]) == 0
     assert "held-out error: not measured (--cv-pixels 0" in capsys.readouterr().out
     for bad, words in ((["--cv-folds", "1"], "--cv-folds"), (["--cv-pixels", "-3"], "--cv-pixels -3")):
@@ -185,3 +189,25 @@ def test_the_chosen_loss_is_used_by_the_final_fit_and_every_fold(datasets, tmp_p
                                  cv_pixels=20)
     assert losses == [("fold", "l2")] * 12 + [("final", "l2")] and res.preset.loss == "l2"
     assert json.loads((tmp_path / "m" / "fit.json").read_text())["preset"]["loss"] == "l2"
+
+
+def test_constant_prediction_is_each_pixels_mean_over_its_valid_training_samples():
+    """The per-pixel constant predictor (issue 24 trial): every held-out image of a pixel is that
+    pixel's mean over the training images' valid samples, clamped at 2 like the captures."""
+    import torch
+
+    from dualscale.fit.holdout import constant_prediction
+
+    class Obs:  # the two fields constant_prediction reads, and n
+        def __init__(self, images, valid):
+            self.images, self.valid, self.n = images, valid, images.shape[0]
+
+    x = torch.tensor([[[[1.0, 2.0, 3.0], [0.5, 0.5, 0.5]]], [[[3.0, 2.0, 1.0], [9.0, 9.0, 9.0]]],
+                      [[[5.0, 2.0, 2.0], [0.1, 0.1, 0.1]]]])  # (3, 1, 2, 3)
+    valid = torch.tensor([[[True, True]], [[True, False]], [[False, False]]])
+    pred = constant_prediction(Obs(x, valid), Obs(x[:2], None))
+    assert pred.shape == (2, 2, 3)
+    np.testing.assert_allclose(pred[0], [[1.5, 2.0, 1.5], [0.5, 0.5, 0.5]])  # 3 and 5 clamped to 2; invalid left out
+    np.testing.assert_allclose(pred[1], pred[0])  # the same for every held-out light
+    none = constant_prediction(Obs(x, torch.zeros_like(valid)), Obs(x[:1], None))
+    assert (none == 0).all()

@@ -324,3 +324,35 @@ def test_the_summary_page_shows_one_row_per_sample_in_a_browser(cluster_run, tmp
         assert all((out / h).is_file() for h in links)
         problems = page.problems(out.as_uri())
         assert not problems["errors"] and not problems["failed"] and not problems["external"], problems
+
+
+def test_a_sample_that_fails_the_runs_check_is_a_failed_sample(sample, tmp_path):
+    """Issue 24 trial: a sample whose fit failed the run's check was "done" and the batch exited
+    0, with no check column in the summary.  Now its status is "check failed: <check>", the
+    summary (CSV, JSON, HTML) has a check column, and the batch exits 1; a good sample's check
+    says passed."""
+    from .noise import make_noise_dataset
+
+    noise = make_noise_dataset(tmp_path / "noise")
+    lst = tmp_path / "samples.csv"
+    lst.write_text("name,input,quality,export\n"
+                   f"good,{sample / 'micro'},draft,exr\n"
+                   f"noise,{noise},draft,exr\n")
+    out = tmp_path / "out"
+    rc, stdout, stderr, _ = _run(str(lst), "-o", str(out), "--workers", "1", "--threads", "1", "--no-progress")
+    assert rc == 1, (stdout, stderr)
+    rows = _rows(_summary(out))
+    assert rows["good"]["status"] == "done" and rows["good"]["check"] == "passed"
+    assert rows["noise"]["status"] == "check failed: fit against the constant predictor", rows["noise"]
+    assert rows["noise"]["check"].startswith("failed: fit held-out relative L1")
+    assert rows["noise"]["check_ok"] is False and rows["good"]["check_ok"] is True
+    assert "noise: FAILED check failed: fit against the constant predictor" in stdout, stdout
+    assert "1 of 2 sample(s) failed: noise" in stderr, stderr
+    with open(out / "summary.csv", newline="") as f:
+        csv_rows = {r["name"]: r for r in csv.DictReader(f)}
+    assert csv_rows["good"]["check"] == "passed" and csv_rows["noise"]["check"].startswith("failed: ")
+    assert csv_rows["noise"]["status"].startswith("check failed")
+    page = (out / "summary.html").read_text()
+    assert "<th title=\"the run's own checks (docs/DIGITIZE.md)\">check</th>" in page
+    assert "✗" in page and "check failed: fit against the constant predictor" in page
+    assert json.loads((out / "noise" / "run.json").read_text())["checks"][1]["ok"] is False

@@ -42,10 +42,13 @@ def _maps(rng, h=H, w=W):
 
 
 def make_run(root: Path, *, flyouts: bool = True, guidance: bool = True, seed: int = 0, name: str | None = None,
-             capture_seconds: float | None = None) -> Path:
+             capture_seconds: float | None = None, heldout_l1: float = 0.04312345678901,
+             constant_l1: float | None = 0.6123) -> Path:
     """Write a complete RUN folder under ``root``; optional stages can be skipped.  ``name``: the
     ``--name`` option; ``capture_seconds``: a ``digitize --rig`` run, whose capture stage record
-    (``stages/capture.json``) is written beside the stages ``run.json`` lists, as the pipeline does."""
+    (``stages/capture.json``) is written beside the stages ``run.json`` lists, as the pipeline does.
+    ``heldout_l1``, ``constant_l1``: the fit's held-out relative L1 and the per-pixel constant
+    predictor's, in the fit stage's summary (the run's checks)."""
     from dualscale.formats.exr import write_exr
     from dualscale.formats.maps import save_maps
 
@@ -107,8 +110,9 @@ def make_run(root: Path, *, flyouts: bool = True, guidance: bool = True, seed: i
         "components_chosen": "once, on all lights (the same components in every fold)",
         "lights": lights, "renders": renders}))
     _stage(root, "fit", 133.4, {"preset": "standard", "seconds": 41.7, "images": 254, "train_images": 254,
-                                "leds": 127, "fitted_leds": 127, "heldout_relative_l1": 0.04312345678901,
+                                "leds": 127, "fitted_leds": 127, "heldout_relative_l1": heldout_l1,
                                 "heldout_baseline_relative_l1": 0.1031234567, "heldout_method": method,
+                                "heldout_constant_relative_l1": constant_l1,
                                 "cv_seconds": 61.23456},
            params={"preset": "standard", "iterations": 120, "selection": {"margin": 0.02, "pixels": 512}},
            outputs=["fit/maps/albedo.exr", "fit/residual.exr"])

@@ -548,3 +548,28 @@ def test_report_loads_in_headless_browser(run_report, tmp_path):
     broken = [src for src, complete, width in imgs if not complete or width == 0]
     assert not broken, broken
     assert state["overflow"] <= 0, f"page is {state['overflow']} px wider than the window"
+
+
+def test_run_report_shows_the_runs_checks_near_the_top(tmp_path):
+    """Issue 24 trial: a run that failed its check (held-out 53 %) had a report saying only
+    "held-out 53%"; the words goal/check/✗ appeared nowhere.  Now the checks (value, goal, ✓/✗)
+    come right after the headline, computed from the fit stage's record."""
+    from dualscale.report import write_run_report
+    from dualscale.report.checks import CONSTANT_MARGIN, HELDOUT_L1_GOAL
+
+    text, _ = _parse(write_run_report(make_run(tmp_path / "bad", flyouts=False, guidance=False, heldout_l1=0.53,
+                                               constant_l1=0.6)))
+    top = text.split("Component decision")[0]
+    assert "The run's checks" in top and "The run failed its check" in top, top
+    assert "✗" in top and "failed: fit held-out error, fit against the constant predictor" in top, top
+    assert f"at most {100 * HELDOUT_L1_GOAL:.0f} %" in top and "53.0 %" in top
+    assert f"below {CONSTANT_MARGIN:g}× the per-pixel constant predictor's 60.0 %" in top and "0.88×" in top, top
+    # passing: both ✓, no failure words
+    text, _ = _parse(write_run_report(make_run(tmp_path / "good", flyouts=False, guidance=False)))
+    top = text.split("Component decision")[0]
+    assert "The run's checks" in top and "✗" not in top and top.count("✓") >= 2 and "passed" in top, top
+    assert "The run failed" not in text
+    # a record without the constant predictor (a fit from before it): that check is not measured
+    text, _ = _parse(write_run_report(make_run(tmp_path / "old", flyouts=False, guidance=False, constant_l1=None)))
+    top = text.split("Component decision")[0]
+    assert "not measured" in top and "✗" not in top, top

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from dualscale.errors import Interrupted, one_line
-from dualscale.pipeline import STAGES
+from dualscale.pipeline import STAGES, Check, run_checks
 
 from .samples import Sample
 
@@ -112,13 +112,27 @@ class SampleResult:
         return next((r for r in self.stages.values() if r["status"] == "failed"), None)
 
     @property
+    def checks(self) -> list[Check]:
+        """The run's own checks (:func:`dualscale.pipeline.run_checks`, docs/DIGITIZE.md "The
+        run's check") on the fit stage's record; empty when the fit did not finish."""
+        r = self.stages.get("fit") or {}
+        return run_checks({"summary": r.get("summary") or {}}) if r.get("status") in ("done", "up to date") else []
+
+    @property
+    def failed_checks(self) -> list[Check]:
+        return [c for c in self.checks if c.ok is False]
+
+    @property
     def status(self) -> str:
-        """``done`` when every stage finished (or was up to date), ``interrupted`` when the batch
-        was stopped (Ctrl-C) before its stages ended without one failing, else ``failed``."""
+        """``done`` when every stage finished (or was up to date) and the run's checks passed (or
+        were not measured), ``check failed: <check>, ...`` when every stage finished but a check
+        failed (a failed sample, as ``digitize`` exits 1), ``interrupted`` when the batch was
+        stopped (Ctrl-C) before its stages ended without one failing, else ``failed``."""
         ok = len(self.stages) == len(STAGES) and all(r["status"] in ("done", "up to date")
                                                      for r in self.stages.values())
         if ok:
-            return "done"
+            bad = self.failed_checks
+            return "check failed: " + ", ".join(c.name for c in bad) if bad else "done"
         if self.failure is None and any(r["status"] == "interrupted" for r in self.stages.values()):
             return "interrupted"
         return "failed"

@@ -34,9 +34,21 @@ def _main_file(files: list[str]) -> str | None:
     return str(Path(files[0]).parent) + "/" if files else None
 
 
+def check_text(checks: list) -> str:
+    """The run's checks in one word or line: ``passed``, ``failed: <check> (<line>)``, ``not
+    measured`` (a fit without a cross-validation pass) or ``not run`` (the fit did not finish)."""
+    if not checks:
+        return "not run"
+    bad = [c for c in checks if c.ok is False]
+    if bad:
+        return "failed: " + "; ".join(c.text for c in bad)
+    return "passed" if any(c.ok for c in checks) else "not measured"
+
+
 def sample_row(r: SampleResult) -> dict[str, Any]:
     """One sample's entry of ``summary.json`` (paths relative to OUTDIR)."""
     fail = r.failure
+    checks = r.checks
     fit, prop, exp = r.summary("fit"), r.summary("propagate"), r.summary("export")
     in_field = prop.get("in_field_l1") or {}
     reg = prop.get("registration") or {}
@@ -59,7 +71,11 @@ def sample_row(r: SampleResult) -> dict[str, Any]:
         "components": fit.get("components"), "components_text": components_text(fit.get("components")),
         "heldout_relative_l1": fit.get("heldout_relative_l1"),
         "heldout_baseline_relative_l1": fit.get("heldout_baseline_relative_l1"),
+        "heldout_constant_relative_l1": fit.get("heldout_constant_relative_l1"),
         "heldout_method": fit.get("heldout_method"),
+        "check": check_text(checks), "check_ok": (None if not any(c.ok is not None for c in checks)
+                                                  else not any(c.ok is False for c in checks)),
+        "checks": [c.to_json() for c in checks],
         "propagate": None if not prop or "skipped" in prop else {
             "in_field_l1_mean": (sum(in_field.values()) / len(in_field)) if in_field else None,
             "registration_ncc": reg.get("score"), "registration_method": reg.get("method")},
@@ -69,7 +85,8 @@ def sample_row(r: SampleResult) -> dict[str, Any]:
 
 
 CSV_COLUMNS = ("name", "status", "failed_stage", "error", "seconds", *(f"seconds_{s}" for s in STAGES), "up_to_date",
-               "components", "heldout_relative_l1", "heldout_baseline_relative_l1", "propagate_in_field_l1",
+               "components", "check", "heldout_relative_l1", "heldout_baseline_relative_l1",
+               "heldout_constant_relative_l1", "propagate_in_field_l1",
                "registration_ncc",
                "exports", "report")
 
@@ -87,7 +104,8 @@ def _csv(rows: list[dict[str, Any]]) -> str:
         w.writerow([r["name"], r["status"], r["failed_stage"] or "", r["error"] or "", num(r["seconds"]),
                     *(num(r["stages"][s]["seconds"]) for s in STAGES),
                     ";".join(s for s in STAGES if r["stages"][s]["status"] == "up to date"),
-                    r["components_text"] or "", num(r["heldout_relative_l1"]), num(r["heldout_baseline_relative_l1"]),
+                    r["components_text"] or "", r["check"], num(r["heldout_relative_l1"]),
+                    num(r["heldout_baseline_relative_l1"]), num(r["heldout_constant_relative_l1"]),
                     num(p.get("in_field_l1_mean")), num(p.get("registration_ncc")),
                     ";".join(f for e in r["exports"].values() for f in e["files"].values()), r["report"] or ""])
     return buf.getvalue()
@@ -110,15 +128,18 @@ Times are each stage's wall time in this batch; an up-to-date stage was skipped 
 the time it took when it ran).</p>
 <table class="batch">
 <thead><tr><th>sample</th><th>status</th><th>quality</th>{% for s in stages %}<th class="num">{{ s }}</th>{% endfor %}
-<th class="num">total</th><th>components</th><th class="num" title="cross-validated over the lights">held-out rel. L1</th>
+<th class="num">total</th><th>components</th><th title="the run's own checks (docs/DIGITIZE.md)">check</th>
+<th class="num" title="cross-validated over the lights">held-out rel. L1</th>
 <th class="num" title="Lambertian photometric stereo on the same folds and pixels">baseline rel. L1</th>
+<th class="num" title="each pixel's mean over the training lights, on the same folds and pixels">constant rel. L1</th>
 <th class="num">propagation in-field L1</th><th>exports</th></tr></thead>
 <tbody>
 {% for r in rows %}
-<tr class="sample {{ r.status }}" data-name="{{ r.name }}">
+<tr class="sample {{ r.status.split(':')[0] | replace(' ', '-') }}" data-name="{{ r.name }}">
 <td>{% if r.report %}<a href="{{ r.report }}">{{ r.name }}</a>{% else %}{{ r.name }}{% endif %}</td>
 <td>{% if r.status == "done" %}<span class="ok">done</span>{% elif r.status == "interrupted" %}<span class="bad">interrupted</span>
-<div class="error">at {{ r.interrupted_stage }}: the batch was stopped; run it again to resume</div>{% else %}<span class="bad">failed</span>
+<div class="error">at {{ r.interrupted_stage }}: the batch was stopped; run it again to resume</div>{% elif r.status.startswith("check failed") %}<span class="bad">{{ r.status }}</span>
+<div class="error">every stage ran, but the fit failed the run's check (docs/DIGITIZE.md, “The run's check”)</div>{% else %}<span class="bad">failed</span>
 <div class="error">{{ r.failed_stage }}: {{ r.error }}</div>{% endif %}</td>
 <td>{{ r.quality }}</td>
 {% for s in stages %}{% set st = r.stages[s] %}<td class="num {{ st.status | replace(' ', '-') }}">
@@ -137,8 +158,10 @@ the time it took when it ran).</p>
 {% endfor %}
 <td class="num">{{ r.seconds | dur }}</td>
 <td>{{ r.components_text or "—" }}</td>
+<td>{% if r.check_ok is true %}<span class="ok">✓</span> passed{% elif r.check_ok is false %}<span class="bad">✗</span> <span class="error">{{ r.check }}</span>{% else %}<span class="muted">{{ r.check }}</span>{% endif %}</td>
 <td class="num" title="{{ r.heldout_method or '' }}">{{ r.heldout_relative_l1 | num }}</td>
 <td class="num">{{ r.heldout_baseline_relative_l1 | num }}</td>
+<td class="num">{{ r.heldout_constant_relative_l1 | num }}</td>
 <td class="num">{% if r.propagate %}{{ r.propagate.in_field_l1_mean | num }}{% else %}
 <span class="muted">{{ "skipped" if r.propagate_skipped else "—" }}</span>{% endif %}</td>
 <td>{% for scale, e in r.exports.items() %}
@@ -154,7 +177,7 @@ the time it took when it ran).</p>
 {% if failures %}
 <section id="failures">
 <h2>Failures</h2>
-{% for r in failures %}<h3>{{ r.name }}: {{ r.failed_stage }}</h3><pre class="mono">{{ r.traceback or r.error }}</pre>
+{% for r in failures %}<h3>{{ r.name }}: {{ r.failed_stage or r.status }}</h3><pre class="mono">{{ r.traceback or r.error or r.check }}</pre>
 {% endfor %}
 </section>
 {% endif %}
@@ -166,7 +189,7 @@ def _html(doc: dict[str, Any]) -> str:
     from dualscale.report.html import environment
 
     rows = doc["samples"]
-    failures = [r for r in rows if r["status"] == "failed"]
+    failures = [r for r in rows if r["status"] == "failed" or r["status"].startswith("check failed")]
     stopped = sum(1 for r in rows if r["status"] == "interrupted")
     up = sum(1 for r in rows for s in r["stages"].values() if s["status"] == "up to date")
     sub = (f"{doc['list']} → {doc['outdir']} · {doc['engine']} · finished {doc['finished']} · "
@@ -213,8 +236,11 @@ def table(doc: dict[str, Any]) -> str:
             out.append(f"{r['name']:<{w}s}  {'STOPPED':<6s}  {t:>10s}  interrupted at {r['interrupted_stage']} "
                        "(run the same command again to resume)")
             continue
-        if r["status"] != "done":
+        if r["status"] == "failed":
             out.append(f"{r['name']:<{w}s}  {'FAILED':<6s}  {t:>10s}  {r['failed_stage']}: {r['error']}")
+            continue
+        if r["status"] != "done":  # every stage ran, the run's check failed
+            out.append(f"{r['name']:<{w}s}  {'FAILED':<6s}  {t:>10s}  {r['status']}: {r['check']}")
             continue
         up = sum(1 for s in r["stages"].values() if s["status"] == "up to date")
         if up == len(STAGES):

@@ -65,6 +65,8 @@ def cmd_batch(a: argparse.Namespace) -> int:
             secs = sum(x["seconds"] or 0.0 for x in r.stages.values())
             up = sum(1 for x in r.stages.values() if x["status"] == "up to date")
             print(f"  {r.name}: done in {secs:.1f} s" + (f" ({up} stage(s) up to date)" if up else ""), flush=True)
+        elif r.failure is None and r.failed_checks:  # every stage ran; the fit failed the run's check
+            print(f"  {r.name}: FAILED {r.status}: {'; '.join(c.text for c in r.failed_checks)}", flush=True)
         else:
             f = r.failure or {}
             print(f"  {r.name}: FAILED at {f.get('stage')}: {f.get('error_type')}: {f.get('error')}", flush=True)

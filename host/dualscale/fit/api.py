@@ -53,7 +53,8 @@ def fit_dataset(dataset: str | Path, out: str | Path, preset: str | Preset = "st
     pass uses the components chosen once on all lights and the preset (without a coarse level),
     and runs in this process also when the fit is tiled.  Its report is ``extra
     ["cross_validation"]`` (:meth:`.holdout.HoldoutReport.as_json` plus ``relative_l1``, the mean
-    over the lights, and ``images``), also written into ``fit.json``; while the fit is in progress
+    over the lights, ``baseline_relative_l1`` and ``constant_relative_l1``, the same for the
+    Lambertian baseline and the per-pixel constant predictor, and ``images``), also written into ``fit.json``; while the fit is in progress
     it is kept in ``out/crossval.json`` so a resumed fit does not redo it.  ``FitResult.losses``
     are the final fit's re-render errors on the images it was fitted on (``train_*``).
 
@@ -166,6 +167,7 @@ def _cross_validation(obs, preset: Preset, comps: Components, pixels: int, folds
     rep: HoldoutReport = cross_validate(obs, preset, comps, pixels, folds, seed=seed, progress=progress)
     doc = rep.as_json()
     doc.update({"relative_l1": doc["ours_mean"], "baseline_relative_l1": doc["baseline_mean"],
+                "constant_relative_l1": doc["constant_mean"],
                 "images": obs.n, "requested_pixels": pixels, "requested_folds": folds,
                 "components_chosen": "once, on all lights (the same components in every fold)"})
     write_json(cache, {"key": key, "report": doc})

@@ -20,6 +20,13 @@ mean over its images.  Every light is held out exactly once, so every light gets
 baseline fits ``a_c max(0, n . l)`` per pixel by least squares on the same training images and
 valid samples.  Both predictions are clamped like the fit's renders (at 2, :mod:`.render`).
 
+A second reference, the **per-pixel constant predictor** (:func:`constant_prediction`), predicts
+every held-out image of a pixel by that pixel's mean over the fold's training images (their valid
+samples, clamped at 2): a prediction that ignores the light entirely.  It is scored the same way
+(``constant``).  A real material's shading changes strongly with the light, so any fit that
+describes it beats the constant predictor by far; images of random noise (no light dependence) do
+not, whatever their absolute error (docs/DIGITIZE.md, "The run's check").
+
 Cost: one fit per fold.  ``pixels`` limits the evaluation to a random subset of the sample's
 pixels (pixels are independent in the per-pixel fit, so this is an unbiased estimate of the
 mean over the mask, and both methods and every fold see the same subset).  The subset is laid
@@ -91,6 +98,20 @@ def lambertian_prediction(train: Observations, held: Observations) -> np.ndarray
     return np.minimum(render_lambertian(model, held.dirs.double().numpy()), 2.0)
 
 
+def constant_prediction(train: Observations, held: Observations) -> np.ndarray:
+    """The per-pixel constant predictor's prediction ``(L, P, 3)`` of ``held``'s ``L`` images
+    (module doc): every pixel's mean over ``train``'s images, each clamped at 2, over the valid
+    samples of that pixel (``train.valid``; a pixel with none predicts 0), the same for every
+    held-out light.  Both are ``1 x P`` pixel rows or any ``(H, W)`` (pixels are flattened)."""
+    k = train.n
+    x = clamp_images(train.images).reshape(k, -1, 3).double().numpy()
+    v = np.ones(x.shape[:2], bool) if train.valid is None else train.valid.reshape(k, -1).numpy().astype(bool)
+    n = v.sum(0)  # (P,)
+    mean = (x * v[..., None]).sum(0) / np.maximum(n, 1)[:, None]
+    mean[n == 0] = 0.0
+    return np.broadcast_to(mean, (held.n, *mean.shape)).copy()
+
+
 def light_folds(light_ids: Sequence[int] | Tensor, folds: int | str = "auto") -> list[list[int]]:
     """The folds of the distinct ids in ``light_ids``: lists of ids, every id in exactly one.
 
@@ -149,7 +170,9 @@ def _json_float(x: float) -> float | None:
 @dataclass
 class HoldoutReport:
     """Per held-out light (``light_ids`` order, increasing): our relative L1 ``ours``, the
-    baseline's ``baseline`` (``(L,)`` arrays, NaN for a light without a valid sample), its
+    baseline's ``baseline``, the per-pixel constant predictor's ``constant`` (:func:`constant_prediction`;
+    ``(L,)`` arrays, NaN for a light without a valid sample; ``constant`` empty in a report
+    made without it), its
     direction ``directions`` (unit vectors, camera frame), its ``fold`` index; the ``folds``
     (lists of light ids), ``pixels`` evaluated, ``seconds`` (ours, baseline) of wall time, the
     ``components`` of each fold (one entry per fold, with its ``lights``), the preset's name
@@ -165,6 +188,7 @@ class HoldoutReport:
     folds: list[list[int]] = field(default_factory=list)
     directions: list[list[float]] = field(default_factory=list)
     scheme: str = "leave-one-light-out"
+    constant: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @property
     def fold(self) -> list[int]:
@@ -173,10 +197,13 @@ class HoldoutReport:
         return [where.get(lid, -1) for lid in self.light_ids]
 
     def summary(self) -> dict[str, Any]:
-        """Means over the lights (NaN ones left out), their ratio, on how many lights ours is
-        lower, and the scheme, folds, pixels, seconds and preset."""
+        """Means over the lights (NaN ones left out; ``constant_mean`` NaN without the constant
+        predictor), their ratio, on how many lights ours is lower, and the scheme, folds, pixels,
+        seconds and preset."""
         mo, mb = _nanmean(self.ours), _nanmean(self.baseline)
-        return {"ours_mean": mo, "baseline_mean": mb, "ratio": mo / mb if mb > 0 else float("nan"),
+        mc = _nanmean(self.constant) if len(self.constant) else float("nan")
+        return {"ours_mean": mo, "baseline_mean": mb, "constant_mean": mc,
+                "ratio": mo / mb if mb > 0 else float("nan"),
                 "wins": int((self.ours < self.baseline).sum()), "lights": len(self.light_ids),
                 "pixels": self.pixels, "seconds_ours": self.seconds[0], "seconds_baseline": self.seconds[1],
                 "preset": self.preset, "scheme": self.scheme, "folds": len(self.folds) or len(self.light_ids)}
@@ -185,7 +212,8 @@ class HoldoutReport:
         """:meth:`summary` plus the per-light lists (non-finite values as ``null``)."""
         s = {k: (_json_float(v) if isinstance(v, float) else v) for k, v in self.summary().items()}
         return {**s, "light_ids": self.light_ids, "ours": [_json_float(x) for x in self.ours],
-                "baseline": [_json_float(x) for x in self.baseline], "fold": self.fold,
+                "baseline": [_json_float(x) for x in self.baseline],
+                "constant": [_json_float(x) for x in self.constant], "fold": self.fold,
                 "fold_lights": self.folds, "directions": self.directions, "components": self.components}
 
 
@@ -199,7 +227,9 @@ def cross_validate(obs: Observations, preset: Preset, comps: Components | Choose
     drawn with ``seed``), each fold fitted with :func:`pixel_preset` of ``preset``.  ``comps``:
     fixed components (``dualscale fit`` passes the decision it made once on all lights), or a
     function of the training observations that chooses them (e.g.
-    ``lambda o: select_components(o, preset=preset)[0]``), called once per fold.  Raises
+    ``lambda o: select_components(o, preset=preset)[0]``), called once per fold.  The Lambertian
+    baseline and the per-pixel constant predictor are scored on the same folds, pixels and valid
+    samples (module doc).  Raises
     ``ValueError`` for fewer than two distinct lights and ``RuntimeError`` if a prediction is not
     finite (never expected)."""
     from tqdm import tqdm
@@ -210,6 +240,7 @@ def cross_validate(obs: Observations, preset: Preset, comps: Components | Choose
     fit_preset = pixel_preset(preset)
     ours: dict[int, float] = {}
     base: dict[int, float] = {}
+    const: dict[int, float] = {}
     dirs: dict[int, list[float]] = {}
     chosen = []
     t_ours = t_base = 0.0
@@ -223,6 +254,7 @@ def cross_validate(obs: Observations, preset: Preset, comps: Components | Choose
         t_ours += time.perf_counter() - t0
         t0 = time.perf_counter()
         pb = lambertian_prediction(train, held)
+        pc = constant_prediction(train, held)
         t_base += time.perf_counter() - t0
         if not (bool(torch.isfinite(pred).all()) and np.isfinite(pb).all()):
             raise RuntimeError(f"cross-validation: non-finite prediction of light(s) {fold}")
@@ -234,13 +266,15 @@ def cross_validate(obs: Observations, preset: Preset, comps: Components | Choose
             ours[lid] = float(np.mean([relative_l1(pred[k], cap[k], None if v is None else v[k]) for k in idx]))
             base[lid] = float(np.mean([relative_l1(pb[k].reshape(cap[k].shape), cap[k], None if v is None else v[k])
                                        for k in idx]))
+            const[lid] = float(np.mean([relative_l1(pc[k].reshape(cap[k].shape), cap[k], None if v is None else v[k])
+                                        for k in idx]))
             d = held.dirs[idx[0]].double()
             dirs[lid] = [float(x) for x in d / d.norm().clamp_min(1e-12)]
         chosen.append({"lights": list(fold), **asdict(c)})
     light_ids = sorted(ours)
     return HoldoutReport(light_ids, np.array([ours[i] for i in light_ids]), np.array([base[i] for i in light_ids]),
                          int(sub.images.shape[2]), (t_ours, t_base), chosen, preset.name, groups,
-                         [dirs[i] for i in light_ids], scheme)
+                         [dirs[i] for i in light_ids], scheme, np.array([const[i] for i in light_ids]))
 
 
 def leave_one_light_out(obs: Observations, preset: Preset, comps: Components | Chooser, pixels: int | None = 4000,
@@ -264,7 +298,8 @@ def describe(cv: dict[str, Any] | None) -> str:
 
     return (f"held-out relative L1 {num(cv.get('relative_l1'))} (cross-validated, {cv.get('scheme')} over "
             f"{cv.get('lights')} lights on {cv.get('pixels')} sample pixels; Lambertian baseline "
-            f"{num(cv.get('baseline_relative_l1'))}); no light is held out of the final maps")
+            f"{num(cv.get('baseline_relative_l1'))}, per-pixel constant predictor "
+            f"{num(cv.get('constant_relative_l1'))}); no light is held out of the final maps")
 
 
 def fit_sample(obs: Observations, preset: Preset, comps: Components, seed: int = 0,

@@ -15,6 +15,10 @@
 * ``export/`` (the exports of its summary: per scale, the files of each format, each with its own
   size).
 
+The run's own checks (:func:`dualscale.report.checks.run_checks`, from the fit stage's record:
+the same ones ``digitize`` records in ``run.json`` and exits 1 on) are shown under the headline,
+each with its value, goal and ✓/✗, with a line saying whether the run passed.
+
 The title names the material: ``--name`` (``run.json`` options), else the name the export stage
 gave it, else the input folder's.
 
@@ -45,6 +49,7 @@ from dualscale.formats.run import CAPTURE_STAGE, STAGES
 
 from . import format as fmt
 from . import plots
+from .checks import run_checks
 from .html import Assets, write_page
 
 REQUIRED_STAGES = ("calibrate", "fit")
@@ -61,6 +66,13 @@ class _Missing(FormatError):
 
 # ---------------------------------------------------------------------------------------------
 # reading
+
+def _check_value(c) -> str:
+    """A check's value for the page: a percentage (held-out error) or a ratio, or "not measured"."""
+    if c.value is None:
+        return "not measured"
+    return fmt.percent(c.value) if c.name == "fit held-out error" else f"{c.value:.2f}×"
+
 
 def _json(run: Path, rel: str, *, required: bool, writer: str) -> dict[str, Any] | None:
     path = run / rel
@@ -346,6 +358,8 @@ def write_run_report(run_dir: str | Path, out: str | Path | None = None) -> Path
          fmt.percent(fit_sum.get("heldout_relative_l1"))),
         ("the same for the Lambertian baseline (same folds and pixels)",
          fmt.percent(fit_sum.get("heldout_baseline_relative_l1"))),
+        ("the same for the per-pixel constant predictor (each pixel's mean over the training lights)",
+         fmt.percent(fit_sum.get("heldout_constant_relative_l1"))),
         ("fit stage time", _stage_time(stages["fit"])),
     ]
     rad = (fit_json or {}).get("radiometry")
@@ -355,7 +369,7 @@ def write_run_report(run_dir: str | Path, out: str | Path | None = None) -> Path
         for wmsg in rad.get("warnings") or []:
             fit_rows.append(("radiometry warning", str(wmsg)))
     shown = {"preset", "images", "train_images", "heldout_method", "heldout_relative_l1",
-             "heldout_baseline_relative_l1", "seconds", "cv_seconds", "texel_mm"}
+             "heldout_baseline_relative_l1", "heldout_constant_relative_l1", "seconds", "cv_seconds", "texel_mm"}
     fit_rows += fmt.rows({k: v for k, v in fit_sum.items() if k not in shown and k != "skipped"}, depth=0)
 
     heldout = _heldout(run, _json(run, "fit/heldout/heldout.json", required=True, writer="fit stage"), assets,
@@ -449,16 +463,26 @@ def write_run_report(run_dir: str | Path, out: str | Path | None = None) -> Path
         timing = fig(plots.time_bars([s.name for s in timed], [s.seconds for s in timed]), "time_per_stage",
                      "Time per stage")
 
+    checks = run_checks(stages["fit"].record)
+    failed = [c for c in checks if c.ok is False]
+    verdict = {"text": ("failed: " + ", ".join(c.name for c in failed)) if failed else
+               "passed" if any(c.ok for c in checks) else "not measured",
+               "goal": "docs/DIGITIZE.md, “The run's check”", "ok": (not failed) if any(
+                   c.ok is not None for c in checks) else None}
+    check_table = Table(["check", "value", "goal", "", "what it means"],
+                        [[c.name, _check_value(c), c.goal, c.mark or "not measured", c.text] for c in checks], {1})
     headline = [
+        ("the run's check", verdict),
         ("held-out relative L1 (cross-validated)", fmt.percent(fit_sum.get("heldout_relative_l1"))),
         ("Lambertian baseline, same folds", fmt.percent(fit_sum.get("heldout_baseline_relative_l1"))),
+        ("per-pixel constant predictor, same folds", fmt.percent(fit_sum.get("heldout_constant_relative_l1"))),
         ("maps", f"{len(names)} at {w} × {h}"),
         ("texel", fmt.length_mm(texel_fit)),
         ("total time" + (" (capture included)" if CAPTURE_STAGE in stages and stages[CAPTURE_STAGE].record else ""),
          fmt.duration(sum(s.seconds or 0.0 for s in timed))),
         ("warnings", fmt.number(len(all_warnings))),
     ]
-    sections = [("warnings", "Warnings"), ("inputs", "Inputs and calibration"), ("selection", "Components"),
+    sections = [("checks", "Checks"), ("warnings", "Warnings"), ("inputs", "Inputs and calibration"), ("selection", "Components"),
                 ("maps", "Maps"), ("residual", "Fit residual"), ("heldout", "Held-out error"),
                 ("flyouts", "Fly-outs"), ("propagation", "Propagation"), ("export", "Export"),
                 ("time", "Time"), ("records", "Stage records")]
@@ -472,7 +496,7 @@ def write_run_report(run_dir: str | Path, out: str | Path | None = None) -> Path
         title=f"dualscale run: {_material_name(run, run_doc, stages)}",
         subtitle=f"{run.resolve()} · {len(order)} stages · report written {now}",
         toc=sections, footer=f"dualscale {__version__} · written {now} · this folder is self-contained and opens offline",
-        headline=headline, warnings=all_warnings, stage_warn=stage_warn, inputs=inputs, selection=selection,
+        headline=headline, checks=check_table, checks_failed=bool(failed), warnings=all_warnings, stage_warn=stage_warn, inputs=inputs, selection=selection,
         fit_rows=fit_rows, maps=map_figs, residual=res_fig, heldout=heldout, flyouts=fly, propagation=prop,
         export=exp, timing=timing, records=[_stage_rows(stages[n]) for n in order],
         timing_table=Table(["stage", "time"], [[s.name, fmt.duration(s.seconds)] for s in timed], {1}),
