@@ -262,7 +262,6 @@ def test_flash_with_a_missing_tool_refuses_before_building(monkeypatch, capsys):
 #: options whose help does not yet give their default, in files being fixed elsewhere
 #: (cli/__init__.py, cli/sim.py, cli/capture.py, cli/calib.py, cli/importer.py); empty it as they are
 _DEFAULT_NOT_YET_IN_HELP = {
-    "sim --speed", "demo --speed",
     "synth --texel-um", "synth --lights", "synth --analyzers", "synth --mid-field-mm", "render --texel-um",
 }
 

@@ -108,7 +108,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="posix: the C core as a host program; qemu: the STM32F405 image under QEMU (default: posix)")
     s.add_argument("--link", help="make a symlink to the serial device at this path")
     s.add_argument("--speed", type=float, default=1.0,
-                   help="posix: 1 = real time, >1 accelerated virtual time, 0 = as fast as possible")
+                   help="posix: 1 = real time, >1 accelerated virtual time, 0 = as fast as possible (default 1)")
     s.add_argument("--hw-socket", help="posix: Unix socket for the simulated hardware side channel")
     s.add_argument("--icount", help="qemu: -icount option, e.g. shift=4")
     _serial_format_options(s)
@@ -131,7 +131,7 @@ def build_parser() -> argparse.ArgumentParser:
     d = sub.add_parser("demo", help="run the full micro-capture sequence on the simulated rig")
     d.add_argument("--target", choices=("posix", "qemu"), default="posix",
                    help="simulator to run the sequence on: posix or qemu (default: posix)")
-    d.add_argument("--speed", type=float, default=10.0, help="posix simulator speed (see sim)")
+    d.add_argument("--speed", type=float, default=10.0, help="posix simulator speed (see sim; default 10)")
     d.add_argument("--events", action="store_true", help="print every event")
     _serial_format_options(d)
     d.set_defaults(fn=cmd_demo)
