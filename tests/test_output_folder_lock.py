@@ -31,3 +31,57 @@ def test_synth_overwrite_refuses_a_folder_another_live_process_holds(tmp_path, c
     assert main(["synth", "twill", "-o", str(out), "--size", "8", "--no-previews", "--no-progress",
                  "--overwrite"]) == 0  # a dead holder's lock file does not block
     assert not (out / "run.json").exists() and not (out / ".dualscale-lock").exists()
+
+
+def _dead_pid() -> int:
+    p = subprocess.Popen([sys.executable, "-c", "pass"])
+    p.wait(30)
+    return p.pid
+
+
+def test_a_killed_overwrites_set_aside_contents_are_kept_where_the_notice_says(tmp_path, capsys):
+    """kill -9 during `--overwrite` left `.RUN.overwritten-PID` (the old run) forever: the next run
+    of the folder keeps it beside it, visibly, and says where (the interrupted run wrote outputs)."""
+    out = tmp_path / "S"
+    (out / "maps").mkdir(parents=True)
+    (out / "maps" / "half.exr").write_bytes(b"x")  # what the killed run wrote
+    aside = tmp_path / f".S.overwritten-{_dead_pid()}"
+    aside.mkdir()
+    (aside / "run.json").write_text("old")
+    assert main(["synth", "twill", "-o", str(out), "--size", "8", "--no-previews", "--no-progress",
+                 "--overwrite"]) == 0
+    err = capsys.readouterr().err
+    assert not aside.exists() and (tmp_path / "S.before-overwrite" / "run.json").read_text() == "old"
+    assert str(tmp_path / "S.before-overwrite") in err and len([ln for ln in err.splitlines() if "note" in ln]) == 1
+
+
+def test_a_killed_overwrite_that_wrote_nothing_gets_its_contents_back(tmp_path, capsys):
+    out = tmp_path / "S"
+    out.mkdir()
+    aside = tmp_path / f".S.overwritten-{_dead_pid()}"
+    aside.mkdir()
+    (aside / "notes.txt").write_text("mine")
+    assert main(["synth", "twill", "-o", str(out), "--size", "8", "--no-previews", "--no-progress"]) == 0
+    assert (out / "notes.txt").read_text() == "mine" and not aside.exists()
+    assert "back in it" in capsys.readouterr().err
+
+
+def test_digitize_of_a_dataset_and_of_its_micro_folder_is_one_input(tmp_path, capsys):
+    syn = tmp_path / "syn"
+    assert main(["synth", "twill", "-o", str(syn), "--size", "16", "--texel-um", "9", "--dataset", "--lights", "mod8",
+                 "--no-previews", "--no-progress"]) == 0
+    run = str(tmp_path / "R1")
+    common = ["-o", run, "--until", "calibrate", "--no-progress", "--threads", "1"]
+    assert main(["digitize", str(syn), *common]) == 0
+    assert main(["digitize", str(syn / "micro"), *common]) == 0, capsys.readouterr().err
+
+
+def test_digitize_rig_without_calibration_is_refused_before_the_rig_starts(tmp_path, capsys, monkeypatch):
+    import dualscale.cli.capture as capture
+
+    def never(*a, **k):
+        raise AssertionError("the rig was started")
+
+    monkeypatch.setattr(capture, "rig_and_cameras", never)
+    assert main(["digitize", "--rig", "sim", "--camera", "sim:micro", "-o", str(tmp_path / "R")]) == 2
+    assert "--calibration" in capsys.readouterr().err and not (tmp_path / "R").exists()

@@ -196,6 +196,52 @@ def _restore(out: Path, aside: Path) -> None:
     aside.rmdir()
 
 
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:
+        return True  # someone else's process: alive
+    return True
+
+
+def _recover_aside(out: Path, command: str) -> None:
+    """What a killed ``--overwrite`` left beside ``out``: ``.OUT.overwritten-PID`` (the folder's
+    earlier contents, set aside by :func:`_clear`) whose PID is dead.  Nothing is lost: when the
+    interrupted run wrote nothing into ``out`` the contents go back; otherwise they are kept under
+    a visible name beside it, ``OUT.before-overwrite`` (the user's previous run), and a one-line
+    notice says where."""
+    res = out.resolve()
+    if not res.parent.is_dir():
+        return
+    for aside in sorted(res.parent.glob(f".{res.name}.overwritten-*")):
+        pid = aside.name.rsplit("-", 1)[-1]
+        if not pid.isdigit() or int(pid) == os.getpid() or _pid_alive(int(pid)) or not aside.is_dir():
+            continue
+        try:
+            left = [p for p in res.iterdir() if p.name not in (LOCK_FILE, RECORD)] if res.is_dir() else []
+            if not left:
+                res.mkdir(exist_ok=True)
+                for p in aside.iterdir():
+                    if p.name != LOCK_FILE:
+                        os.replace(p, res / p.name)  # (the killed run's own record, if any, gives way)
+                shutil.rmtree(aside, ignore_errors=True)
+                print(f"dualscale {command}: note: an --overwrite of {out} was interrupted (PID {pid}) before it "
+                      "wrote anything: the folder's earlier contents are back in it", file=sys.stderr)
+                continue
+            keep = res.parent / f"{res.name}.before-overwrite"
+            n = 1
+            while keep.exists():
+                n += 1
+                keep = res.parent / f"{res.name}.before-overwrite-{n}"
+            os.rename(aside, keep)
+            print(f"dualscale {command}: note: an --overwrite of {out} was interrupted (PID {pid}): the folder's "
+                  f"earlier contents are in {keep} (delete it when you no longer need them)", file=sys.stderr)
+        except OSError:
+            continue
+
+
 def _writable_error(out: Path, e: OSError) -> Exception:
     what = e.strerror or str(e)
     if e.errno in (errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOTDIR, errno.EEXIST, errno.EISDIR, errno.ENOENT):
@@ -246,6 +292,7 @@ def output_folder(args: argparse.Namespace, command: str, inputs: Sequence[objec
                 FolderLock(out, command).acquire().release()
             except OSError:
                 pass  # a folder that cannot be written: the probe below says so
+        _recover_aside(out, command)
         yield from _output_folder(args, command, inputs, out, created, record, own)
         return
 
@@ -261,6 +308,7 @@ def output_folder(args: argparse.Namespace, command: str, inputs: Sequence[objec
             raise
         raise _writable_error(out, e) from None
     try:
+        _recover_aside(out, command)
         yield from _output_folder(args, command, inputs, out, created, record, own)
     finally:
         held.release()

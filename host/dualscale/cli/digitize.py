@@ -22,6 +22,17 @@ def _line(st) -> str:
     return "\n".join(lines)
 
 
+def _dataset_root(path: Path) -> Path:
+    """The one name of a dataset given as its folder or as the folder holding its ``micro/``
+    (``syn`` and ``syn/micro`` are the same input): the folder holding ``micro/``, resolved."""
+    p = path.resolve()
+    if (p / "micro" / "manifest.json").is_file() and not (p / "manifest.json").is_file():
+        return p
+    if p.name == "micro" and (p / "manifest.json").is_file():
+        return p.parent
+    return p
+
+
 def _own_run(inp: str | None):
     """For ``output_folder(own=...)``: a run folder without a record (from before records) is this
     run's when its ``run.json`` names the same input; another input's when it names another."""
@@ -36,7 +47,7 @@ def _own_run(inp: str | None):
             before = doc.get("input") if isinstance(doc, dict) else None
         except (OSError, ValueError):
             return "its run.json is unreadable"
-        if inp is not None and before is not None and Path(before).resolve() == Path(inp).resolve():
+        if inp is not None and before is not None and _dataset_root(Path(before)) == _dataset_root(Path(inp)):
             return None
         return f"it holds the digitize run of another input ({before})"
     return own
@@ -73,6 +84,11 @@ def cmd_digitize(a: argparse.Namespace) -> int:
         raise InputError("digitize: give a dataset folder INPUT, or --rig PORT with --camera SPEC (not both)")
     if a.rig is not None and not a.camera:
         raise InputError("digitize --rig: add the cameras, e.g. --camera sim:micro --camera sim:mid")
+    if a.rig is not None and a.calibration is None:  # before the rig (or its simulator) is started
+        from dualscale.errors import UnitsError
+
+        raise UnitsError("digitize --rig: the rig captures camera counts: give its calibration file with "
+                         "--calibration CAL (dualscale calibrate)")
     inp = a.input if a.input is not None else Path(a.output) / CAPTURE_STAGE / "micro"
     opts = DigitizeOptions(input=inp, run=a.output, calibration=a.calibration, guidance=a.guidance,
                            guidance_transfer=a.transfer, guidance_texel_mm=a.guidance_texel_mm, quality=a.quality,
@@ -84,7 +100,7 @@ def cmd_digitize(a: argparse.Namespace) -> int:
 
     # every input is checked (Digitizer's preflight) before the run folder is made or touched
     prepared = Digitizer(opts) if a.rig is None else None
-    ident = [Path(a.input)] if a.rig is None else [f"rig:{a.rig}", *a.camera]
+    ident = [_dataset_root(Path(a.input))] if a.rig is None else [f"rig:{a.rig}", *a.camera]
     run = Path(a.output)
     fresh = not run.exists()
     # the run folder is locked from before it is looked at until the end: a second digitize on the
