@@ -259,13 +259,6 @@ def test_flash_with_a_missing_tool_refuses_before_building(monkeypatch, capsys):
     assert "openocd is not installed" in capsys.readouterr().err and ran == []
 
 
-#: options whose help does not yet give their default, in files being fixed elsewhere
-#: (cli/__init__.py, cli/sim.py, cli/capture.py, cli/calib.py, cli/importer.py); empty it as they are
-_DEFAULT_NOT_YET_IN_HELP = {
-    "synth --texel-um", "synth --lights", "synth --analyzers", "synth --mid-field-mm", "render --texel-um",
-}
-
-
 def test_every_option_has_help():
     """Issue 24 §5: every option of every command says what it does in --help, and an option
     that takes a value and has a default (not None, not an empty list) says that default."""
@@ -288,7 +281,7 @@ def test_every_option_has_help():
 
     walk(build_parser(), [])
     assert not missing, missing
-    assert not set(no_default) - _DEFAULT_NOT_YET_IN_HELP, sorted(set(no_default) - _DEFAULT_NOT_YET_IN_HELP)
+    assert not no_default, sorted(no_default)
 
 
 def test_digitize_names_the_command_line_the_user_can_run(monkeypatch, tmp_path):

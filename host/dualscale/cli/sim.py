@@ -336,16 +336,16 @@ def register(subparsers) -> None:
     add_output(p, "output directory (maps/, micro/, mid/)")
     p.add_argument("--size", type=int, default=512,
                    help=f"map size in texels (square, {MIN_SIZE}..{MAX_SIZE}; default: 512)")
-    p.add_argument("--texel-um", type=float, default=1.8, help="texel (= micro pixel) size in micrometres")
+    p.add_argument("--texel-um", type=float, default=1.8, help="texel (= micro pixel) size in micrometres (default: 1.8)")
     p.add_argument("--seed", type=int, default=0, help="seed of the synthetic material (default: 0)")
     p.add_argument("--dataset", action="store_true", help="also render a micro photometric dataset")
-    p.add_argument("--lights", default="all", help="'all' or 'modN' (every N-th LED)")
-    p.add_argument("--analyzers", default="0,90", help="analyser angles relative to each LED polariser, or 'none'")
+    p.add_argument("--lights", default="all", help="'all' or 'modN' (every N-th LED; default: all)")
+    p.add_argument("--analyzers", default="0,90", help="analyser angles relative to each LED polariser, or 'none' (default: 0,90)")
     p.add_argument("--mid", action="store_true", help="also render a mid-range guidance image (diffuse group)")
     p.add_argument("--mid-size", type=int, default=256,
                    help=f"side of the mid-range guidance image in pixels ({MIN_SIZE}..{MAX_SIZE}; default: 256)")
     p.add_argument("--mid-field-mm", type=float, default=100.0,
-                   help="field of the mid-range image in mm (the rig: 100; smaller for a test bed)")
+                   help="field of the mid-range image in mm (default: 100, the rig's; smaller for a test bed)")
     p.add_argument("--realistic", action="store_true", help="capture in camera counts with the virtual rig's sensor (metered exposures, LED "
                         "spectra and gains, dark signal, noise, 12 bit); calibrate with synth-targets + calibrate")
     p.add_argument("--shadows", action="store_true",
@@ -364,7 +364,7 @@ def register(subparsers) -> None:
     r.add_argument("--diffuse", action="store_true", help="also render the diffuse group")
     r.add_argument("--analyzer", default=None, help="comma-separated analyser angles [deg], or 'none'")
     r.add_argument("--relative", action="store_true", help="angles are relative to each LED polariser (0 = P0)")
-    r.add_argument("--texel-um", type=float, default=1.8, help="texel size in micrometres")
+    r.add_argument("--texel-um", type=float, default=1.8, help="texel size in micrometres (default: 1.8)")
     r.add_argument("--size", type=int, default=None, help="image size for mid/polar cameras")
     r.add_argument("--realistic", action="store_true", help="camera counts through the virtual sensor (gains, dark signal, noise) instead of radiance")
     r.add_argument("--float64", action="store_true", help="render in float64 (default: float32)")
