@@ -16,7 +16,11 @@ from tests.units.conftest import small_dataset
 HINT = "run the same command again to resume"
 
 
-def _interrupt(argv: list[str], started: Path, after_s: float = 1.0, timeout: float = 120) -> subprocess.CompletedProcess:
+def _interrupt(argv: list[str], started: Path, after_s: float = 1.0, timeout: float = 120,
+               sig: signal.Signals = signal.SIGINT, group: bool = True) -> subprocess.CompletedProcess:
+    """Run ``dualscale ARGV`` in its own session, wait until ``started`` exists and ``after_s``
+    more, then send ``sig`` to its process group (Ctrl-C in a terminal) or, ``group=False``, to
+    the process alone (``kill PID``); the finished process."""
     env = dict(os.environ, OMP_NUM_THREADS="1")
     env.pop("DUALSCALE_DEBUG", None)
     p = subprocess.Popen([sys.executable, "-m", "dualscale.cli", *argv], stdout=subprocess.PIPE,
@@ -28,8 +32,11 @@ def _interrupt(argv: list[str], started: Path, after_s: float = 1.0, timeout: fl
             assert time.monotonic() - t0 < timeout, "the command never started its work"
             time.sleep(0.05)
         time.sleep(after_s)
-        assert p.poll() is None, f"the command finished before Ctrl-C: {p.communicate()}"
-        os.killpg(p.pid, signal.SIGINT)
+        assert p.poll() is None, f"the command finished before {sig.name}: {p.communicate()}"
+        if group:
+            os.killpg(p.pid, sig)
+        else:
+            p.send_signal(sig)
         out, err = p.communicate(timeout=60)
     finally:
         if p.poll() is None:

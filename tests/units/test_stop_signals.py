@@ -5,41 +5,23 @@ processes, real signals, sent to the command's process only (as ``kill`` and ``t
 
 from __future__ import annotations
 
-import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
 
 from tests.units.conftest import small_dataset
+from tests.units.test_interrupts import _interrupt
 
 HINT = "run the same command again to resume"
 
 
 def _stop(argv: list[str], started: Path, sig: signal.Signals, after_s: float = 1.0,
           timeout: float = 120) -> subprocess.CompletedProcess:
-    env = dict(os.environ, OMP_NUM_THREADS="1")
-    env.pop("DUALSCALE_DEBUG", None)
-    p = subprocess.Popen([sys.executable, "-m", "dualscale.cli", *argv], stdout=subprocess.PIPE,
-                         stderr=subprocess.PIPE, text=True, env=env, start_new_session=True)
-    t0 = time.monotonic()
-    try:
-        while not started.exists():
-            assert p.poll() is None, p.communicate()
-            assert time.monotonic() - t0 < timeout, "the command never started its work"
-            time.sleep(0.05)
-        time.sleep(after_s)
-        assert p.poll() is None, f"the command finished before the signal: {p.communicate()}"
-        p.send_signal(sig)
-        out, err = p.communicate(timeout=60)
-    finally:
-        if p.poll() is None:
-            os.killpg(p.pid, signal.SIGKILL)
-            p.wait()
-    return subprocess.CompletedProcess(p.args, p.returncode, out, err)
+    """``kill -SIG PID``: the signal to the process alone, as ``kill``/``timeout`` send it."""
+    return _interrupt(argv, started, after_s, timeout, sig=sig, group=False)
 
 
 def _check(r: subprocess.CompletedProcess, cmd: str, sig: signal.Signals) -> str:
