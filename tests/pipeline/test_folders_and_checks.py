@@ -128,6 +128,17 @@ def test_a_corrupt_image_of_the_dataset_is_refused_before_any_stage(sample, tmp_
     assert not run.exists()
 
 
+def _digitize_fails_its_check(ds, run, capsys):
+    """``digitize DS -o RUN --until fit`` exits 1, its last line naming the held-out check;
+    ``(captured output, that last line)``."""
+    capsys.readouterr()
+    assert main(["digitize", str(ds), "-o", str(run), "--until", "fit", *ARGS]) == 1
+    cap = capsys.readouterr()
+    last = cap.err.strip().splitlines()[-1]
+    assert last.startswith("dualscale digitize: check failed: fit held-out relative L1"), cap.err
+    return cap, last
+
+
 def test_a_run_that_fails_its_check_exits_1_naming_it(tmp_path, capsys):
     """Random-noise photographs: held-out L1 ~100 % reported, exit 0, and a warning to import
     the photographs that came from import.  Now exit 1, the last line names the check, the
@@ -142,11 +153,7 @@ def test_a_run_that_fails_its_check_exits_1_naming_it(tmp_path, capsys):
     assert main(["import", str(s.folder), "--lights", str(s.lp), "-o", str(ds), "--transfer", "srgb",
                  "--intensities", "equal", "--no-progress"]) == 0
     run = tmp_path / "run"
-    capsys.readouterr()
-    assert main(["digitize", str(ds), "-o", str(run), "--until", "fit", *ARGS]) == 1
-    cap = capsys.readouterr()
-    last = cap.err.strip().splitlines()[-1]
-    assert last.startswith("dualscale digitize: check failed: fit held-out relative L1"), cap.err
+    cap, last = _digitize_fails_its_check(ds, run, capsys)
     assert "above the goal of at most 50 %" in last
     checks = json.loads((run / "run.json").read_text())["checks"]
     assert checks[0]["name"] == "fit held-out error" and checks[0]["ok"] is False and checks[0]["value"] > 0.5
@@ -187,11 +194,7 @@ def test_noise_that_ignores_the_light_fails_the_constant_predictor_check(tmp_pat
 
     ds = make_noise_dataset(tmp_path / "noise")
     run = tmp_path / "run"
-    capsys.readouterr()
-    assert main(["digitize", str(ds), "-o", str(run), "--until", "fit", *ARGS]) == 1
-    cap = capsys.readouterr()
-    last = cap.err.strip().splitlines()[-1]
-    assert last.startswith("dualscale digitize: check failed: fit held-out relative L1"), cap.err
+    cap, last = _digitize_fails_its_check(ds, run, capsys)
     assert "the per-pixel constant predictor's" in last and f"below {CONSTANT_MARGIN:g}×" in last, last
     assert "check: " in cap.out and "✗" in cap.out
     checks = {c["name"]: c for c in json.loads((run / "run.json").read_text())["checks"]}
