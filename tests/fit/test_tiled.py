@@ -218,3 +218,56 @@ def test_the_tile_bar_is_full_when_every_tile_was_already_done(client, data, tmp
     _, info = fit_tiled(obs, p, comps, client, tile=12, state=state, progress=True)
     err = capsys.readouterr().err
     assert info["resumed_tiles"] == 4 and "4/4" in err, err
+
+
+class _Counting:
+    """The real Dask client, measuring the pickled size of every task it is given (the
+    function and its arguments: what the driver sends to the scheduler for the workers)."""
+
+    def __init__(self, client):
+        self.client, self.sent = client, []
+
+    def submit(self, fn, *args, **kw):
+        import cloudpickle
+
+        self.sent.append(len(cloudpickle.dumps((fn, args))))
+        return self.client.submit(fn, *args, **kw)
+
+    def __getattr__(self, name):
+        return getattr(self.client, name)
+
+
+@pytest.mark.parametrize("preset,comps", [("standard", fit_components(True, False, False)),
+                                          ("adam-fast", fit_components(True, False, False))])
+def test_workers_read_their_tiles_and_the_driver_ships_no_pixels(client, data, preset, comps):
+    """Issue 25 Sec. 2: observations as read from the dataset go to the workers as the dataset's
+    path and the tile's coordinates; each worker reads its tile itself, and the maps are the
+    one-process fit's bit for bit.  Observations changed after loading are sent with each task."""
+    obs = data["twill"]
+    assert obs.unchanged() and obs.origin is not None
+    p = replace(get_preset(preset), **(SHORT if preset.startswith("adam") else {}))
+    one = fit_observations(obs, p, comps)
+    counting = _Counting(client)
+    tiled, info = fit_tiled(obs, p, comps, counting, tile=7)
+    assert info["tile_data"].startswith("read by the workers")
+    _equal(one.maps.items(), tiled.maps.items())
+    pixels = 7 * 7 * obs.n * 3 * 4  # one full tile's float32 images
+    assert len(counting.sent) == info["tiles"] and max(counting.sent) < min(pixels / 4, 20_000), counting.sent
+    # changed after loading (a replaced mask): the tasks carry the tiles' pixels
+    changed = replace(obs, valid=torch.ones(obs.images.shape[:3], dtype=torch.bool))
+    assert not changed.unchanged()
+    counting = _Counting(client)
+    _, info = fit_tiled(changed, p, comps, counting, tile=7)
+    assert info["tile_data"].startswith("sent with each task") and max(counting.sent) > pixels
+
+
+def test_a_tile_read_from_the_dataset_is_the_crop_of_the_whole(data):
+    from dualscale.fit.observations import read_tile
+
+    obs = data["twill"]
+    part = read_tile(obs.origin, (3, 17, 5, 21))
+    crop = obs.crop(3, 17, 5, 21)
+    assert torch.equal(part.images, crop.images) and torch.equal(part.led_ids, crop.led_ids)
+    assert (part.valid is None) == (crop.valid is None)
+    with pytest.raises(ValueError, match="outside"):
+        read_tile(obs.origin, (0, 99, 0, 5))

@@ -69,13 +69,48 @@ class WholeMap:
         return float(self.pixels) if self.back is None else self.back
 
 
+@dataclass(frozen=True)
+class DatasetOrigin:
+    """Where observations were read from: :func:`load_observations` of ``root`` (a resolved
+    dataset folder), ``camera``, ``leds`` (sorted ids, or None: all) and ``dtype`` (torch's
+    name), and ``key``, the :func:`content_key` of what it read.  A tiled fit's workers read
+    their tile from there themselves (:func:`read_tile`) when the observations still have that
+    key, so the driver ships coordinates, not pixels (issue 25 Sec. 2)."""
+
+    root: str
+    camera: str
+    leds: tuple[int, ...] | None
+    dtype: str
+    key: str
+
+
+def content_key(obs: "Observations") -> str:
+    """A SHA-256 over what a fit reads of ``obs``: the lights (ids, directions, weights), each
+    image's sum (float64), each image's valid-sample count, the back-lit image's sum and valid
+    count, the size and texel size.  It tells observations changed after loading (a replaced
+    mask, a subset, a crop) from the ones a :class:`DatasetOrigin` names."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for t in (obs.led_ids, obs.dirs, obs.w_s, obs.w_p, obs.w_d, obs.images.to(torch.float64).sum(dim=(1, 2, 3)),
+              torch.zeros(0) if obs.valid is None else obs.valid.sum(dim=(1, 2)),
+              torch.zeros(0) if obs.backlight is None else obs.backlight.to(torch.float64).sum().reshape(1),
+              torch.zeros(0) if obs.back_valid is None else obs.back_valid.sum().reshape(1), obs.view):
+        h.update(str(t.dtype).encode())
+        h.update(t.detach().contiguous().cpu().numpy().tobytes())
+    h.update(repr((tuple(obs.images.shape), obs.pixel_mm, obs.back_wd, obs.imported)).encode())
+    return h.hexdigest()
+
+
 @dataclass
 class Observations:
     """LED images ``(N, H, W, 3)`` with directions ``(N, 3)`` and weights ``(N,)``, plus an
     optional back-lit image ``(H, W, 3)`` (``back_wd`` = its diffuse weight); ``valid``
     ``(N, H, W)`` bool and ``back_valid`` ``(H, W)`` bool mark the usable samples (module doc;
     ``None`` = all).  ``imported``: the images are photographs from ``dualscale import``
-    (decoded and scaled by the lights there), which the fit's advice names."""
+    (decoded and scaled by the lights there), which the fit's advice names.  ``origin``: the
+    dataset they were read from (:class:`DatasetOrigin`; it names them only while
+    :meth:`unchanged` holds)."""
 
     images: Tensor
     dirs: Tensor
@@ -91,6 +126,7 @@ class Observations:
     back_valid: Tensor | None = None
     whole: WholeMap | None = None  # set on a tile of a tiled Adam fit (WholeMap)
     imported: bool = False  # photographs from `dualscale import` (already scaled by the lights' intensities)
+    origin: DatasetOrigin | None = None  # what load_observations read (valid only while content_key matches)
 
     def __post_init__(self) -> None:
         if self.view is None:
@@ -100,6 +136,10 @@ class Observations:
         if self.back_valid is not None and (self.backlight is None
                                             or tuple(self.back_valid.shape) != tuple(self.backlight.shape[:2])):
             raise ValueError("back_valid needs a back-lit image of the same size")
+
+    def unchanged(self) -> bool:
+        """True when these are still exactly the observations their :attr:`origin` read."""
+        return self.origin is not None and content_key(self) == self.origin.key
 
     @property
     def n(self) -> int:
@@ -197,10 +237,13 @@ def check_fit_units(ds: Dataset, camera: str | None = None) -> None:
 
 
 def load_observations(root: str | Path, camera: str | None = None, dtype: torch.dtype = torch.float32,
-                      leds: set[int] | None = None) -> Observations:
+                      leds: set[int] | None = None, box: tuple[int, int, int, int] | None = None) -> Observations:
     """Read the ``camera`` images of a photometric dataset (``DIR`` or ``DIR/micro``) as
     radiance per unit light intensity per second of exposure, with their valid-sample masks.
     ``camera`` None: ``"micro"``, or the dataset's only camera (``"photo"`` of an import).
+    ``box`` ``(y0, y1, x0, x1)``: only that region of every image (the same values as the
+    whole observations' :meth:`~Observations.crop`); without it the result carries its
+    :class:`DatasetOrigin`.
 
     Raises ``FileNotFoundError`` / ``OSError`` with the offending file named when the manifest
     or an image is missing or corrupt, :class:`~dualscale.errors.UnitsError` for units or a
@@ -225,7 +268,7 @@ def load_observations(root: str | Path, camera: str | None = None, dtype: torch.
             if leds is not None and rec.light_id not in leds:
                 continue
             s, p, d = analyzer_weights(rec.analyzer_deg, rec.analyzer_relative, np.asarray(rec.direction), polar)
-            img, ok = _load(ds, i)
+            img, ok = _load(ds, i, box)
             imgs.append(img)
             valids.append(ok)
             dirs.append(rec.direction)
@@ -234,7 +277,7 @@ def load_observations(root: str | Path, camera: str | None = None, dtype: torch.
             wd.append(d)
             ids.append(rec.light_id)
         elif rec.light_kind == "backlight" and back is None:
-            back, back_valid = _load(ds, i)
+            back, back_valid = _load(ds, i, box)
             back_wd = 1.0 if rec.analyzer_deg is None else 0.5
     if not imgs:
         raise InputError(f"{ds.root}: no LED images for camera {camera!r}")
@@ -249,20 +292,34 @@ def load_observations(root: str | Path, camera: str | None = None, dtype: torch.
     bv = None
     if back is not None and (back_valid is not None or valid is not None):
         bv = torch.from_numpy(np.ones(back.shape[:2], bool) if back_valid is None else back_valid)
-    return Observations(images=torch.from_numpy(np.stack(imgs)).to(**f), dirs=torch.tensor(dirs, **f),
-                        w_s=torch.tensor(ws, **f), w_p=torch.tensor(wp, **f), w_d=torch.tensor(wd, **f),
-                        led_ids=torch.tensor(ids, dtype=torch.long),
-                        backlight=None if back is None else torch.from_numpy(back).to(**f), back_wd=back_wd,
-                        pixel_mm=pixel_mm, valid=valid, back_valid=bv,
-                        imported="import" in (ds.manifest.get("extra") or {}))
+    obs = Observations(images=torch.from_numpy(np.stack(imgs)).to(**f), dirs=torch.tensor(dirs, **f),
+                       w_s=torch.tensor(ws, **f), w_p=torch.tensor(wp, **f), w_d=torch.tensor(wd, **f),
+                       led_ids=torch.tensor(ids, dtype=torch.long),
+                       backlight=None if back is None else torch.from_numpy(back).to(**f), back_wd=back_wd,
+                       pixel_mm=pixel_mm, valid=valid, back_valid=bv,
+                       imported="import" in (ds.manifest.get("extra") or {}))
+    if box is None:
+        origin = DatasetOrigin(str(ds.root), camera, None if leds is None else tuple(sorted(int(i) for i in leds)),
+                               str(dtype).replace("torch.", ""), content_key(obs))
+        obs = replace(obs, origin=origin)
+    return obs
 
 
-def _load(ds: Dataset, index: int) -> tuple[np.ndarray, np.ndarray | None]:
-    """Image ``index`` divided by its exposure and light intensity, and its valid mask."""
+def read_tile(origin: DatasetOrigin, box: tuple[int, int, int, int]) -> Observations:
+    """The ``box`` ``(y0, y1, x0, x1)`` of the observations ``origin`` names, read from its
+    dataset (:func:`load_observations` with ``box``): what a tiled fit's worker reads itself."""
+    return load_observations(origin.root, origin.camera, getattr(torch, origin.dtype),
+                             None if origin.leds is None else set(origin.leds), box=box)
+
+
+def _load(ds: Dataset, index: int, box: tuple[int, int, int, int] | None = None
+          ) -> tuple[np.ndarray, np.ndarray | None]:
+    """Image ``index`` (its ``box``, or whole) divided by its exposure and light intensity, and
+    its valid mask."""
     rec = ds.records[index]
     try:
-        img = ds.load(index)
+        img = ds.load(index, box)
     except (OSError, ValueError) as e:
         raise type(e)(f"dataset {ds.root}: cannot use {rec.file}: {e}") from e
-    valid = ds.valid(index, img)
+    valid = ds.valid(index, img, box)
     return img / np.float32(rec.exposure_s * rec.intensity), valid  # as Dataset.load_radiance

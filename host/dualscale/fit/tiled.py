@@ -38,12 +38,25 @@ sits in (vectorised body or tail, matrix-product blocking); the LM presets' forw
 then amplify one unit in the last place into the step (measured: maps 5e-6 to 1e-5 apart after
 a short fit), so they are refused rather than merely close (:func:`check_tileable`).
 
-**Faults.**  A tile's task holds its data (no scattered futures), so when the worker running it
-dies the scheduler reruns it on another worker (``distributed.scheduler.allowed-failures``).
+**Data movement** (issue 25 Sec. 2).  When the observations are still exactly what
+:func:`.observations.load_observations` read from a dataset (their
+:class:`~.observations.DatasetOrigin` and :meth:`~.observations.Observations.unchanged`), a
+task carries the dataset's path and its tile's coordinates, and the worker reads the tile itself
+(:func:`fit_tile_read`: OpenImageIO reads the tile's scanlines of each image), so the driver
+ships no pixels: a task is a few kB (plus its crop of a coarse start), whatever the map's size
+(``tests/fit/test_tiled.py`` measures the bytes).  The dataset must then be on storage the
+workers share at the same path (a local cluster always is).  Observations changed after loading
+(a replaced mask, a subset of lights, a calibration applied in memory) are sent with each task
+instead (``fit.json``'s ``tiled.tile_data`` says which).  The driver still reads the whole map
+for the steps done once (below: components, coarse level, albedo check, the report's losses).
+
+**Faults.**  A tile's task holds its data or its coordinates (no scattered futures), so when the
+worker running it dies the scheduler reruns it on another worker
+(``distributed.scheduler.allowed-failures``).
 **Resuming.**  Each finished tile is saved at once to ``state/<y0>_<x0>.pt`` with the fit's
-fingerprint; a rerun submits only the tiles not yet saved.  **Memory and data movement.**  At
-most ``2 x workers`` tiles are in flight; a task carries its tile's images (``K x tile^2 x 3``
-float32) and returns its maps (``tile^2 x ~20`` float32).
+fingerprint; a rerun submits only the tiles not yet saved.  **Memory.**  At most ``2 x workers``
+tiles are in flight; a task carries its tile's coordinates, or its images (``K x tile^2 x 3``
+float32, above), and returns its maps (``tile^2 x ~20`` float32).
 """
 
 from __future__ import annotations
@@ -66,7 +79,7 @@ from dualscale.progress import Progress, tracker
 from .checkpoint import fingerprint
 from .core import FitResult, coarse_start, fit_losses, fit_observations, stride_leds
 from .init import check_albedo_range, photometric_stereo
-from .observations import Observations, WholeMap
+from .observations import DatasetOrigin, Observations, WholeMap, read_tile
 from .presets import Preset
 
 #: default tile side in pixels: Dask's round trip and the fit's fixed cost are ~5 % of a 64 px tile
@@ -112,6 +125,24 @@ def fit_tile(obs: Observations, preset: Preset, comps: Components, init: dict[st
         warnings.filterwarnings("ignore", message=r".*Lambertian albedo", category=RuntimeWarning)
         res = fit_observations(obs, preset, comps, seed=seed, init=init)
     return {"maps": dict(res.maps.items()), "history": list(res.history), "pixels": obs.shape[0] * obs.shape[1]}
+
+
+def fit_tile_read(origin: DatasetOrigin, box: tuple[int, int, int, int], stride: int, whole: WholeMap | None,
+                  preset: Preset, comps: Components, init: dict[str, Tensor] | None, seed: int,
+                  threads: int) -> dict[str, Any]:
+    """The task when the worker reads its tile itself (module doc, "Data movement"): the
+    ``box`` of the observations ``origin`` names (:func:`.observations.read_tile`), the same
+    ``stride`` of LEDs the driver took (:func:`.core.stride_leds`) and, for the Adam presets, the
+    whole map's sample counts ``whole``; then :func:`fit_tile`.  Raises ``FileNotFoundError``
+    saying that the dataset must be on storage the workers share, when a worker cannot find it."""
+    try:
+        obs = stride_leds(read_tile(origin, box), stride)
+    except FileNotFoundError as e:
+        raise FileNotFoundError(f"{e} (a worker of a tiled fit reads its tile from the dataset {origin.root} itself: "
+                                "it must be on storage the workers share, at the same path; docs/SCALE.md)") from None
+    if whole is not None:
+        obs = replace(obs, whole=whole)
+    return fit_tile(obs, preset, comps, init, seed, threads)
 
 
 def _fingerprint(obs: Observations, preset: Preset, comps: Components, seed: int, tile: int) -> str:
@@ -218,10 +249,18 @@ def fit_tiled(obs: Observations, preset: Preset, comps: Components, client, *,
     # 127 LEDs and draft's stride 2 it fitted 32 of the 64 in the tiles, 64 in one process)
     tile_preset = replace(preset, led_stride=1)
 
+    # the workers read their tiles from the dataset themselves when the observations are still
+    # what was read from it (module doc, "Data movement"); else each task carries its tile
+    origin = obs.origin if obs.unchanged() else None
+
     def submit(box):
         y0, y1, x0, x1 = box
+        task_key = f"dualscale-fit-tile-{key}-{y0}-{x0}"
+        if origin is not None:
+            return client.submit(fit_tile_read, origin, box, preset.led_stride, strided.whole, tile_preset, comps,
+                                 _crop_init(init, box), seed, threads, key=task_key, pure=False)
         return client.submit(fit_tile, _own(strided.crop(y0, y1, x0, x1)), tile_preset, comps, _crop_init(init, box),
-                             seed, threads, key=f"dualscale-fit-tile-{key}-{y0}-{x0}", pure=False)
+                             seed, threads, key=task_key, pure=False)
 
     with tracker(progress, len(boxes), f"fit[{preset.name}] tiles", unit="tile") as bar, warnings.catch_warnings():
         # a task carries its tile's images on purpose (module doc: a lost worker's task can rerun)
@@ -251,7 +290,9 @@ def fit_tiled(obs: Observations, preset: Preset, comps: Components, client, *,
     maps = _stitch(obs.shape, {b: parts[b] for b in boxes})
     res = FitResult(maps, comps, preset, preset.total, time.perf_counter() - t0,
                     fit_losses(maps, comps, strided, held_out), _history({b: parts[b] for b in boxes}, adam))
-    return res, {"tile_px": tile, "tiles": len(boxes), "resumed_tiles": resumed, "workers": n_workers}
+    return res, {"tile_px": tile, "tiles": len(boxes), "resumed_tiles": resumed, "workers": n_workers,
+                 "tile_data": ("read by the workers from " + origin.root) if origin is not None
+                 else "sent with each task (the observations are not the dataset's as read)"}
 
 
 def clear_state(state: str | Path) -> None:

@@ -393,12 +393,20 @@ class Dataset:
         """The sample mask ``(H, W)`` bool (True = sample pixel), or ``None`` without one."""
         return self._mask
 
-    def load(self, index: int) -> np.ndarray:
+    def load(self, index: int, box: tuple[int, int, int, int] | None = None) -> np.ndarray:
         """Image ``index`` as float32 ``(H, W, 3)``, in its record's units (not divided by the
-        exposure), checked against its record."""
+        exposure), checked against its record; ``box`` ``(y0, y1, x0, x1)``: only that region
+        (:func:`~dualscale.formats.exr.read_exr`), checked against the record's size."""
         rec = self.records[index]
-        img = read_exr(self.root / rec.file, ("R", "G", "B"))
-        if img.shape[:2] != (rec.height, rec.width):
+        if box is not None:
+            y0, y1, x0, x1 = box
+            if not (0 <= y0 < y1 <= rec.height and 0 <= x0 < x1 <= rec.width):
+                raise ValueError(f"{rec.file}: region rows {y0}..{y1}, columns {x0}..{x1} is outside the "
+                                 f"manifest's {rec.width}x{rec.height}")
+            img = read_exr(self.root / rec.file, ("R", "G", "B"), box=box, size=(rec.height, rec.width))
+        else:
+            img = read_exr(self.root / rec.file, ("R", "G", "B"))
+        if img.shape[:2] != ((rec.height, rec.width) if box is None else (box[1] - box[0], box[3] - box[2])):
             raise ValueError(f"{rec.file}: image is {img.shape[:2]}, manifest says {(rec.height, rec.width)}")
         if not np.isfinite(img).all():
             raise ValueError(f"{rec.file}: contains NaN or Inf")
@@ -434,11 +442,14 @@ class Dataset:
         sat = self.records[index].saturation
         return None if sat is None else (np.asarray(image) >= sat).any(-1)
 
-    def valid(self, index: int, image: np.ndarray) -> np.ndarray | None:
+    def valid(self, index: int, image: np.ndarray, box: tuple[int, int, int, int] | None = None) -> np.ndarray | None:
         """``(H, W)`` bool: pixels neither clipped nor outside the mask; ``None`` when both
-        are unknown (every pixel valid)."""
+        are unknown (every pixel valid).  ``box``: ``image`` is that region of the image (the
+        mask is cut to it)."""
         clip = self.clipped(index, image)
         m = self._mask
+        if m is not None and box is not None:
+            m = m[box[0]:box[1], box[2]:box[3]]
         if clip is None:
             return None if m is None else m.copy()
         return ~clip if m is None else (~clip & m)

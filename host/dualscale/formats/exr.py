@@ -142,25 +142,45 @@ def _oiio_error(text: str) -> str:
     return lines[0][:300] if lines else "not a readable image"
 
 
-def read_exr(path: str | Path, channels: Sequence[str] | None = None, allow_window: bool = False) -> np.ndarray:
+def read_exr(path: str | Path, channels: Sequence[str] | None = None, allow_window: bool = False,
+             box: tuple[int, int, int, int] | None = None, size: tuple[int, int] | None = None) -> np.ndarray:
     """Read an image as float32 ``(H, W, C)``; ``channels`` selects by name (EXR reorders them).
+
+    ``box`` ``(y0, y1, x0, x1)`` (pixels, end exclusive): read only that region, ``(y1 - y0,
+    x1 - x0, C)`` -- the scanlines ``y0..y1`` (OpenImageIO's ``read_scanlines``, which reads only
+    the chunks holding them: a tile of a fit reads its rows, not the whole image), then the
+    columns; the same values as the whole image's crop.  ``size`` ``(H, W)``: the size the whole
+    image must have (``ValueError`` otherwise), checked before a region is read.
 
     Raises :class:`~dualscale.errors.GeometryError` when the data window is not the display
     window with its origin at (0, 0) (unless ``allow_window``), ``FileNotFoundError`` for a
     missing file, :class:`~dualscale.errors.FormatError` for one that is not a readable image
-    (corrupt, truncated), ``ValueError`` for a missing channel."""
+    (corrupt, truncated), ``ValueError`` for a missing channel or a ``box`` outside the image."""
     inp = open_image(path)
     try:
         spec = inp.spec()
         if not allow_window:
             check_window(path, spec)
-        data = inp.read_image(0, 0, 0, spec.nchannels, "float")
+        if size is not None and (spec.height, spec.width) != tuple(size):
+            raise ValueError(f"{Path(path).name}: image is {(spec.height, spec.width)}, expected {tuple(size)}")
+        if box is None:
+            data = inp.read_image(0, 0, 0, spec.nchannels, "float")
+            shape = (spec.height, spec.width, spec.nchannels)
+        else:
+            y0, y1, x0, x1 = (int(v) for v in box)
+            if not (0 <= y0 < y1 <= spec.height and 0 <= x0 < x1 <= spec.width):
+                raise ValueError(f"{path}: region rows {y0}..{y1}, columns {x0}..{x1} is outside the "
+                                 f"{spec.width}x{spec.height} image")
+            data = inp.read_scanlines(0, 0, spec.y + y0, spec.y + y1, 0, 0, spec.nchannels, "float")
+            shape = (y1 - y0, spec.width, spec.nchannels)
         err = inp.geterror() if data is None else ""
     finally:
         inp.close()
     if data is None:
         raise FormatError(f"cannot read the pixels of the image {path} (corrupt or truncated?): {_oiio_error(err)}")
-    data = np.asarray(data, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
+    data = np.asarray(data, dtype=np.float32).reshape(shape)
+    if box is not None:
+        data = np.ascontiguousarray(data[:, box[2]:box[3]])
     if channels is None:
         return data
     idx = []
