@@ -271,7 +271,11 @@ _TRACKER_NOTICE = "ignore:resource_tracker:UserWarning"
 def _quiet_resource_tracker() -> None:
     """Start multiprocessing's resource tracker (shared by this process and the workers it
     spawns) with :data:`_TRACKER_NOTICE` among its warning filters: it still cleans up, without
-    printing under the command's last line.  Nothing when a tracker already runs."""
+    printing under the command's last line, and with SIGHUP ignored (an ignored signal stays
+    ignored across exec): the tracker ignores SIGINT and SIGTERM itself, but a SIGHUP to the
+    command's process group (a closed terminal) killed it, and the workers then printed its
+    restart and a traceback per semaphore.  Nothing when a tracker already runs."""
+    import signal
     import sys
     from multiprocessing import resource_tracker
 
@@ -279,10 +283,13 @@ def _quiet_resource_tracker() -> None:
         return
     if _TRACKER_NOTICE not in sys.warnoptions:
         sys.warnoptions.append(_TRACKER_NOTICE)  # passed on the tracker's command line (-W)
+    hup = signal.signal(signal.SIGHUP, signal.SIG_IGN) if hasattr(signal, "SIGHUP") else None
     try:
         resource_tracker.ensure_running()
     finally:
         sys.warnoptions.remove(_TRACKER_NOTICE)
+        if hup is not None:
+            signal.signal(signal.SIGHUP, hup)
 
 
 @contextmanager

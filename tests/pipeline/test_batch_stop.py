@@ -17,8 +17,9 @@ import pytest
 from tests.pipeline.test_run_folders import _env, _project, _wait, tiny  # noqa: F401 - tiny: a fixture
 
 
-@pytest.mark.parametrize("workers", ["1", "2"])
-def test_sigterm_during_a_batch_writes_the_summary_of_what_finished(tiny, tmp_path, workers):  # noqa: F811
+@pytest.mark.parametrize("workers,sig", [("1", signal.SIGTERM), ("2", signal.SIGTERM),
+                                         ("2", signal.SIGHUP)])  # SIGHUP to the group once killed the resource tracker
+def test_sigterm_during_a_batch_writes_the_summary_of_what_finished(tiny, tmp_path, workers, sig):  # noqa: F811
     if workers != "1":
         pytest.importorskip("distributed", reason="the dask extra is not installed")
     proj = _project(tiny, tmp_path / "project", "a,b")
@@ -35,9 +36,9 @@ def test_sigterm_during_a_batch_writes_the_summary_of_what_finished(tiny, tmp_pa
         time.sleep(0.5)
         assert p.poll() is None, p.communicate()
         if workers == "1":
-            p.send_signal(signal.SIGTERM)
+            p.send_signal(sig)
         else:
-            os.killpg(p.pid, signal.SIGTERM)
+            os.killpg(p.pid, sig)
         stdout, stderr = p.communicate(timeout=120)
     finally:
         if p.poll() is None:
@@ -45,8 +46,9 @@ def test_sigterm_during_a_batch_writes_the_summary_of_what_finished(tiny, tmp_pa
             p.wait(30)
     assert p.returncode == 130, (p.returncode, stderr)
     assert "Traceback" not in stderr and "KeyboardInterrupt" not in stderr, stderr
+    assert "resource_tracker" not in stderr, stderr
     last = stderr.strip().splitlines()[-1]
-    assert last.startswith("dualscale batch: stopped by SIGTERM: batch interrupted: "), stderr
+    assert last.startswith(f"dualscale batch: stopped by {sig.name}: batch interrupted: "), stderr
     assert str(out / "summary.html") in last and last.endswith("run the same command again to resume"), stderr
     doc = json.loads((out / "summary.json").read_text())
     assert doc["interrupted"] is True
