@@ -33,6 +33,49 @@ def test_synth_overwrite_refuses_a_folder_another_live_process_holds(tmp_path, c
     assert not (out / "run.json").exists() and not (out / ".dualscale-lock").exists()
 
 
+def test_no_command_writes_inside_a_folder_a_live_process_holds(tmp_path, capsys):
+    """Second trial: `render ... -o RUN/fit --overwrite` and `lights sphere ... -o RUN/L` wrote into a
+    running digitize's folder (the lock was tried on the exact folder only)."""
+    run = tmp_path / "X7"
+    (run / "fit").mkdir(parents=True)
+    (run / "fit" / "kept.txt").write_text("the fit stage's")
+    p = subprocess.Popen([sys.executable, "-c", HOLD, str(run)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert p.stdout.readline().strip() == "held"
+        for argv in (["synth", "twill", "-o", str(run / "fit"), "--size", "8", "--no-previews", "--no-progress",
+                      "--overwrite"],
+                     ["synth", "twill", "-o", str(run / "export" / "x"), "--size", "8", "--no-previews",
+                      "--no-progress"]):
+            assert main(argv) == 2, argv
+            assert f"{run} is in use by PID {p.pid}" in capsys.readouterr().err
+        assert (run / "fit" / "kept.txt").read_text() == "the fit stage's" and not (run / "export").exists()
+    finally:
+        p.kill()
+        p.wait(30)
+    time.sleep(0.05)
+    assert main(["synth", "twill", "-o", str(run / "export" / "x"), "--size", "8", "--no-previews",
+                 "--no-progress"]) == 0  # a dead holder's lock file does not block
+
+
+def test_a_refused_fresh_run_keeps_finished_stages_and_others_files(tmp_path):
+    """Second trial: a digitize that a late stage refused deleted the whole run folder it had made,
+    its finished stages and a file the user had put there."""
+    from dualscale.cli.digitize import _empty
+
+    run = tmp_path / "R"
+    (run / "stages").mkdir(parents=True)
+    (run / "work" / "fit").mkdir(parents=True)
+    (run / "run.json").write_text("{}")
+    (run / "notes.txt").write_text("mine")
+    _empty(run)  # no stage finished: what a run writes goes, the user's file stays
+    assert sorted(p.name for p in run.iterdir()) == ["notes.txt"]
+    (run / "stages").mkdir()
+    (run / "stages" / "calibrate.json").write_text("{}")
+    (run / "calibrate").mkdir()
+    _empty(run)  # a finished stage: nothing goes, the run resumes
+    assert (run / "calibrate").is_dir() and (run / "stages" / "calibrate.json").is_file()
+
+
 def _dead_pid() -> int:
     p = subprocess.Popen([sys.executable, "-c", "pass"])
     p.wait(30)

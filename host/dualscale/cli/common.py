@@ -249,6 +249,22 @@ def _writable_error(out: Path, e: OSError) -> Exception:
     return ToolError(f"cannot write the output folder {out}: {what}")
 
 
+def refuse_inside_held(out: str | Path, command: str) -> None:
+    """Refuse an output inside a folder that another live process holds (a running digitize's
+    ``RUN/fit``, ``RUN/export``, a light file in ``RUN/``): the folders above ``out`` whose lock
+    file ``.dualscale-lock`` exists are tried (:class:`~dualscale.formats.lock.FolderLock`),
+    and a held one raises :class:`~dualscale.errors.InputError` "... is in use by PID ..."
+    (exit 2).  A lock file left by a killed process does not block (and is removed)."""
+    from dualscale.formats.lock import FolderLock
+
+    for parent in Path(out).absolute().parents:
+        if (parent / LOCK_FILE).is_file():
+            try:
+                FolderLock(parent, command).acquire().release()
+            except OSError:
+                pass  # a folder this user cannot write: not one a command of theirs holds
+
+
 @contextlib.contextmanager
 def output_folder(args: argparse.Namespace, command: str, inputs: Sequence[object] = (), *,
                   record: bool = True, folder: str | Path | None = None, own=None,
@@ -279,6 +295,7 @@ def output_folder(args: argparse.Namespace, command: str, inputs: Sequence[objec
     out = Path(folder if folder is not None else args.output)
     if out.exists() and not out.is_dir():
         raise InputError(f"-o {out} is a file, not a folder")
+    refuse_inside_held(out, command)
     created = []  # the folders made here, deepest last
     p = out.absolute()
     while not p.exists():

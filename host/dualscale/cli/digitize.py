@@ -55,13 +55,21 @@ def _own_run(inp: str | None):
 
 def _empty(run: Path) -> None:
     """Remove what a refused run wrote into the run folder it made, but the folder's lock and
-    record (:func:`.common.output_folder` removes those, and the folder, as it lets go)."""
+    record (:func:`.common.output_folder` removes those, and the folder, as it lets go) -- only
+    when no stage finished (a stage record in ``RUN/stages/``: finished work is kept, and the
+    run resumes), and only what a run writes (``run.json``, ``work/``, ``stages/``, the stage
+    folders): a file someone else put there keeps the folder."""
     import shutil
+
+    from dualscale.formats.run import CAPTURE_STAGE, STAGES
 
     from .common import LOCK_FILE, RECORD
 
+    if any((run / "stages").glob("*.json")):
+        return
+    ours = {"run.json", "work", "stages", "selection.json", CAPTURE_STAGE, *STAGES}
     for p in run.iterdir() if run.is_dir() else []:
-        if p.name in (LOCK_FILE, RECORD):
+        if p.name in (LOCK_FILE, RECORD) or p.name not in ours:
             continue
         if p.is_dir() and not p.is_symlink():
             shutil.rmtree(p, ignore_errors=True)

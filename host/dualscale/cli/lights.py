@@ -61,6 +61,9 @@ def cmd_lights_sphere(a: argparse.Namespace) -> int:
         raise FileNotFoundError(f"--mask {mask}: no such file")
     json_path, lp_path = light_paths(a.output)
     _check_targets(json_path, lp_path, bool(getattr(a, "overwrite", False)))  # before any work
+    from .common import refuse_inside_held
+
+    refuse_inside_held(json_path, "lights sphere")  # not into a folder a running digitize holds
     try:
         res = recover_from_folder(folder, mask, pattern=a.pattern)
     except LightSphereError as e:
