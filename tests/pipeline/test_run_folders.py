@@ -176,7 +176,11 @@ def test_ctrl_c_during_a_batch_still_writes_the_summary_of_what_finished(tiny, t
     out = proj / "out"
     cmd = [sys.executable, "-m", "dualscale.cli", "batch", str(proj / "samples.csv"), "-o", str(out),
            "--workers", workers, "--no-progress"]
-    p = subprocess.Popen(cmd, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    # the child starts with Ctrl-C's default action whatever this test process inherited (a clean
+    # clone's `make test` started in the background has SIGINT ignored, and exec keeps that): the
+    # test is of the command's own handling
+    p = subprocess.Popen(cmd, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         first = lambda: next((n for n in "ab" if (out / n / "stages" / "export.json").is_file()), None)  # noqa: E731
         _wait(lambda: first() is not None or p.poll() is not None, what="a sample's report stage")
