@@ -3,7 +3,7 @@
 Layout of a dataset directory::
 
     manifest.json
-    images/<camera>_<source><id>_<analyser>.exr     float32 EXR, channels R, G, B
+    images/<camera>_<source><id>_<analyser>.exr     float32 EXR, channels R, G, B (layout below)
     images/<camera>_off_<analyser>_<t>us.exr         dark frames (light 'off'), exposure t in us
     mask.exr                                         optional, channel Y: 1 = sample pixel
 
@@ -56,6 +56,15 @@ values above 0.5 mark sample pixels, the rest is ignored by every stage.
 (:data:`dualscale.formats.photo.TRANSFERS`); the pixels are always linear, this is provenance
 for the report.
 
+**Image layout** (not in the manifest: every reader reads both through
+:func:`~dualscale.formats.exr.read_exr`/OpenImageIO): zip-compressed float32 EXR, scanline
+(the plain layout), except the images of the cameras in :data:`TILED_CAMERAS` -- the ``micro``
+camera -- which :class:`DatasetWriter` writes tiled, 64 x 64 px tiles (:func:`image_tile`), so
+that a fit reading its square tiles (``read_exr(box=...)``) decodes only the tiles it needs
+instead of whole rows (measured in ``bench/bench_layout.py``: a 64 x 64 region of a 2048^2
+image in 0.25 ms instead of 7.2 ms, the whole image in the same time; docs/APPEARANCE.md).
+``DatasetWriter(tiled=False)`` writes every image plain; the mask is always plain.
+
 Checks at read (:func:`read_dataset`; the writer refuses the same at ``add``): documented units
 and colour spaces; LED directions are unit vectors strictly above the sample plane (``z > 0``,
 :class:`~dualscale.errors.GeometryError`); LED, back-light and diffuse records have intensity
@@ -104,6 +113,16 @@ COLOUR_SPACES: dict[str, str] = {
 }
 LIGHT_KINDS = ("led", "backlight", "diffuse", "off")
 MASK_FILE = "mask.exr"
+#: the cameras whose dataset images are written tiled (module doc, "Image layout"): name ->
+#: tile side in px.  64 px: the fit's tile (``dualscale.fit.tiled.TILE``) and, measured, the
+#: fastest square-region read with no cost to the whole read at any size (bench/bench_layout.py)
+TILED_CAMERAS: dict[str, int] = {"micro": 64}
+
+
+def image_tile(camera: str, tiled: bool = True) -> int | None:
+    """The tile side (px) of ``camera``'s dataset images, ``None`` for the plain scanline layout
+    (every camera not in :data:`TILED_CAMERAS`, or any when ``tiled`` is False)."""
+    return TILED_CAMERAS.get(camera) if tiled else None
 UNIT_TOLERANCE = 1e-3
 
 
@@ -280,7 +299,9 @@ class DatasetWriter:
 
     ``units`` / ``colour_space``: see the module doc; ``mask``: ``(H, W)`` array (nonzero =
     sample pixel), written as ``mask.exr``; ``transfer``: the transfer function decoded by an
-    importer; ``rig``: ``{"id", "layout"}`` of the capturing rig.
+    importer; ``rig``: ``{"id", "layout"}`` of the capturing rig; ``tiled``: write the images of
+    the cameras in :data:`TILED_CAMERAS` (``micro``) tiled (default), or, False, every image in
+    the plain scanline layout (module doc, "Image layout"; the manifest is the same).
     """
 
     root: Path
@@ -293,6 +314,7 @@ class DatasetWriter:
     mask: Any = None
     transfer: str | None = None
     rig: dict[str, Any] | None = None
+    tiled: bool = True
 
     def __post_init__(self) -> None:
         self.root = Path(self.root)
@@ -340,7 +362,8 @@ class DatasetWriter:
             raise GeometryError(f"dataset {self.root}: mask is {self.mask.shape[1]}x{self.mask.shape[0]}, camera "
                                 f"{camera.name!r} images are {camera.width}x{camera.height}")
         write_exr(self.root / name, img, attributes={"dualscale:units": self.units,
-                                                     "dualscale:colour_space": self.colour_space})
+                                                     "dualscale:colour_space": self.colour_space},
+                  tile=image_tile(camera.name, self.tiled))
         self.records.append(rec)
         self.cameras[camera.name] = {k: v for k, v in asdict(camera).items() if k != "name"}
         return rec

@@ -21,8 +21,15 @@ _DEFAULT_NAMES = {1: ("Y",), 2: ("X", "Y"), 3: ("R", "G", "B"), 4: ("R", "G", "B
 
 
 def write_exr(path: str | Path, image: np.ndarray, channels: Sequence[str] | None = None,
-              attributes: dict[str, str] | None = None) -> None:
-    """Write ``(H, W)`` or ``(H, W, C)`` float data as a float32 EXR (zip compression)."""
+              attributes: dict[str, str] | None = None, tile: int | None = None) -> None:
+    """Write ``(H, W)`` or ``(H, W, C)`` float data as a float32 EXR (zip compression).
+
+    ``tile``: ``None`` (default) writes a scanline file; a positive pixel count writes a tiled
+    file of ``tile`` x ``tile`` tiles (the last row and column of tiles cut short by the image
+    edge), whose regions :func:`read_exr` ``box=`` reads tile by tile (docs/APPEARANCE.md,
+    "Image layout").  Both layouts hold the same float32 values and read the same through
+    :func:`read_exr` and any OpenEXR reader.  ``ValueError`` for a bad shape, channel names or
+    ``tile`` (not a whole number >= 1)."""
     import OpenImageIO as oiio
 
     img = np.asarray(image, dtype=np.float32)
@@ -36,6 +43,11 @@ def write_exr(path: str | Path, image: np.ndarray, channels: Sequence[str] | Non
     spec = oiio.ImageSpec(img.shape[1], img.shape[0], img.shape[2], "float")
     spec.channelnames = names
     spec.attribute("compression", "zip")
+    if tile is not None:
+        if isinstance(tile, bool) or not isinstance(tile, (int, np.integer)) or tile < 1:
+            raise ValueError(f"tile must be a whole number of pixels >= 1 or None, got {tile!r}")
+        spec.tile_width = spec.tile_height = int(tile)
+        spec.tile_depth = 1
     # no write time in the file (OpenImageIO adds one by default): the same pixels give the same
     # bytes, so a recomputed, unchanged stage output keeps the content hash the next stage keys on
     spec.attribute("DateTime", "")
@@ -75,8 +87,8 @@ def verify_image(tmp: str | Path, spec, final: str | Path | None = None) -> None
     """Check that the image file ``tmp`` that a writer just closed is whole: it re-opens with
     ``spec``'s width, height, channel count and pixel type, and its pixels read back -- all of
     them (a PNG also ends in its ``IEND`` chunk, the 12 bytes a truncated PNG loses first and
-    that a reader does not miss), or, for a scanline EXR (whose chunks are written in order, so
-    a short file lacks the last), the last scanline.  Raises
+    that a reader does not miss), or, for an EXR (whose chunks are written in order, so a short
+    file lacks the last), the last scanline, or a tiled one's last (bottom-right) tile.  Raises
     :class:`~dualscale.errors.OutputError` naming ``final`` (default ``tmp``) with the cause
     (:func:`dualscale.formats.atomic.output_error`; ``EIO`` when neither a full disk nor the
     file-size limit explains it)."""
@@ -111,6 +123,11 @@ def verify_image(tmp: str | Path, spec, final: str | Path | None = None) -> None
         if tmp.suffix.lower() == ".exr" and got.tile_width == 0:
             data = inp.read_scanlines(0, 0, got.y + got.height - 1, got.y + got.height, 0, 0, got.nchannels,
                                       got.format)
+        elif tmp.suffix.lower() == ".exr" and got.tile_width > 0 and got.tile_height > 0:
+            # a tiled EXR written in increasing-y order: its last chunk is the bottom-right tile
+            tx = got.x + (got.width - 1) // got.tile_width * got.tile_width
+            ty = got.y + (got.height - 1) // got.tile_height * got.tile_height
+            data = inp.read_tile(tx, ty, got.z, got.format)
         else:
             data = inp.read_image(0, 0, 0, got.nchannels, got.format)
         if data is None:
@@ -146,23 +163,31 @@ def read_exr(path: str | Path, channels: Sequence[str] | None = None, allow_wind
              box: tuple[int, int, int, int] | None = None, size: tuple[int, int] | None = None) -> np.ndarray:
     """Read an image as float32 ``(H, W, C)``; ``channels`` selects by name (EXR reorders them).
 
-    ``box`` ``(y0, y1, x0, x1)`` (pixels, end exclusive): read only that region, ``(y1 - y0,
-    x1 - x0, C)`` -- the scanlines ``y0..y1`` (OpenImageIO's ``read_scanlines``, which reads only
-    the chunks holding them: a tile of a fit reads its rows, not the whole image), then the
-    columns; the same values as the whole image's crop.  ``size`` ``(H, W)``: the size the whole
-    image must have (``ValueError`` otherwise), checked before a region is read.
+    ``box`` ``(y0, y1, x0, x1)`` (pixels, end exclusive, relative to the data window's origin):
+    read only that region, ``(y1 - y0, x1 - x0, C)``, always the same values as the whole
+    image's crop ``[y0:y1, x0:x1]``.  A scanline file is read by its scanlines ``y0..y1`` at full
+    width (OpenImageIO's ``read_scanlines``, which decodes only the chunks holding them), then
+    cut to the columns; a tiled file (:func:`write_exr` ``tile=``) by the tiles the box touches
+    (``read_tiles`` on the box aligned outward to the tile grid, cut short at the image edge),
+    then cut to the box -- so a square tile of a fit decodes about its own pixels, not whole
+    rows.  ``size`` ``(H, W)``: the size the whole image must have (``ValueError`` otherwise),
+    checked before a region is read.
 
     Raises :class:`~dualscale.errors.GeometryError` when the data window is not the display
     window with its origin at (0, 0) (unless ``allow_window``), ``FileNotFoundError`` for a
     missing file, :class:`~dualscale.errors.FormatError` for one that is not a readable image
-    (corrupt, truncated), ``ValueError`` for a missing channel or a ``box`` outside the image."""
+    (corrupt, truncated) or that is a volume (depth > 1), ``ValueError`` for a missing channel or
+    a ``box`` outside the image."""
     inp = open_image(path)
     try:
         spec = inp.spec()
         if not allow_window:
             check_window(path, spec)
+        if spec.depth > 1:
+            raise FormatError(f"{path}: a volume image (depth {spec.depth}); dualscale reads 2-D images only")
         if size is not None and (spec.height, spec.width) != tuple(size):
             raise ValueError(f"{Path(path).name}: image is {(spec.height, spec.width)}, expected {tuple(size)}")
+        crop = None
         if box is None:
             data = inp.read_image(0, 0, 0, spec.nchannels, "float")
             shape = (spec.height, spec.width, spec.nchannels)
@@ -171,16 +196,27 @@ def read_exr(path: str | Path, channels: Sequence[str] | None = None, allow_wind
             if not (0 <= y0 < y1 <= spec.height and 0 <= x0 < x1 <= spec.width):
                 raise ValueError(f"{path}: region rows {y0}..{y1}, columns {x0}..{x1} is outside the "
                                  f"{spec.width}x{spec.height} image")
-            data = inp.read_scanlines(0, 0, spec.y + y0, spec.y + y1, 0, 0, spec.nchannels, "float")
-            shape = (y1 - y0, spec.width, spec.nchannels)
+            tw, th = spec.tile_width, spec.tile_height
+            if tw > 0 and th > 0:
+                # read_tiles wants tile-aligned bounds (the image edge may end a tile short)
+                ty0, tx0 = y0 // th * th, x0 // tw * tw
+                ty1, tx1 = min(-(-y1 // th) * th, spec.height), min(-(-x1 // tw) * tw, spec.width)
+                data = inp.read_tiles(0, 0, spec.x + tx0, spec.x + tx1, spec.y + ty0, spec.y + ty1,
+                                      spec.z, spec.z + 1, 0, spec.nchannels, "float")
+                shape = (ty1 - ty0, tx1 - tx0, spec.nchannels)
+                crop = (y0 - ty0, y1 - ty0, x0 - tx0, x1 - tx0)
+            else:
+                data = inp.read_scanlines(0, 0, spec.y + y0, spec.y + y1, 0, 0, spec.nchannels, "float")
+                shape = (y1 - y0, spec.width, spec.nchannels)
+                crop = (0, y1 - y0, x0, x1)
         err = inp.geterror() if data is None else ""
     finally:
         inp.close()
     if data is None:
         raise FormatError(f"cannot read the pixels of the image {path} (corrupt or truncated?): {_oiio_error(err)}")
     data = np.asarray(data, dtype=np.float32).reshape(shape)
-    if box is not None:
-        data = np.ascontiguousarray(data[:, box[2]:box[3]])
+    if crop is not None and (crop[0], crop[1], crop[2], crop[3]) != (0, shape[0], 0, shape[1]):
+        data = np.ascontiguousarray(data[crop[0]:crop[1], crop[2]:crop[3]])
     if channels is None:
         return data
     idx = []
