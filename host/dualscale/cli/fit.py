@@ -13,6 +13,9 @@ _SWITCH = {"auto": None, "on": True, "off": False}
 #: ``--cv-pixels`` default: :data:`dualscale.fit.holdout.CV_PIXELS` (a literal here, so that
 #: building the parser imports no torch; tests/fit/test_crossval.py checks they agree)
 CV_PIXELS = 2000
+#: ``--memory`` default: :data:`dualscale.fit.stream.DEFAULT_MEMORY` (2 GiB, a literal here for the
+#: same reason; tests/fit/test_stream.py checks they agree)
+DEFAULT_MEMORY = "2G"
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
@@ -33,6 +36,9 @@ def cmd_fit(args: argparse.Namespace) -> int:
         raise InputError(f"--ior-prior {args.ior_prior:g}: give a standard deviation >= 0 (0 = no prior)")
     if args.shadow_ratio is not None and not 0 <= args.shadow_ratio < 1:
         raise InputError(f"--shadow-ratio {args.shadow_ratio:g}: give a ratio in [0, 1) (0 = fit every capture)")
+    from dualscale.fit.stream import parse_memory
+
+    memory = parse_memory(args.memory)
     preset = get_preset(args.preset)
     for option, field, value in (("--ior-prior", "ior_prior_sd", args.ior_prior),
                                  ("--shadow-ratio", "shadow_ratio", args.shadow_ratio)):
@@ -67,7 +73,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
         res, extra = fit_dataset(args.dataset, args.output, preset, overrides, cv_pixels=args.cv_pixels, cv_folds=folds,
                                  progress=want_progress(args), checkpoint_every=args.checkpoint_every,
                                  restart=args.restart, stop_after=args.stop_after, seed=args.seed,
-                                 previews=not args.no_previews, gt=args.gt, engine=engine, tile_px=args.tile_px)
+                                 previews=not args.no_previews, gt=args.gt, engine=engine, tile_px=args.tile_px,
+                                 memory=memory)
     c = res.comps
     where = (f"tiled on {extra['tiled']['engine']}" if "tiled" in extra else
              f"{extra['threads']} thread{'' if extra['threads'] == 1 else 's'}")
@@ -79,6 +86,11 @@ def cmd_fit(args: argparse.Namespace) -> int:
         t = extra["tiled"]
         print(f"tiles: {t['tiles']} of {t['tile_px']} px on {t['workers']} worker{'' if t['workers'] == 1 else 's'}"
               + (f" ({t['resumed_tiles']} done before)" if t["resumed_tiles"] else ""))
+    if "out_of_core" in extra and "tiled" not in extra:
+        m = extra["out_of_core"]
+        print(f"out of core: {m['parts']} band(s) of {m['part_rows']} rows within "
+              f"{m['memory_bytes'] / 2 ** 30:.3g} GiB; peak memory {m['peak_rss_mb']:.0f} MiB"
+              + (f" ({m['resumed_parts']} done before)" if m["resumed_parts"] else ""))
     lights = extra["lights"]
     print(f"fitted on {lights['fitted_images']} of {lights['images']} images ({lights['fitted_leds']} of "
           f"{lights['leds']} lights)" + ("" if lights["fitted_leds"] == lights["leds"] else
@@ -159,6 +171,10 @@ def register(subparsers) -> None:
                    help="ground-truth maps folder to score the fit against (evaluation only)")
     f.add_argument("--seed", type=int, default=0, help="seed of the component choice's and the cross-validation's pixel samples (default: 0)")
     f.add_argument("--no-previews", action="store_true", help="write the EXR maps without PNG previews (default: previews)")
+    f.add_argument("--memory", default=DEFAULT_MEMORY, metavar="SIZE",
+                   help="memory budget of the fit, e.g. 2G, 800M, or 'unlimited' (the whole map in memory): a "
+                        "dataset whose fit needs more is fitted out of core, band by band from disk, with the same "
+                        f"maps (default: {DEFAULT_MEMORY}; docs/SCALE.md)")
     add_work_options(f)
     g = add_engine_options(f, "fit in pixel tiles on N local Dask worker processes, one thread each ("
                               "the same maps as one process; default: one process)")

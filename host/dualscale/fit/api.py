@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -16,12 +17,15 @@ from dualscale.threads import effective_threads
 
 from .checkpoint import fingerprint
 from .core import FitResult, fit_observations, stride_leds
-from .holdout import CV_PIXELS, HoldoutReport, cross_validate, parse_folds
-from .io import save_fit
+from .holdout import CV_PIXELS, HoldoutReport, cross_validate, cross_validate_pixels, parse_folds, sample_pixels_of
+from .io import save_fit, save_fit_rows
 from .metrics import map_errors
-from .observations import load_observations
+from .observations import DatasetOrigin, Observations, fit_layout, load_observations
 from .presets import Preset, get_preset
-from .select import preset_for, select_components
+from .select import PIXELS as SELECT_PIXELS
+from .select import choose_components, preset_for, select_components, selection_pixels
+from .stream import (DEFAULT_MEMORY, band_boxes, fit_parts, fit_parts_refusal, gather, memory_record, reader, result,
+                     survey, warn_albedo, write_rows)
 from .tiled import TILE, check_tile, check_tileable, clear_state, fit_tiled
 
 
@@ -43,7 +47,7 @@ def fit_dataset(dataset: str | Path, out: str | Path, preset: str | Preset = "st
                 checkpoint_every: int = 50, restart: bool = False, stop_after: int | None = None,
                 seed: int = 0, previews: bool = True, comps: Components | None = None,
                 gt: str | Path | None = None, obs=None, engine: EngineSpec | None = None,
-                tile_px: int = TILE) -> tuple[FitResult, dict]:
+                tile_px: int = TILE, memory: int | None = DEFAULT_MEMORY) -> tuple[FitResult, dict]:
     """Fit a photometric dataset on **every** light and write the maps to ``out``.
 
     The held-out figure comes from a separate cross-validation pass over the lights
@@ -68,11 +72,22 @@ def fit_dataset(dataset: str | Path, out: str | Path, preset: str | Preset = "st
     ``fitted_images`` and ``fitted_leds`` after the preset's ``led_stride`` (equal unless a
     strided preset such as ``draft`` thins more than 32 LEDs).
 
+    ``memory``: the budget in bytes (:data:`.stream.DEFAULT_MEMORY`; ``None``: unlimited).  A
+    dataset (``obs`` not given) whose fit would not fit in it is fitted **out of core**
+    (:mod:`.stream`): read band by band from disk, the maps written by rows, the same maps;
+    ``FitResult.maps`` is then ``None`` (the maps are on disk) and ``extra["out_of_core"]``
+    records the parts and the peak memory.  Finished parts are kept in ``out/tiles/`` until the
+    fit completes, so an interrupted fit resumes; ``checkpoint_every`` and ``stop_after`` then do
+    not apply (a part is the unit of resuming).
+
     ``engine``: fit in ``tile_px`` pixel tiles on that Dask cluster (:mod:`.tiled`; the same
     maps as in-process); finished tiles are kept in ``out/tiles/`` until the
     fit completes, so an interrupted tiled fit resumes.  ``fit.json`` then records the engine,
-    the tiling and the workers.  Raises ``ValueError`` for a bad ``cv_folds`` or ``cv_pixels``
-    before any work.
+    the tiling and the workers.  With a dataset (``obs`` not given) the driver holds no map
+    either: the workers read their tiles and the driver its survey bands (:mod:`.stream`).
+    Raises ``ValueError`` for a bad ``cv_folds`` or ``cv_pixels``, and
+    :class:`~dualscale.errors.InputError` for a budget too small or a preset the fit out of
+    core cannot run, before any work.
     """
     p = get_preset(preset) if isinstance(preset, str) else preset
     if engine is not None:
@@ -81,18 +96,26 @@ def fit_dataset(dataset: str | Path, out: str | Path, preset: str | Preset = "st
     folds = parse_folds(cv_folds)
     if cv_pixels < 0:
         raise ValueError(f"cross-validation pixels {cv_pixels}: give a count >= 0 (0 = no cross-validation)")
-    obs = load_observations(dataset) if obs is None else obs
     out = Path(out)
-    ck = out / "checkpoint.pt"
-    state = out / "tiles"
-    cv_path = out / "crossval.json"
+    ck, state, cv_path, sel_path = out / "checkpoint.pt", out / "tiles", out / "crossval.json", out / "selection.json"
+    ooc = None
+    if obs is None:
+        root, camera, shape, images = fit_layout(dataset)
+        if engine is not None or len(band_boxes(shape, images, memory)) > 1:
+            if p.coarse_factor > 1:
+                fit_parts_refusal(p)
+            ooc = _OutOfCore(root, camera, shape, images, memory)
+        else:
+            obs = load_observations(dataset)
     if restart:
         remove_file(ck)
         remove_file(cv_path)
         clear_state(state)
-    sel_path = out / "selection.json"
+    if ooc is not None:
+        ooc.open(p, progress)
+    resuming = (ck.is_file() or any(state.glob("*.pt"))) and sel_path.is_file()
     if comps is None:
-        if (ck.is_file() or any(state.glob("*.pt"))) and sel_path.is_file():  # resuming: keep the decision already made
+        if resuming:  # resuming: keep the decision already made
             sel = read_json(sel_path)
             try:
                 comps = Components(**sel["components"])
@@ -100,14 +123,25 @@ def fit_dataset(dataset: str | Path, out: str | Path, preset: str | Preset = "st
                 raise FormatError(f"{sel_path}: malformed component decision ({e}); delete it or pass "
                                   "--restart") from None
         else:
-            comps, sel = select_components(obs, overrides, seed=seed)
+            comps, sel = (select_components(obs, overrides, seed=seed) if ooc is None else
+                          ooc.select(overrides, seed, cv_pixels))
             write_json(sel_path, sel)
     else:
         sel = {"method": "given by caller", "components": comps.__dict__}
     p = preset_for(p, sel)  # the loss the selection chose (unpolarised captures), for the fit and every fold
-    cv = _cross_validation(obs, p, comps, cv_pixels, folds, seed, progress, cv_path) if cv_pixels else None
+    head = obs if ooc is None else ooc.survey.head
+    cv = None
+    if cv_pixels:
+        key = (dict(ids=obs.led_ids, sums=obs.images.sum(dim=(1, 2, 3)),
+                    valid=obs.valid.sum(dim=(1, 2)) if obs.valid is not None else 0) if ooc is None else
+               dict(ids=head.led_ids, data=ooc.survey.key))
+        run = ((lambda: cross_validate(obs, p, comps, cv_pixels, folds, seed=seed, progress=progress)) if ooc is None
+               else (lambda: cross_validate_pixels(ooc.cv_sample(seed, cv_pixels), p, comps, folds, seed, progress)))
+        cv = _cross_validation(head, key, run, p, comps, cv_pixels, folds, seed, cv_path)
     tiled: dict[str, Any] = {}
-    if engine is None:
+    if ooc is not None:
+        res, tiled = ooc.fit(p, comps, seed, state, engine, tile_px, progress)
+    elif engine is None:
         res = fit_observations(obs, p, comps, checkpoint=ck, checkpoint_every=checkpoint_every,
                                progress=progress, stop_after=stop_after, seed=seed)
     else:
@@ -115,9 +149,9 @@ def fit_dataset(dataset: str | Path, out: str | Path, preset: str | Preset = "st
             res, tiled = fit_tiled(obs, p, comps, client, tile=tile_px,
                                    threads=engine.threads_per_worker, seed=seed, state=state, progress=progress)
         tiled["engine"] = engine.describe
-    fitted = stride_leds(obs, p.led_stride)
+    fitted = stride_leds(head, p.led_stride)
     extra: dict[str, Any] = {"dataset": str(dataset),
-                             "lights": {"images": obs.n, "leds": len(set(obs.led_ids.tolist())),
+                             "lights": {"images": head.n, "leds": len(set(head.led_ids.tolist())),
                                         "fitted_images": fitted.n, "fitted_leds": len(set(fitted.led_ids.tolist()))},
                              "cross_validation": cv, "threads": effective_threads()}
     if tiled:
@@ -129,14 +163,19 @@ def fit_dataset(dataset: str | Path, out: str | Path, preset: str | Preset = "st
 
         for w in rad.get("warnings") or []:  # the import's radiometric warning stays a warning of the fit
             warnings.warn(f"the dataset's radiometry: {w}", RuntimeWarning, stacklevel=2)
-    if gt is not None:
-        from dualscale.formats.maps import load_maps
+    if ooc is None:
+        if gt is not None:
+            extra["ground_truth"] = _ground_truth(gt, res.maps, comps)
+        save_fit(out, res, sel, extra, previews, texel_mm=obs.pixel_mm)
+    else:
+        extra["out_of_core"] = ooc.record()
+        names, rows = write_rows(ooc.parts)
+        save_fit_rows(out, res, ooc.shape, names, rows, sel, extra, previews, texel_mm=head.pixel_mm)
+        if gt is not None:  # scored on the maps read back whole (module doc of .stream)
+            from dualscale.formats.maps import load_maps
 
-        gt_maps, _ = load_maps(gt)
-        if gt_maps.shape != res.maps.shape:
-            raise ValueError(f"--gt {gt}: maps are {gt_maps.shape}, the fit is {res.maps.shape}")
-        extra["ground_truth"] = {"dir": str(gt), "errors": map_errors(res.maps, gt_maps, comps.ior)}
-    save_fit(out, res, sel, extra, previews, texel_mm=obs.pixel_mm)
+            extra["ground_truth"] = _ground_truth(gt, load_maps(out)[0], comps)
+            write_json(out / "fit.json", {**read_json(out / "fit.json"), "ground_truth": extra["ground_truth"]})
     remove_file(ck)
     clear_state(state)
     remove_file(sel_path)
@@ -144,19 +183,90 @@ def fit_dataset(dataset: str | Path, out: str | Path, preset: str | Preset = "st
     return res, extra
 
 
-def _cross_validation(obs, preset: Preset, comps: Components, pixels: int, folds: int | str, seed: int,
-                      progress: bool, cache: Path) -> dict[str, Any]:
-    """The cross-validation record of :func:`fit_dataset` (its docstring), reused from ``cache``
-    when that holds the record of the same data, preset, components, seed, pixels and folds
-    (a resumed fit), else computed and written there.  With fewer than two distinct lights there
-    is nothing to hold out: ``{"skipped": reason}``."""
-    leds = len(set(obs.led_ids.tolist()))
+def _ground_truth(gt: str | Path, maps, comps: Components) -> dict[str, Any]:
+    from dualscale.formats.maps import load_maps
+
+    gt_maps, _ = load_maps(gt)
+    if gt_maps.shape != maps.shape:
+        raise ValueError(f"--gt {gt}: maps are {gt_maps.shape}, the fit is {maps.shape}")
+    return {"dir": str(gt), "errors": map_errors(maps, gt_maps, comps.ior)}
+
+
+class _OutOfCore:
+    """The passes of a fit out of core over a dataset (:mod:`.stream`): the survey when opened,
+    the gather on the first sample asked for, then the fit part by part."""
+
+    def __init__(self, root: str, camera: str, shape: tuple[int, int], images: int, memory: int | None) -> None:
+        self.shape, self.images, self.memory = shape, images, memory
+        self.origin = DatasetOrigin(root, camera, None, "float32", "")
+        self.read = reader(self.origin)
+        self.passes: dict[str, float] = {}
+        self._samples: dict[str, Any] | None = None
+
+    def open(self, preset: Preset, progress) -> None:
+        # the survey and gather read bands within the budget (unlimited with a cluster: one band)
+        self.boxes = band_boxes(self.shape, self.images, self.memory if self.memory is not None else DEFAULT_MEMORY)
+        self.survey = survey(self.read, self.boxes, self.shape, preset.led_stride, progress=progress)
+        self.passes["survey"] = round(self.survey.seconds, 2)
+        self.origin = DatasetOrigin(self.origin.root, self.origin.camera, None, "float32", self.survey.key)
+        warn_albedo(self.survey)
+
+    def _gather(self, seed: int, cv_pixels: int | None) -> dict[str, Any]:
+        if self._samples is None:
+            t0 = time.perf_counter()
+            sv = self.survey
+            flats = {"selection": selection_pixels(sv.fitted, sv.shape, SELECT_PIXELS, seed)}
+            if cv_pixels:
+                flats["cv"] = sample_pixels_of(sv.fitted, sv.shape, cv_pixels, seed)
+            got = gather(self.read, self.boxes, self.shape, list(flats.values()))
+            self._samples = {"seed": seed, "cv_pixels": cv_pixels, **dict(zip(flats, got))}
+            self.passes["gather"] = round(time.perf_counter() - t0, 2)
+        return self._samples
+
+    def select(self, overrides, seed: int, cv_pixels: int | None):
+        return choose_components(self._gather(seed, cv_pixels)["selection"], self.survey.transmission, overrides)
+
+    def cv_sample(self, seed: int, cv_pixels: int) -> Observations:
+        s = self._gather(seed, cv_pixels)
+        if s.get("cv") is None or s["cv_pixels"] != cv_pixels or s["seed"] != seed:
+            self._samples = None
+            s = self._gather(seed, cv_pixels)
+        return s["cv"]
+
+    def fit(self, preset: Preset, comps: Components, seed: int, state: Path, engine: EngineSpec | None,
+            tile_px: int, progress) -> tuple[FitResult, dict[str, Any]]:
+        tiled: dict[str, Any] = {}
+        if engine is None:
+            self.parts = fit_parts(self.read, self.origin, self.survey, preset, comps, memory=self.memory,
+                                   state=state, seed=seed, progress=progress)
+        else:
+            with connect(engine) as client:
+                self.parts = fit_parts(self.read, self.origin, self.survey, preset, comps, memory=self.memory,
+                                       state=state, seed=seed, client=client, tile=tile_px,
+                                       threads=engine.threads_per_worker, progress=progress)
+            tiled = {"tile_px": tile_px, "tiles": len(self.parts.boxes), "resumed_tiles": self.parts.resumed,
+                     "workers": self.parts.workers, "engine": engine.describe,
+                     "tile_data": "read by the workers from " + self.origin.root}
+        self.passes["fit"] = round(self.parts.seconds, 2)
+        return result(self.parts, preset, comps), tiled
+
+    def record(self) -> dict[str, Any]:
+        return memory_record(self.memory, self.parts, self.passes)
+
+
+def _cross_validation(head: Observations, key_parts: dict[str, Any], run, preset: Preset, comps: Components,
+                      pixels: int, folds: int | str, seed: int, cache: Path) -> dict[str, Any]:
+    """The cross-validation record of :func:`fit_dataset` (its docstring): ``run()`` computes the
+    :class:`.holdout.HoldoutReport`, unless ``cache`` holds the record of the same data
+    (``key_parts``), preset, components, seed, pixels and folds (a resumed fit); the record is
+    written there.  With fewer than two distinct lights (``head``'s) there is nothing to hold
+    out: ``{"skipped": reason}``."""
+    leds = len(set(head.led_ids.tolist()))
     if leds < 2:
         return {"skipped": f"cross-validation over the lights needs at least two distinct lights; the dataset has "
                            f"{leds}"}
     key = fingerprint(preset=asdict(preset), comps=asdict(comps), seed=seed, pixels=pixels, folds=str(folds),
-                      ids=obs.led_ids, sums=obs.images.sum(dim=(1, 2, 3)),
-                      valid=obs.valid.sum(dim=(1, 2)) if obs.valid is not None else 0)
+                      **key_parts)
     if cache.is_file():
         try:
             doc = read_json(cache)
@@ -164,11 +274,11 @@ def _cross_validation(obs, preset: Preset, comps: Components, pixels: int, folds
             doc = None
         if isinstance(doc, dict) and doc.get("key") == key and isinstance(doc.get("report"), dict):
             return doc["report"]
-    rep: HoldoutReport = cross_validate(obs, preset, comps, pixels, folds, seed=seed, progress=progress)
+    rep: HoldoutReport = run()
     doc = rep.as_json()
     doc.update({"relative_l1": doc["ours_mean"], "baseline_relative_l1": doc["baseline_mean"],
                 "constant_relative_l1": doc["constant_mean"],
-                "images": obs.n, "requested_pixels": pixels, "requested_folds": folds,
+                "images": head.n, "requested_pixels": pixels, "requested_folds": folds,
                 "components_chosen": "once, on all lights (the same components in every fold)"})
     write_json(cache, {"key": key, "report": doc})
     return doc

@@ -76,9 +76,15 @@ def relative_l1(pred: np.ndarray | Tensor, capture: np.ndarray | Tensor, valid: 
 
 def sample_pixels(obs: Observations, pixels: int | None, seed: int = 0) -> Tensor:
     """Sorted flat indices of the sample's pixels (those with a valid sample: the mask), at most
-    ``pixels`` of them drawn at random (``None`` or 0: all)."""
-    fitted = obs.fitted_pixels
-    h, w = obs.shape
+    ``pixels`` of them drawn at random (``None`` or 0: all); ``ValueError`` when no pixel has a
+    valid sample."""
+    return sample_pixels_of(obs.fitted_pixels, obs.shape, pixels, seed)
+
+
+def sample_pixels_of(fitted: Tensor | None, shape: tuple[int, int], pixels: int | None, seed: int = 0) -> Tensor:
+    """:func:`sample_pixels` from the map's ``fitted`` pixels ``(H, W)`` bool (``None``: all of
+    the ``(H, W)`` map)."""
+    h, w = shape
     flat = torch.arange(h * w) if fitted is None else torch.nonzero(fitted.reshape(-1)).flatten()
     if flat.numel() == 0:
         raise ValueError("no pixel of the observations has a valid sample")
@@ -232,9 +238,16 @@ def cross_validate(obs: Observations, preset: Preset, comps: Components | Choose
     samples (module doc).  Raises
     ``ValueError`` for fewer than two distinct lights and ``RuntimeError`` if a prediction is not
     finite (never expected)."""
+    return cross_validate_pixels(obs.pixels(sample_pixels(obs, pixels, seed)), preset, comps, folds, seed, progress)
+
+
+def cross_validate_pixels(sub: Observations, preset: Preset, comps: Components | Chooser, folds: int | str = "auto",
+                          seed: int = 0, progress: bool = False) -> HoldoutReport:
+    """:func:`cross_validate` on its sample pixels ``sub`` (``1 x P``: the pixels of
+    :func:`sample_pixels`), as the fit out of core calls it with the pixels it gathered from
+    disk (:mod:`.stream`); the same report."""
     from tqdm import tqdm
 
-    sub = obs.pixels(sample_pixels(obs, pixels, seed))
     groups = light_folds(sub.led_ids, folds)
     scheme = scheme_name(groups)
     fit_preset = pixel_preset(preset)

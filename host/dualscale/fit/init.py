@@ -69,6 +69,16 @@ def check_albedo_range(obs: Observations, normal: Tensor) -> float:
     than relative radiance allows (light power or exposure unknown, as with photographs), the
     fit will clip those albedos at 1 and bend normals towards the lights to make up the
     brightness (docs/PHOTOS.md)."""
+    bright, ok = albedo_counts(obs, normal)
+    share = bright / ok if ok else 0.0
+    warn_bright(share, obs.imported)
+    return share
+
+
+def albedo_counts(obs: Observations, normal: Tensor) -> tuple[int, int]:
+    """``(bright, counted)``: of the sample's pixels with a robust albedo estimate (counted), those
+    at 1 or more (:func:`check_albedo_range`, whose share is ``bright / counted``): the counts
+    add over the bands of a fit out of core (:mod:`.stream`)."""
     d = diffuse_images(obs)
     y = (d.images / d.w_d.reshape(-1, 1, 1, 1)).amax(-1).to(torch.float64)  # (K, H, W)
     cos = torch.einsum("kc,hwc->khw", d.dirs.to(torch.float64), normal.to(torch.float64))
@@ -80,19 +90,23 @@ def check_albedo_range(obs: Observations, normal: Tensor) -> float:
     ok = torch.isfinite(med)
     if obs.fitted_pixels is not None:
         ok = ok & obs.fitted_pixels
-    share = float((med[ok] >= 1.0).to(torch.float64).mean()) if bool(ok.any()) else 0.0
+    return int((med[ok] >= 1.0).sum()), int(ok.sum())
+
+
+def warn_bright(share: float, imported: bool) -> None:
+    """The warning of :func:`check_albedo_range` when ``share`` is above :data:`BRIGHT_SHARE`
+    (``imported``: the photographs came from ``dualscale import``, which the advice names)."""
     if share > BRIGHT_SHARE:
         import warnings
 
         advice = ("These photographs came from `dualscale import`, which already scaled them by the lights: check "
                   "the import's --lights, --intensities and --transfer (docs/RADIOMETRY.md), and that the photographs "
-                  "show one sample under those lights") if obs.imported else (
+                  "show one sample under those lights") if imported else (
                   "Import photographs with `dualscale import` (it sets the light scale) or give the lights their "
                   "intensity")
         warnings.warn(f"{100 * share:.0f} % of the pixels have a Lambertian albedo >= 1: the images are not "
                       "radiance relative to the lights (unknown light power or exposure?); the fit clips the albedo "
-                      f"at 1. {advice}", RuntimeWarning, stacklevel=3)
-    return share
+                      f"at 1. {advice}", RuntimeWarning, stacklevel=4)
 
 
 def initial_params(obs: Observations, comps: Components) -> dict[str, Tensor]:

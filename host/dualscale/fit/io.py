@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterable
 
 from dualscale.formats.atomic import remove_file, write_json
 from dualscale.formats.exr import read_exr_attributes
@@ -36,17 +36,42 @@ def save_fit(root: str | Path, res: FitResult, selection: dict | None = None, ex
     is written last, after every map and ``material.json``, each atomically; a write that fails
     (a full disk) leaves no ``fit.json``, and no map file is ever short or empty."""
     root = Path(root)
+    report, meta = _report(res, selection, extra)
+    remove_file(root / "fit.json")
+    save_maps(root, res.maps, meta, previews, texel_mm=texel_mm, attributes=fit_attributes(res, selection))
+    return write_json(root / "fit.json", report)
+
+
+def save_fit_rows(root: str | Path, res: FitResult, shape: tuple[int, int], names: list[str], rows: Iterable,
+                  selection: dict | None = None, extra: dict | None = None, previews: bool = True,
+                  texel_mm: float | None = None) -> Path:
+    """:func:`save_fit` of a fit out of core (``res.maps`` is ``None``): the maps ``names`` of a
+    ``(H, W)`` map come as ``rows``, ``(y0, {name: (n, W, C) float32})`` strips in order
+    (:func:`.stream.write_rows`), and go through :class:`~dualscale.formats.maps.MapsWriter`;
+    the same files, headers and ``fit.json``, written in the same order."""
+    from dualscale.formats.maps import MapsWriter
+
+    root = Path(root)
+    report, meta = _report(res, selection, extra)
+    remove_file(root / "fit.json")
+    with MapsWriter(root, names, shape[0], shape[1], meta, previews, texel_mm=texel_mm,
+                    attributes=fit_attributes(res, selection)) as out:
+        for y0, strip in rows:
+            out.write(y0, strip)
+    return write_json(root / "fit.json", report)
+
+
+def _report(res: FitResult, selection: dict | None, extra: dict | None) -> tuple[dict[str, Any], dict[str, Any]]:
+    """``fit.json``'s record and ``material.json``'s ``meta`` of a fit."""
     report: dict[str, Any] = {
         "preset": asdict(res.preset), "components": asdict(res.comps), "iterations": res.iterations,
         "seconds": res.seconds, "final_losses": res.losses, "selection": selection or {},
         "resumed_from_iteration": res.resumed_from, "loss_history": res.history[-200:], **(extra or {})}
-    remove_file(root / "fit.json")
     meta = {"fit": {k: report[k] for k in ("preset", "components", "iterations", "final_losses")},
             "ior": res.comps.ior}
     if report.get("radiometry"):  # photographs: the camera response the maps were fitted under
         meta["radiometry"] = report["radiometry"]
-    save_maps(root, res.maps, meta, previews, texel_mm=texel_mm, attributes=fit_attributes(res, selection))
-    return write_json(root / "fit.json", report)
+    return report, meta
 
 
 def read_fit_attributes(path: str | Path) -> dict[str, Any]:

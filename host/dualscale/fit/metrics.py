@@ -118,3 +118,21 @@ def image_losses(maps: MaterialMaps, comps: Components, obs: Observations) -> di
     if sel.numel() == 0:
         return {"l1": float("nan"), "rmse": float("nan")}
     return {"l1": float(sel.abs().mean()), "rmse": float((sel * sel).mean().sqrt())}
+
+
+def image_loss_sums(maps: MaterialMaps, comps: Components, obs: Observations) -> tuple[float, float, int]:
+    """``(sum |r|, sum r^2, n)`` in float64 of the residuals ``r`` of :func:`image_losses` (each
+    channel of each valid sample): they add over the bands or tiles of a map, and
+    :func:`losses_from_sums` turns the totals into the whole map's ``l1`` and ``rmse``."""
+    with torch.no_grad():
+        r = (render_leds(maps.to(obs.images.dtype), comps, obs) - clamp_images(obs.images)).to(torch.float64)
+    sel = r if obs.valid is None else r[obs.valid]
+    return float(sel.abs().sum()), float((sel * sel).sum()), int(sel.numel())
+
+
+def losses_from_sums(abs_sum: float, sq_sum: float, n: int) -> dict[str, float]:
+    """``{"l1", "rmse"}`` of :func:`image_losses` from summed :func:`image_loss_sums` (NaN for
+    ``n == 0``)."""
+    if n == 0:
+        return {"l1": float("nan"), "rmse": float("nan")}
+    return {"l1": abs_sum / n, "rmse": (sq_sum / n) ** 0.5}

@@ -229,6 +229,34 @@ def _open(root: str | Path) -> Dataset:
     return read_dataset(resolve_root(root))
 
 
+def fit_camera(ds: Dataset, camera: str | None = None) -> str:
+    """The camera a fit reads: ``camera``, or ``"micro"``, or the dataset's only camera
+    (``"photo"`` of an import)."""
+    if camera is None:
+        cams = {r.camera for r in ds.records}
+        camera = cams.pop() if len(cams) == 1 and "micro" not in cams else "micro"
+    return camera
+
+
+def fit_layout(root: str | Path, camera: str | None = None) -> tuple[str, str, tuple[int, int], int]:
+    """``(root, camera, (H, W), images)`` of what :func:`load_observations` would read, from the
+    manifest alone (no pixel is read): the resolved dataset folder, the camera, the map size and
+    the number of LED images; raises what :func:`load_observations` raises for the manifest,
+    the units and a dataset without LED images, and :class:`~dualscale.errors.InputError` for
+    images of different sizes."""
+    ds = _open(root)
+    camera = fit_camera(ds, camera)
+    check_fit_units(ds, camera)
+    recs = [r for r in ds.records if r.camera == camera and r.light_kind in ("led", "backlight")]
+    leds = [r for r in recs if r.light_kind == "led"]
+    if not leds:
+        raise InputError(f"{ds.root}: no LED images for camera {camera!r}")
+    sizes = {(r.height, r.width) for r in recs}
+    if len(sizes) != 1:
+        raise InputError(f"{ds.root}: the {camera} images have different sizes {sorted(sizes)}; a fit needs one")
+    return str(ds.root), camera, sizes.pop(), len(leds)
+
+
 def check_fit_units(ds: Dataset, camera: str | None = None) -> None:
     """Refuse a dataset whose images (of ``camera``, or all) are not ``relative_radiance`` in
     ``linear_rec709``, with a :class:`~dualscale.errors.UnitsError` naming the file, the field
@@ -251,9 +279,7 @@ def load_observations(root: str | Path, camera: str | None = None, dtype: torch.
     :class:`~dualscale.errors.InputError` subclasses for bad values.
     """
     ds = _open(root)
-    if camera is None:
-        cams = {r.camera for r in ds.records}
-        camera = cams.pop() if len(cams) == 1 and "micro" not in cams else "micro"
+    camera = fit_camera(ds, camera)
     check_fit_units(ds, camera)
     polar = str(ds.manifest.get("dome", {}).get("polarizer", "s"))
     imgs, dirs, ws, wp, wd, ids, valids = [], [], [], [], [], [], []

@@ -77,10 +77,16 @@ def transmission_evidence(obs: Observations) -> dict[str, Any]:
     if obs.backlight is None:
         return {"backlit_capture": False, "transmits": False}
     y = (obs.backlight / obs.back_wd).mean(-1)
-    frac = float((y > TRANS_LEVEL).to(torch.float64).mean())
-    return {"backlit_capture": True, "backlit_mean": float(y.mean()), "backlit_p99": float(torch.quantile(y.flatten().to(torch.float64), 0.99)),
-            "fraction_above_level": frac, "level": TRANS_LEVEL, "fraction_needed": TRANS_FRACTION,
-            "transmits": frac > TRANS_FRACTION}
+    return transmission_from(float((y > TRANS_LEVEL).to(torch.float64).mean()), float(y.to(torch.float64).mean()),
+                             float(torch.quantile(y.flatten().to(torch.float64), 0.99)))
+
+
+def transmission_from(fraction: float, mean: float, p99: float) -> dict[str, Any]:
+    """:func:`transmission_evidence` from its statistics of the back-lit luminance: the share of
+    pixels above :data:`TRANS_LEVEL`, the mean and the 99th percentile (what the fit out of core
+    gathers band by band, :mod:`.stream`)."""
+    return {"backlit_capture": True, "backlit_mean": mean, "backlit_p99": p99, "fraction_above_level": fraction,
+            "level": TRANS_LEVEL, "fraction_needed": TRANS_FRACTION, "transmits": fraction > TRANS_FRACTION}
 
 
 class _Validation:
@@ -225,36 +231,55 @@ def preset_for(preset: Preset, selection: dict[str, Any]) -> Preset:
     return replace(preset, loss=loss)
 
 
-def _sample(obs: Observations, pixels: int, seed: int) -> torch.Tensor:
-    """Sorted flat indices of at most ``pixels`` random pixels of the sample (those with a valid
-    sample, ``Observations.fitted_pixels``; every pixel without a mask)."""
-    h, w = obs.shape
+def selection_pixels(fitted: torch.Tensor | None, shape: tuple[int, int], pixels: int = PIXELS, seed: int = 0
+                ) -> torch.Tensor:
+    """Sorted flat indices of at most ``pixels`` random pixels of the sample: those with a valid
+    sample (``fitted`` ``(H, W)`` bool, ``Observations.fitted_pixels``; ``None`` or none set:
+    every pixel of the ``(H, W)`` map), drawn with ``seed``: the pixels
+    :func:`select_components` chooses with."""
+    h, w = shape
     g = torch.Generator().manual_seed(seed)
-    fitted = obs.fitted_pixels
     if fitted is None or not bool(fitted.any()):
         return torch.randperm(h * w, generator=g)[:min(pixels, h * w)].sort().values
     idx = torch.nonzero(fitted.reshape(-1)).flatten()
     return idx[torch.randperm(idx.numel(), generator=g)[:min(pixels, idx.numel())]].sort().values
 
 
-def select_components(obs: Observations, overrides: dict[str, bool | str | None] | None = None, seed: int = 0,
-                      pixels: int = PIXELS, iters_scale: float = 0.6, val_every: int = 5) -> tuple[Components, dict]:
-    """``(components, report)`` for the observations (see module docstring)."""
+def check_overrides(overrides: dict[str, bool | str | None] | None) -> dict[str, bool | str]:
+    """The overrides that are set (not ``None``); ``ValueError`` for an unknown one or loss."""
     overrides = {k: v for k, v in (overrides or {}).items() if v is not None}
     unknown = set(overrides) - {"transmittance", "anisotropy", "tint", "specular", "lambertian", "loss"}
     if unknown:
         raise ValueError(f"unknown component overrides {sorted(unknown)}")
     if "loss" in overrides and overrides["loss"] not in LOSSES:
         raise ValueError(f"loss override {overrides['loss']!r}; choose from {LOSSES}")
+    return overrides
+
+
+def select_components(obs: Observations, overrides: dict[str, bool | str | None] | None = None, seed: int = 0,
+                      pixels: int = PIXELS, iters_scale: float = 0.6, val_every: int = 5) -> tuple[Components, dict]:
+    """``(components, report)`` for the observations (see module docstring); ``ValueError`` for
+    an unknown override."""
+    check_overrides(overrides)
+    return choose_components(obs.pixels(selection_pixels(obs.fitted_pixels, obs.shape, pixels, seed)),
+                             transmission_evidence(obs), overrides, iters_scale, val_every)
+
+
+def choose_components(sub: Observations, transmission: dict[str, Any],
+                      overrides: dict[str, bool | str | None] | None = None, iters_scale: float = 0.6,
+                      val_every: int = 5) -> tuple[Components, dict]:
+    """:func:`select_components` from its sample pixels ``sub`` (``1 x P``, the pixels of
+    :func:`selection_pixels`) and the map's :func:`transmission_evidence`: what the fit out of core
+    (:mod:`.stream`) calls with the pixels it gathered from disk.  The same decision and report."""
+    overrides = check_overrides(overrides)
     report: dict[str, Any] = {"method": "held-out validation", "margin": MARGIN}
-    ev = transmission_evidence(obs)
+    ev = transmission
     translucent = overrides.get("transmittance", ev["transmits"])
     report["transmittance"] = {"chosen": bool(translucent), "overridden": "transmittance" in overrides,
                                "evidence": ev}
-    flat = _sample(obs, pixels, seed)
-    sub = obs.pixels(flat)
+    obs = sub  # the same lights and weights as the whole map's
     train, val = split_holdout(sub, every=val_every, offset=1)
-    report["validation"] = {"pixels": int(flat.numel()), "train_images": train.n,
+    report["validation"] = {"pixels": int(sub.images.shape[2]), "train_images": train.n,
                             "val_leds": sorted(set(val.led_ids.tolist())) if val is not None else []}
     # unpolarised captures: one set of light folds for the specular, diffuse and loss choices
     cv = None if obs.has_polarisation else LightFolds(sub, iters_scale)

@@ -114,22 +114,28 @@ def check_tileable(preset: Preset) -> None:
 
 
 def fit_tile(obs: Observations, preset: Preset, comps: Components, init: dict[str, Tensor] | None, seed: int,
-             threads: int) -> dict[str, Any]:
+             threads: int, sums: bool = False) -> dict[str, Any]:
     """The task: fit one tile's observations (``fit_observations`` with no held-out lights, no
     checkpoint) on ``threads`` threads; returns ``{"maps": {name: (h, w, C) float32},
-    "history": [(iteration, step, mean cost)], "pixels": h * w}``."""
+    "history": [(iteration, step, mean cost)], "pixels": h * w}``, and with ``sums`` its loss
+    sums (:func:`.metrics.image_loss_sums`: the fit out of core adds them up, :mod:`.stream`)."""
     from dualscale.engine import in_worker
 
     in_worker(threads)
     with warnings.catch_warnings():  # the driver checks the albedo range on the whole map
         warnings.filterwarnings("ignore", message=r".*Lambertian albedo", category=RuntimeWarning)
         res = fit_observations(obs, preset, comps, seed=seed, init=init)
-    return {"maps": dict(res.maps.items()), "history": list(res.history), "pixels": obs.shape[0] * obs.shape[1]}
+    rec = {"maps": dict(res.maps.items()), "history": list(res.history), "pixels": obs.shape[0] * obs.shape[1]}
+    if sums:
+        from .metrics import image_loss_sums
+
+        rec["sums"] = image_loss_sums(res.maps, comps, stride_leds(obs, preset.led_stride))
+    return rec
 
 
 def fit_tile_read(origin: DatasetOrigin, box: tuple[int, int, int, int], stride: int, whole: WholeMap | None,
                   preset: Preset, comps: Components, init: dict[str, Tensor] | None, seed: int,
-                  threads: int) -> dict[str, Any]:
+                  threads: int, sums: bool = False) -> dict[str, Any]:
     """The task when the worker reads its tile itself (module doc, "Data movement"): the
     ``box`` of the observations ``origin`` names (:func:`.observations.read_tile`), the same
     ``stride`` of LEDs the driver took (:func:`.core.stride_leds`) and, for the Adam presets, the
@@ -142,7 +148,7 @@ def fit_tile_read(origin: DatasetOrigin, box: tuple[int, int, int, int], stride:
                                 "it must be on storage the workers share, at the same path; docs/SCALE.md)") from None
     if whole is not None:
         obs = replace(obs, whole=whole)
-    return fit_tile(obs, preset, comps, init, seed, threads)
+    return fit_tile(obs, preset, comps, init, seed, threads, sums)
 
 
 def _fingerprint(obs: Observations, preset: Preset, comps: Components, seed: int, tile: int) -> str:

@@ -1,0 +1,463 @@
+"""The fit out of core (issue 25 Sec. 1): a dataset larger than the memory budget is read from
+disk a part at a time, and the maps are written by rows; the driver never holds the map.
+
+The model has no spatial coupling (supplementary Sec. 4: each texel's SVBSDF is fitted to its
+own pixel's observations), and the fused kernel fits a pixel to the same bits whatever the
+region it sits in (:mod:`.tiled`), so a map can be fitted in any parts.  :func:`fit_parts`
+cuts it into **bands** of full rows, as many rows as the budget allows
+(:func:`band_boxes`; a scanline EXR reads a band's rows once), fitted one after the other in
+this process, or into ``tile x tile`` **tiles** on a Dask cluster, each read by its worker
+(:func:`.tiled.fit_tile_read`).  What is not per pixel is gathered in passes over the dataset,
+band by band, before the fit (:func:`survey`, :func:`gather`):
+
+- the **survey** (one pass): the sample's pixels (``Observations.fitted_pixels``), each image's
+  sum and valid-sample count (the Adam presets' whole-map counts, :class:`.observations.WholeMap`,
+  and the resume fingerprint), the back-lit statistics of the transmittance decision
+  (:func:`.select.transmission_from`) and the bright-albedo check's counts
+  (:func:`.init.albedo_counts`, summed over the bands);
+- the **gather** (one pass, only when a decision is still to make): the sample pixels of the
+  component selection (:func:`.select.selection_pixels`) and of the cross-validation
+  (:func:`.holdout.sample_pixels_of`), the very pixels the whole-map steps draw;
+- the **fit** (one pass): each part's maps go to ``out/tiles/`` as they finish (a rerun
+  resumes from them), and its loss sums (:func:`.metrics.image_loss_sums`) add up to the
+  report's losses; then the maps are written by rows (:func:`write_rows`).
+
+**Same result.**  The maps equal the whole-map fit's bit for bit, and so do the component
+decision, the cross-validation and the albedo check (the same pixels, the same counts).  The
+report's ``train_l1`` and ``train_rmse`` are summed in float64 over the parts, where the
+whole-map fit takes a float32 mean: they may differ in the last digits (measured in
+``tests/fit/test_stream.py``: relative 1e-6 at most).  Not out of core: a preset with a coarse
+level (``coarse-to-fine``, whose coarse fit needs the whole downsampled map: refused, use
+``--memory unlimited``), ``--gt`` (the maps are read back whole to be scored) and the in-band
+checkpoint (a part is the unit of resuming).
+
+**Memory.**  A band holds ``rows x W`` pixels of every LED image, plus the fit's work:
+:data:`BYTES_PER_SAMPLE` per pixel and image, measured on this machine (docs/SCALE.md), on top
+of :data:`RESERVE` for the process itself.  :func:`band_boxes` sizes the bands so that the
+estimate stays within the budget (``dualscale fit --memory``, :data:`DEFAULT_MEMORY`).
+"""
+
+from __future__ import annotations
+
+import re
+import resource
+import time
+import warnings
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any, Callable
+
+import torch
+from torch import Tensor
+
+from dualscale.bsdf import Components
+from dualscale.errors import FormatError, InputError
+from dualscale.formats.torchfile import load_torch, save_torch
+from dualscale.progress import Progress, tracker
+
+from .checkpoint import fingerprint
+from .core import FitResult, fit_observations, stride_leds
+from .init import albedo_counts, photometric_stereo, warn_bright
+from .metrics import image_loss_sums, losses_from_sums
+from .observations import DatasetOrigin, Observations, WholeMap, read_tile
+from .presets import Preset
+from .select import TRANS_LEVEL, transmission_from
+
+#: the default memory budget of a fit (``dualscale fit --memory``): a 512^2 map of 254 images
+#: fits in four bands under it (docs/SCALE.md)
+DEFAULT_MEMORY = 2 * 1024 ** 3
+#: the fit's resident bytes per pixel and LED image: 85 measured (load + standard fit of
+#: 64^2 .. 256^2 crops of a 254-image twill, docs/SCALE.md), with a margin
+BYTES_PER_SAMPLE = 100
+#: the process's resident memory before its first band (imports: 281 MB; fixed costs of a fit:
+#: 124 MB; measured, docs/SCALE.md), with a margin
+RESERVE = 450 * 1024 ** 2
+#: back-lit pixels kept for the transmittance statistics' 99th percentile (all of them up to a
+#: 2048^2 map; every k-th above)
+P99_PIXELS = 1 << 22
+
+_UNITS = {"": 1, "k": 1024, "m": 1024 ** 2, "g": 1024 ** 3, "t": 1024 ** 4}
+
+
+def parse_memory(text: str | int | None) -> int | None:
+    """Bytes of a memory budget: ``"2G"``, ``"1.5GiB"``, ``"800M"``, ``"64k"``, a plain number of
+    bytes, or ``"unlimited"`` (``None``: the whole map in memory, as before issue 25).  Raises
+    :class:`~dualscale.errors.InputError` for anything else, or a budget of zero."""
+    if text is None or (isinstance(text, str) and text.strip().lower() in ("unlimited", "none")):
+        return None
+    if isinstance(text, int) and not isinstance(text, bool):
+        value = text
+    else:
+        m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+)\s*([kmgt]?)(i?b)?\s*", str(text).lower())
+        if m is None:
+            raise InputError(f"--memory {text!r}: give a size such as 2G, 1.5GiB, 800M, or 'unlimited'")
+        value = int(float(m.group(1)) * _UNITS[m.group(2)])
+    if value <= 0:
+        raise InputError(f"--memory {text!r}: the budget must be above zero")
+    return value
+
+
+def band_boxes(shape: tuple[int, int], images: int, memory: int | None) -> list[tuple[int, int, int, int]]:
+    """``(y0, y1, x0, x1)`` parts of a ``(H, W)`` map of ``images`` LED images whose estimated
+    fit stays within ``memory`` bytes (module doc): bands of full rows, their height rounded
+    down to a multiple of 64 (or 16) rows, the EXR chunks' heights, when there are that many;
+    a single row split into runs of columns when even one row is over the budget.  ``memory``
+    ``None``: one part, the whole map.  Raises :class:`~dualscale.errors.InputError` when the
+    budget is below :data:`RESERVE` plus one pixel's share."""
+    h, w = shape
+    if memory is None:
+        return [(0, h, 0, w)]
+    per_pixel = max(1, images) * BYTES_PER_SAMPLE
+    pixels = (memory - RESERVE) // per_pixel
+    if pixels < 1:
+        raise InputError(f"--memory {memory / 2 ** 20:.0f} MiB is below what a fit of {images} images needs: "
+                         f"{(RESERVE + per_pixel) / 2 ** 20:.0f} MiB at least (the process's "
+                         f"{RESERVE / 2 ** 20:.0f} MiB and one pixel's {per_pixel / 2 ** 10:.0f} kiB); "
+                         "give more, e.g. --memory 2G")
+    if pixels >= h * w:
+        return [(0, h, 0, w)]
+    rows = pixels // w
+    if rows >= 1:
+        for align in (64, 16):
+            if rows >= align:
+                rows -= rows % align
+                break
+        return [(y, min(y + rows, h), 0, w) for y in range(0, h, rows)]
+    cols = int(pixels)
+    return [(y, y + 1, x, min(x + cols, w)) for y in range(h) for x in range(0, w, cols)]
+
+
+@dataclass
+class Survey:
+    """What the whole-map steps need of a map, gathered band by band (:func:`survey`).
+
+    ``head``: the observations' lights, weights and flags with no pixel (``N x 1 x 0``);
+    ``shape``: ``(H, W)``; ``fitted``: ``(H, W)`` bool, the sample's pixels (``None``: every
+    pixel, no valid-sample mask); ``sums`` ``(N,)`` float64 per image; ``counts`` ``(N,)``
+    float64 valid samples per image (``None``: all); ``back``: valid back-lit pixels (``None``:
+    all, or no back-lit image); ``transmission``: :func:`.select.transmission_evidence`;
+    ``bright`` and ``counted``: :func:`.init.albedo_counts` summed; ``key``: a SHA-256 of it all
+    (the resume fingerprint's data part); ``seconds``: the pass's wall time."""
+
+    head: Observations
+    shape: tuple[int, int]
+    fitted: Tensor | None
+    sums: Tensor
+    counts: Tensor | None
+    back: float | None
+    transmission: dict[str, Any]
+    bright: int
+    counted: int
+    key: str
+    seconds: float
+
+    @property
+    def whole(self) -> WholeMap:
+        """The whole map's sample counts (the Adam presets' loss divides by them)."""
+        return WholeMap(self.shape[0] * self.shape[1], self.counts, self.back)
+
+    @property
+    def albedo_share(self) -> float:
+        return self.bright / self.counted if self.counted else 0.0
+
+
+Reader = Callable[[tuple[int, int, int, int]], Observations]
+
+
+def survey(read: Reader, boxes: list[tuple[int, int, int, int]], shape: tuple[int, int], stride: int,
+           albedo: bool = True, progress: Progress = None) -> Survey:
+    """One pass over the parts ``boxes`` of the map, each read by ``read`` (module doc): the
+    :class:`Survey`.  ``stride``: the preset's ``led_stride`` (the albedo check looks at the
+    images the fit fits, as the whole-map fit does); ``albedo`` False skips that check."""
+    t0 = time.perf_counter()
+    h, w = shape
+    fitted = None
+    sums = counts = None
+    back = None
+    y_above, y_sum, y_n, y_keep = 0, 0.0, 0, []
+    step = max(1, (h * w) // P99_PIXELS)
+    bright = counted = 0
+    head = None
+    with tracker(progress, len(boxes), "survey", unit="band") as bar:
+        for box in boxes:
+            o = read(box)
+            y0, y1, x0, x1 = box
+            if head is None:
+                head = o.pixels(torch.zeros(0, dtype=torch.long))
+                sums = torch.zeros(o.n, dtype=torch.float64)
+                counts = None if o.valid is None else torch.zeros(o.n, dtype=torch.float64)
+            sums += o.images.to(torch.float64).sum(dim=(1, 2, 3))
+            if o.valid is not None:
+                counts += o.valid.sum(dim=(1, 2)).to(torch.float64)
+                if fitted is None:
+                    fitted = torch.zeros(shape, dtype=torch.bool)
+                fitted[y0:y1, x0:x1] = o.fitted_pixels
+            if o.back_valid is not None:
+                back = (back or 0.0) + float(o.back_valid.sum())
+            if o.backlight is not None:
+                y = (o.backlight / o.back_wd).mean(-1)
+                y_above += int((y > TRANS_LEVEL).sum())
+                y_sum += float(y.to(torch.float64).sum())
+                y_n += y.numel()
+                flat = (torch.arange(y0, y1).reshape(-1, 1) * w + torch.arange(x0, x1).reshape(1, -1)).reshape(-1)
+                y_keep.append(y.reshape(-1)[flat % step == 0].to(torch.float64))
+            if albedo:
+                s = stride_leds(o, stride)
+                b, c = albedo_counts(s, photometric_stereo(s)[1])
+                bright, counted = bright + b, counted + c
+            del o
+            bar.update(1)
+    assert head is not None
+    trans = {"backlit_capture": False, "transmits": False}
+    if y_n:
+        trans = transmission_from(y_above / y_n, y_sum / y_n, float(torch.quantile(torch.cat(y_keep), 0.99)))
+    key = fingerprint(kind="survey", shape=list(shape), ids=head.led_ids, dirs=head.dirs, ws=head.w_s, wp=head.w_p,
+                      wd=head.w_d, sums=sums, counts=torch.zeros(0) if counts is None else counts,
+                      fitted=torch.zeros(0) if fitted is None else fitted.sum(dim=0), back=back or 0.0,
+                      trans=trans, px=head.pixel_mm, imported=head.imported)
+    return Survey(head, shape, fitted, sums, counts, back, trans, bright, counted, key, time.perf_counter() - t0)
+
+
+def gather(read: Reader, boxes: list[tuple[int, int, int, int]], shape: tuple[int, int],
+           flats: list[Tensor]) -> list[Observations]:
+    """One pass: for each sorted flat-index set of ``flats``, the observations of those pixels
+    laid out as a ``1 x M`` image, in index order: what ``whole.pixels(flat)`` gives, read part
+    by part."""
+    w = shape[1]
+    pieces: list[list[tuple[Tensor, Observations]]] = [[] for _ in flats]
+    for box in boxes:
+        y0, y1, x0, x1 = box
+        wanted = []
+        for flat in flats:
+            y, x = flat // w, flat % w
+            inside = (y >= y0) & (y < y1) & (x >= x0) & (x < x1)
+            wanted.append((torch.nonzero(inside).flatten(), (y[inside] - y0) * (x1 - x0) + (x[inside] - x0)))
+        if not any(pos.numel() for pos, _ in wanted):
+            continue
+        o = read(box)
+        for k, (pos, local) in enumerate(wanted):
+            if pos.numel():
+                pieces[k].append((pos, o.pixels(local)))
+        del o
+    return [_join(p) for p in pieces]
+
+
+def _join(pieces: list[tuple[Tensor, Observations]]) -> Observations:
+    """``1 x M`` pixel rows ``(positions, rows)`` joined into one, ordered by position."""
+    pos = torch.cat([p for p, _ in pieces])
+    order = torch.argsort(pos)
+    first = pieces[0][1]
+
+    def cat(name: str, dim: int) -> Tensor | None:
+        parts = [getattr(o, name) for _, o in pieces]
+        return None if parts[0] is None else torch.cat(parts, dim).index_select(dim, order)
+
+    view = cat("view", 1) if first.view.ndim == 3 else first.view
+    return replace(first, images=cat("images", 2), valid=cat("valid", 2), backlight=cat("backlight", 1),
+                   back_valid=cat("back_valid", 1), view=view)
+
+
+def _part_path(state: Path, box: tuple[int, int, int, int]) -> Path:
+    return state / f"{box[0]:05d}_{box[2]:05d}.pt"
+
+
+def _done(state: Path, key: str, boxes: list[tuple[int, int, int, int]]) -> dict[tuple, dict]:
+    """The parts an earlier run of the same fit saved, without their maps (those stay on disk);
+    a part of another fit is refused (:class:`~dualscale.errors.FormatError`)."""
+    done: dict[tuple, dict] = {}
+    if not state.is_dir():
+        return done
+    for box in boxes:
+        p = _part_path(state, box)
+        if not p.is_file():
+            continue
+        rec = load_torch(p, "fit part", "delete the tiles folder or pass --restart", weights_only=False)
+        if not isinstance(rec, dict) or rec.get("fingerprint") != key or tuple(rec.get("box", ())) != box:
+            raise FormatError(f"{p}: a part of a different fit (data, preset, components, memory budget or tile size "
+                              "changed); delete the folder or pass --restart")
+        done[box] = {k: rec[k] for k in ("history", "pixels", "sums")}
+    return done
+
+
+@dataclass
+class Parts:
+    """The fitted parts of a map (:func:`fit_parts`): their boxes, their records without maps
+    (``history``, ``pixels``, ``sums``), the folder their maps are in, how many an earlier run
+    had finished, and the fit's wall time."""
+
+    boxes: list[tuple[int, int, int, int]]
+    records: dict[tuple, dict]
+    state: Path
+    resumed: int
+    seconds: float
+    workers: int | None = None
+
+    def losses(self) -> dict[str, float]:
+        """The whole map's ``train_l1`` and ``train_rmse`` from the parts' sums."""
+        a = sum(r["sums"][0] for r in self.records.values())
+        q = sum(r["sums"][1] for r in self.records.values())
+        n = sum(r["sums"][2] for r in self.records.values())
+        return {f"train_{k}": v for k, v in losses_from_sums(a, q, n).items()}
+
+
+def fit_parts_refusal(preset: Preset) -> None:
+    """Raise the :class:`~dualscale.errors.InputError` of a preset with a coarse level, which
+    the fit out of core does not run (module doc)."""
+    raise InputError(f"the {preset.name} preset's coarse level fits the whole downsampled map, which the fit out of "
+                     "core does not hold; give --memory unlimited (the whole map in memory) or use the standard "
+                     "preset (docs/SCALE.md)")
+
+
+def fit_parts(read: Reader, origin: DatasetOrigin, sv: Survey, preset: Preset, comps: Components, *,
+              memory: int | None, state: Path, seed: int = 0, client=None, tile: int = 64, threads: int = 1,
+              progress: Progress = None) -> Parts:
+    """Fit the map part by part (module doc): in this process, the bands of
+    :func:`band_boxes` within ``memory`` (each read by ``read``), or on the Dask ``client``,
+    ``tile x tile`` tiles each read by its worker from ``origin``
+    (:func:`.tiled.fit_tile_read`).  Each finished part is saved in ``state`` (the maps, its
+    loss history, pixels and loss sums, with the fit's fingerprint); parts already there from
+    an earlier run of the same fit are not fitted again.  Raises
+    :class:`~dualscale.errors.InputError` for a preset with a coarse level (module doc) and
+    :class:`~dualscale.errors.FormatError` for a saved part of another fit."""
+    from .tiled import check_tileable, tiles
+
+    if preset.coarse_factor > 1:
+        fit_parts_refusal(preset)
+    t0 = time.perf_counter()
+    adam = preset.optimizer == "adam"
+    whole = sv.whole
+    if client is None:
+        boxes = band_boxes(sv.shape, sv.head.n, memory)
+        kind = {"kind": "bands", "memory": memory}
+    else:
+        check_tileable(preset)
+        boxes = tiles(sv.shape, tile)
+        kind = {"kind": "tiles", "tile": tile}
+    key = fingerprint(part="fit part", preset=repr(preset), comps=repr(comps), seed=seed, data=sv.key, **kind)
+    state.mkdir(parents=True, exist_ok=True)
+    records = _done(state, key, boxes)
+    resumed = len(records)
+    todo = [b for b in boxes if b not in records]
+
+    def finish(box, rec) -> None:
+        save_torch(_part_path(state, box), {**rec, "box": box, "fingerprint": key})
+        records[box] = {k: rec[k] for k in ("history", "pixels", "sums")}
+
+    unit = "band" if client is None else "tile"
+    workers = None
+    with tracker(progress, len(boxes), f"fit[{preset.name}] {unit}s", unit=unit) as bar:
+        if resumed:
+            bar.update(resumed, f"{resumed} {unit}(s) done before")
+        if client is None:
+            for box in todo:
+                band = read(box)
+                if adam:
+                    band = replace(band, whole=whole)
+                with warnings.catch_warnings():  # the survey checked the albedo range on the whole map
+                    warnings.filterwarnings("ignore", message=r".*Lambertian albedo", category=RuntimeWarning)
+                    res = fit_observations(band, preset, comps, seed=seed)
+                fitted = stride_leds(band, preset.led_stride)
+                finish(box, {"maps": dict(res.maps.items()), "history": list(res.history),
+                             "pixels": band.shape[0] * band.shape[1],
+                             "sums": image_loss_sums(res.maps, comps, fitted)})
+                del band, res, fitted
+                bar.update(1, f"rows {box[0]}..{box[1] - 1}")
+        else:
+            workers = _on_cluster(client, todo, origin, sv, preset, comps, seed, threads, finish, bar)
+    return Parts(boxes, records, state, resumed, time.perf_counter() - t0, workers)
+
+
+def _on_cluster(client, todo, origin, sv: Survey, preset: Preset, comps: Components, seed: int, threads: int,
+                finish, bar) -> int:
+    """The tiles ``todo`` as Dask tasks, at most :data:`.tiled.INFLIGHT_PER_WORKER` per worker
+    in flight, each read by its worker; returns the number of workers."""
+    from distributed import as_completed
+
+    from .tiled import INFLIGHT_PER_WORKER, fit_tile_read
+
+    n_workers = max(1, len(client.scheduler_info(n_workers=-1).get("workers", {})))
+    limit = INFLIGHT_PER_WORKER * n_workers
+    whole = None
+    if preset.optimizer == "adam":  # the whole map's counts of the fitted (strided) images
+        whole = stride_leds(replace(sv.head, whole=sv.whole), preset.led_stride).whole
+    tile_preset = replace(preset, led_stride=1)  # the task strides the LEDs as it reads them
+
+    def submit(box):
+        return client.submit(fit_tile_read, origin, box, preset.led_stride, whole, tile_preset, comps, None, seed,
+                             threads, True, key=f"dualscale-fit-part-{sv.key[:16]}-{box[0]}-{box[2]}", pure=False)
+
+    queue = list(todo)
+    futures = {submit(b): b for b in queue[:limit]}
+    queue = queue[limit:]
+    pending = as_completed(list(futures))
+    for fut in pending:
+        box = futures.pop(fut)
+        rec = fut.result()
+        fut.release()
+        finish(box, rec)
+        del rec
+        bar.update(1, f"tile {box[0]},{box[2]}")
+        if queue:
+            nxt = queue.pop(0)
+            f = submit(nxt)
+            futures[f] = nxt
+            pending.add(f)
+    return n_workers
+
+
+def write_rows(parts: Parts) -> tuple[list[str], Any]:
+    """``(names, rows)``: the maps' names and an iterator of ``(y0, {name: (n, W, C) float32})``
+    row strips, read back from the parts' files one row of parts at a time (what
+    :class:`~dualscale.formats.maps.MapsWriter` writes)."""
+    rows: dict[tuple[int, int], list[tuple[int, int, int, int]]] = {}
+    for box in parts.boxes:
+        rows.setdefault((box[0], box[1]), []).append(box)
+    first = load_torch(_part_path(parts.state, parts.boxes[0]), "fit part", "pass --restart", weights_only=False)
+    names = list(first["maps"])
+    del first
+
+    def strips():
+        for (y0, _), boxes in sorted(rows.items()):
+            maps = [load_torch(_part_path(parts.state, b), "fit part", "pass --restart", weights_only=False)["maps"]
+                    for b in sorted(boxes, key=lambda b: b[2])]
+            yield y0, {n: torch.cat([m[n] for m in maps], dim=1).numpy() for n in names}
+            del maps
+
+    return names, strips()
+
+
+def peak_rss_mb() -> float:
+    """This process's peak resident memory so far, in MiB (``getrusage``: Linux reports kiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def warn_albedo(sv: Survey) -> None:
+    """The bright-albedo warning of :func:`.init.check_albedo_range`, for the whole map."""
+    warn_bright(sv.albedo_share, sv.head.imported)
+
+
+def result(parts: Parts, preset: Preset, comps: Components) -> FitResult:
+    """The :class:`.core.FitResult` of a fit out of core: no maps (``maps`` is ``None``: they are
+    on disk), the losses and history assembled from the parts'."""
+    from .tiled import _history
+
+    ordered = {b: parts.records[b] for b in parts.boxes}
+    return FitResult(None, comps, preset, preset.total, parts.seconds, parts.losses(),  # type: ignore[arg-type]
+                     _history(ordered, preset.optimizer == "adam"))
+
+
+def reader(origin: DatasetOrigin) -> Reader:
+    """The part reader of a dataset (:func:`.observations.read_tile`)."""
+    return lambda box: read_tile(origin, box)
+
+
+def memory_record(memory: int | None, parts: Parts, passes: dict[str, float]) -> dict[str, Any]:
+    """``fit.json``'s ``out_of_core`` record."""
+    return {"memory_bytes": memory, "parts": len(parts.boxes), "part_rows": [b[1] - b[0] for b in parts.boxes[:1]][0],
+            "resumed_parts": parts.resumed, "workers": parts.workers, "pass_seconds": passes,
+            "peak_rss_mb": round(peak_rss_mb(), 1)}
+
+
+__all__ = ["DEFAULT_MEMORY", "BYTES_PER_SAMPLE", "RESERVE", "parse_memory", "band_boxes", "Survey", "survey",
+           "gather", "Parts", "fit_parts", "fit_parts_refusal", "write_rows", "result", "reader", "peak_rss_mb", "warn_albedo",
+           "memory_record"]

@@ -1,0 +1,257 @@
+"""The fit out of core (issue 25 Sec. 1, ``dualscale.fit.stream``): a dataset over the memory
+budget is read band by band and its maps written by rows, with the whole-map fit's maps bit for
+bit, the same component decision and cross-validation, and losses within float64 summation;
+the driver never reads an image whole; interrupted fits resume; bad budgets are refused."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from dualscale.errors import FormatError, InputError
+from dualscale.fit import api, stream
+from dualscale.fit.observations import fit_layout
+from dualscale.fit.presets import get_preset
+from dualscale.fit.stream import BYTES_PER_SAMPLE, RESERVE, band_boxes, parse_memory
+from dualscale.formats.maps import load_maps
+
+
+def budget(root: Path, pixels: int) -> int:
+    """A memory budget whose bands hold ``pixels`` pixels of the dataset ``root``."""
+    images = fit_layout(root)[3]
+    return RESERVE + pixels * images * BYTES_PER_SAMPLE
+
+
+def _equal_maps(a: Path, b: Path) -> None:
+    ma, _ = load_maps(a)
+    mb, _ = load_maps(b)
+    for (k, v), (k2, w) in zip(ma.items(), mb.items(), strict=True):
+        assert k == k2
+        assert torch.equal(v, w), f"{k}: max |diff| {(v - w).abs().max().item()}"
+
+
+def _close_losses(a: dict, b: dict) -> None:
+    assert a.keys() == b.keys()
+    for k in a:
+        assert a[k] == pytest.approx(b[k], rel=1e-6, abs=1e-12), k
+
+
+@pytest.fixture(scope="module")
+def masked(datasets, tmp_path_factory):
+    """A translucent sheer with a back-lit image, a sample mask and clipped samples (a saturation
+    level below its brightest values): every whole-map statistic the survey gathers is in play."""
+    import OpenImageIO as oiio
+
+    src = datasets("sheer", 20) / "micro"
+    root = tmp_path_factory.mktemp("masked") / "micro"
+    shutil.copytree(src, root)
+    man = json.loads((root / "manifest.json").read_text())
+    rng = np.random.default_rng(3)
+    mask = (rng.random((20, 20)) > 0.15).astype(np.float32)
+    mask[:3] = 0  # whole rows out of the sample: a band without any sample pixel
+    out = oiio.ImageOutput.create(str(root / "mask.exr"))
+    out.open(str(root / "mask.exr"), oiio.ImageSpec(20, 20, 1, "float"))
+    out.write_image(mask)
+    out.close()
+    man["mask"] = "mask.exr"
+    for rec in man["images"]:
+        rec["saturation"] = 0.35
+    (root / "manifest.json").write_text(json.dumps(man))
+    return root
+
+
+def test_memory_budgets_parse_and_bad_ones_are_refused():
+    from dualscale.cli.fit import DEFAULT_MEMORY as CLI_DEFAULT
+
+    assert parse_memory(CLI_DEFAULT) == stream.DEFAULT_MEMORY == 2 * 1024 ** 3
+    assert parse_memory("800M") == 800 * 1024 ** 2
+    assert parse_memory("1.5GiB") == int(1.5 * 1024 ** 3)
+    assert parse_memory("64k") == 65536 and parse_memory("123") == 123 and parse_memory(4096) == 4096
+    assert parse_memory("unlimited") is None and parse_memory(None) is None
+    for bad in ("lots", "2X", "-1G", "0", "G"):
+        with pytest.raises(InputError, match="--memory"):
+            parse_memory(bad)
+
+
+def test_bands_cover_the_map_once_within_the_budget():
+    for shape, images, pixels in (((300, 200), 10, 5000), ((1000, 512), 254, 70000), ((7, 5), 3, 6), ((9, 40), 2, 7),
+                                  ((64, 64), 4, 10 ** 9)):
+        boxes = band_boxes(shape, images, RESERVE + pixels * images * BYTES_PER_SAMPLE)
+        cover = np.zeros(shape, int)
+        for y0, y1, x0, x1 in boxes:
+            assert (y1 - y0) * (x1 - x0) <= pixels
+            cover[y0:y1, x0:x1] += 1
+        assert (cover == 1).all(), shape
+    rows = band_boxes((1000, 512), 254, RESERVE + 70000 * 254 * BYTES_PER_SAMPLE)
+    assert {b[1] - b[0] for b in rows[:-1]} == {128}  # 136 rows fit: rounded down to the EXR chunks' 64
+    assert band_boxes((9, 40), 2, RESERVE + 7 * 2 * BYTES_PER_SAMPLE)[0] == (0, 1, 0, 7)  # a row split in columns
+    assert band_boxes((50, 50), 9, None) == [(0, 50, 0, 50)]
+    with pytest.raises(InputError, match="below what a fit of 254 images needs"):
+        band_boxes((512, 512), 254, RESERVE)
+
+
+@pytest.mark.parametrize("preset", ["standard", "adam-fast"])
+def test_out_of_core_equals_the_whole_map_fit(masked, tmp_path, preset, monkeypatch):
+    p = get_preset(preset).scaled(0.25)
+    kw = dict(cv_pixels=60, cv_folds=4, previews=True, seed=2)
+    whole, wx = api.fit_dataset(masked, tmp_path / "whole", p, memory=None, **kw)
+    assert "out_of_core" not in wx
+
+    from dualscale.formats.dataset import Dataset
+
+    load = Dataset.load
+
+    def only_regions(self, index, box=None):  # the fit out of core never reads an image whole
+        assert box is not None, "an image was read whole"
+        return load(self, index, box)
+
+    monkeypatch.setattr(Dataset, "load", only_regions)
+    res, ex = api.fit_dataset(masked, tmp_path / "bands", p, memory=budget(masked, 60), **kw)
+    assert res.maps is None
+    rec = ex["out_of_core"]
+    assert rec["parts"] == 7 and rec["part_rows"] == 3 and rec["resumed_parts"] == 0  # 20 rows in bands of 3
+    _equal_maps(tmp_path / "whole", tmp_path / "bands")
+    _close_losses(whole.losses, res.losses)
+    a = json.loads((tmp_path / "whole" / "fit.json").read_text())
+    b = json.loads((tmp_path / "bands" / "fit.json").read_text())
+    ta, tb = (x["selection"]["transmittance"]["evidence"].pop("backlit_mean") for x in (a, b))
+    assert ta == pytest.approx(tb, rel=1e-12)  # float64 sums, over bands or over the whole map
+    assert a["selection"] == b["selection"]  # the same decision, from the same sample pixels
+    for k in ("ours", "baseline", "constant", "light_ids"):
+        assert a["cross_validation"][k] == b["cross_validation"][k], k
+    assert [h[:2] for h in a["loss_history"]] == [h[:2] for h in b["loss_history"]]
+    for (_, _, x), (_, _, y) in zip(a["loss_history"], b["loss_history"], strict=True):
+        assert x == pytest.approx(y, rel=1e-5)
+    assert b["out_of_core"]["peak_rss_mb"] > 0
+    assert (tmp_path / "bands" / "albedo.png").is_file() and not (tmp_path / "bands" / "tiles").exists()
+    assert json.loads((tmp_path / "bands" / "material.json").read_text())["maps"] == \
+        json.loads((tmp_path / "whole" / "material.json").read_text())["maps"]
+
+
+def test_the_bright_albedo_check_counts_the_whole_map(masked):
+    from dualscale.fit.init import check_albedo_range, photometric_stereo
+    from dualscale.fit.observations import load_observations, read_tile
+    from dualscale.fit.stream import survey
+
+    obs = load_observations(masked)
+    share = check_albedo_range(obs, photometric_stereo(obs)[1])
+    boxes = band_boxes(obs.shape, obs.n, budget(masked, 45))
+    sv = survey(lambda b: read_tile(obs.origin, b), boxes, obs.shape, 1)
+    assert len(boxes) > 3 and sv.albedo_share == share
+    assert torch.equal(sv.fitted, obs.fitted_pixels)
+    assert sv.counts.tolist() == obs.valid.sum(dim=(1, 2)).double().tolist()
+    from dualscale.fit.select import transmission_evidence
+
+    ev = transmission_evidence(obs)
+    assert sv.transmission["transmits"] == ev["transmits"]
+    for k in ("backlit_mean", "backlit_p99", "fraction_above_level"):
+        assert sv.transmission[k] == pytest.approx(ev[k], rel=1e-6), k
+
+
+def test_an_interrupted_fit_resumes_from_its_finished_bands(datasets, tmp_path, monkeypatch):
+    root = datasets("twill", 16) / "micro"
+    p = get_preset("standard").scaled(0.2)
+    kw = dict(cv_pixels=0, previews=False, memory=budget(root, 64))  # 4 bands of 4 rows
+    calls = []
+    real = stream.fit_observations
+
+    def stop_at_the_third(*a, **k):
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return real(*a, **k)
+
+    monkeypatch.setattr(stream, "fit_observations", stop_at_the_third)
+    with pytest.raises(KeyboardInterrupt):
+        api.fit_dataset(root, tmp_path / "m", p, **kw)
+    assert len(list((tmp_path / "m" / "tiles").glob("*.pt"))) == 2 and not (tmp_path / "m" / "fit.json").exists()
+    monkeypatch.setattr(stream, "fit_observations", real)
+    with pytest.raises(FormatError, match="a part of a different fit"):  # another preset: the saved bands are foreign
+        api.fit_dataset(root, tmp_path / "m", replace(p, shadow_ratio=0.3), **kw)
+    _, ex = api.fit_dataset(root, tmp_path / "m", p, **kw)
+    assert ex["out_of_core"]["resumed_parts"] == 2 and ex["out_of_core"]["parts"] == 4
+    api.fit_dataset(root, tmp_path / "whole", p, cv_pixels=0, previews=False, memory=None)
+    _equal_maps(tmp_path / "whole", tmp_path / "m")
+
+
+def test_what_the_fit_out_of_core_cannot_run_is_refused_before_any_work(datasets, tmp_path, capsys):
+    from dualscale.cli import main
+
+    root = datasets("twill", 16) / "micro"
+    with pytest.raises(InputError, match="coarse level"):
+        api.fit_dataset(root, tmp_path / "c", "coarse-to-fine", memory=budget(root, 64))
+    assert not (tmp_path / "c").exists()
+    assert main(["fit", str(root), "-o", str(tmp_path / "d"), "--memory", "lots"]) == 2
+    assert "--memory 'lots'" in capsys.readouterr().err
+    assert main(["fit", str(root), "-o", str(tmp_path / "e"), "--memory", "100M"]) == 2
+    assert "below what a fit of 254 images needs" in capsys.readouterr().err
+
+
+def test_the_cli_says_it_fitted_out_of_core(datasets, tmp_path, capsys):
+    from dualscale.cli import main
+
+    root = datasets("twill", 16) / "micro"
+    mem = str(budget(root, 128))
+    args = ["--preset", "draft", "--anisotropy", "on", "--tint", "off", "--no-previews", "--no-progress",
+            "--threads", "1", "--cv-pixels", "0"]
+    assert main(["fit", str(root), "-o", str(tmp_path / "a"), *args, "--memory", mem]) == 0
+    out = capsys.readouterr().out
+    assert "out of core: 2 band(s) of 8 rows within" in out and "peak memory" in out
+    assert main(["fit", str(root), "-o", str(tmp_path / "b"), *args, "--memory", "unlimited"]) == 0
+    assert "out of core" not in capsys.readouterr().out
+    _equal_maps(tmp_path / "a", tmp_path / "b")
+
+
+def test_on_a_cluster_the_driver_reads_bands_and_ships_no_pixels(masked, tmp_path, monkeypatch):
+    """Issue 25 Sec. 1 and 2 together: with ``engine`` and a dataset, the driver surveys the map
+    band by band (never an image whole), each task carries a tile's coordinates (a few kB), the
+    workers read their tiles, and the maps are the whole-map fit's bit for bit."""
+    pytest.importorskip("distributed", reason="the dask extra is not installed (pip install 'dualscale[dask]')")
+    import contextlib
+
+    import cloudpickle
+
+    from dualscale.engine import EngineSpec, connect
+
+    p = get_preset("standard").scaled(0.25)
+    kw = dict(cv_pixels=0, previews=False, seed=2)
+    api.fit_dataset(masked, tmp_path / "whole", p, memory=None, **kw)
+    sent = []
+
+    @contextlib.contextmanager
+    def counting(spec):
+        with connect(spec) as client:
+            real = client.submit
+
+            def submit(fn, *args, **k):
+                sent.append(len(cloudpickle.dumps((fn, args))))
+                return real(fn, *args, **k)
+
+            client.submit = submit
+            yield client
+
+    monkeypatch.setattr(api, "connect", counting)
+    from dualscale.formats.dataset import Dataset
+
+    load = Dataset.load
+    driver = []
+
+    def only_regions(self, index, box=None):  # (this process only: the workers are other processes)
+        driver.append(box)
+        assert box is not None, "the driver read an image whole"
+        return load(self, index, box)
+
+    monkeypatch.setattr(Dataset, "load", only_regions)
+    res, ex = api.fit_dataset(masked, tmp_path / "tiles", p, engine=EngineSpec(workers=2), tile_px=8,
+                              memory=budget(masked, 100), **kw)
+    assert ex["tiled"]["tiles"] == 9 and ex["tiled"]["tile_data"].startswith("read by the workers")
+    assert ex["out_of_core"]["parts"] == 9 and driver  # the driver's own reads were the survey's bands
+    tile_images = 8 * 8 * fit_layout(masked)[3] * 3 * 4
+    assert len(sent) == 9 and max(sent) < min(tile_images / 4, 20_000), sent
+    _equal_maps(tmp_path / "whole", tmp_path / "tiles")
