@@ -117,6 +117,7 @@ class DigitizeOptions:
     name: str | None = None
     engine: Any = None  # a dualscale.engine.EngineSpec: the fit stage runs in tiles on that cluster
     tile_px: int | None = None  # the side of those tiles (None: fit.tiled.TILE); the same maps at any side
+    memory: int | None = 2 * 1024 ** 3  # the fit stage's budget in bytes (fit.stream.DEFAULT_MEMORY; None: unlimited)
     source: str | None = None
 
     def __post_init__(self) -> None:
@@ -489,17 +490,29 @@ class Digitizer:
         from dualscale.formats.atomic import write_json
         from dualscale.formats.exr import write_exr
 
-        obs = load_observations(self.dataset)
+        from dualscale.fit.observations import DatasetOrigin, fit_layout, read_tile
+        from dualscale.fit.residuals import residual_by_bands, views_by_bands
+        from dualscale.fit.stream import band_boxes
+
+        root, camera, shape, images = fit_layout(self.dataset)
+        bands = band_boxes(shape, images, self.opts.memory)
+        # over the budget: the fit reads the dataset band by band (fit.stream) and so does the evidence below
+        origin = DatasetOrigin(root, camera, None, "float32", "")
+        obs = load_observations(self.dataset) if len(bands) == 1 else read_tile(origin, (0, 1, 0, 1))
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             res, extra = fit_dataset(self.dataset, work / "maps", self.quality.fit_preset,
                                      cv_pixels=self.quality.cv_pixels, cv_folds=self.quality.cv_folds,
-                                     progress=self.opts.progress, seed=self.opts.seed, obs=obs,
+                                     progress=self.opts.progress, seed=self.opts.seed,
+                                     obs=obs if len(bands) == 1 else None, memory=self.opts.memory,
                                      checkpoint_every=CHECKPOINT_EVERY, engine=self.opts.engine,
                                      **({} if self.opts.tile_px is None else {"tile_px": self.opts.tile_px}))
         for w in caught:  # to the stage's record
             warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
-        write_exr(work / "residual.exr", residual_map(res.maps, res.comps, obs).numpy()[..., None], ("Y",))
+        # fitted out of core: res.maps is None and obs one pixel (the lights and the texel size)
+        residual = (residual_map(res.maps, res.comps, obs) if res.maps is not None else
+                    residual_by_bands(work / "maps", res.comps, origin, bands, shape))
+        write_exr(work / "residual.exr", residual.numpy()[..., None], ("Y",))
         lights = extra["lights"]
         cv = extra["cross_validation"]
         done = cv is not None and "skipped" not in cv
@@ -514,14 +527,17 @@ class Digitizer:
                                "sample pixels" if done else
                                "none (no cross-validation pass)" if cv is None else f"none ({cv['skipped']})"),
             "cv_seconds": cv["seconds_ours"] + cv["seconds_baseline"] if done else None,
-            "texel_mm": obs.pixel_mm, "size_px": list(obs.shape)}
+            "texel_mm": obs.pixel_mm, "size_px": list(shape)}
         per_light = []
         if done:
             for i, lid in enumerate(cv["light_ids"]):
                 per_light.append({"led_id": lid, "direction": cv["directions"][i], "fold": cv["fold"][i],
                                   "relative_l1": cv["ours"][i], "baseline_relative_l1": cv["baseline"][i]})
         renders = []
-        for v in light_views(res.maps, res.comps, obs.select_leds(_rendered_lights(obs, per_light))):
+        shown = _rendered_lights(obs, per_light)
+        views = (light_views(res.maps, res.comps, obs.select_leds(shown)) if res.maps is not None else
+                 views_by_bands(work / "maps", res.comps, origin, bands, shape, shown))
+        for v in views:
             cap, ren = f"capture_{v.led_id:03d}.exr", f"render_{v.led_id:03d}.exr"
             write_exr(work / "heldout" / cap, v.capture.numpy())
             write_exr(work / "heldout" / ren, v.render.numpy())
@@ -756,7 +772,7 @@ def _rendered_lights(obs: Any, per_light: list[dict[str, Any]]) -> list[int]:
 
 def _options_json(o: DigitizeOptions) -> dict[str, Any]:
     out = {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(o).items()
-           if k not in ("run", "engine", "tile_px", "source")}
+           if k not in ("run", "engine", "tile_px", "memory", "source")}
     out["engine"] = None if o.engine is None else o.engine.describe
     return out
 

@@ -181,6 +181,42 @@ def test_digitize_fits_in_tiles_on_workers_with_the_same_maps(sample, tmp_path, 
     assert "fit        up to date" in out and "calibrate  up to date" in out, out
 
 
+def test_the_fit_stage_out_of_core_gives_the_same_maps_and_evidence(sample, tmp_path):
+    """``--memory`` below the micro dataset's fit (issue 25): the fit stage reads the dataset
+    band by band and writes the maps by rows, and its residual map and re-renders are read band
+    by band too; the maps equal the in-memory stage's bit for bit, the evidence to float32
+    rounding, and the stage's record (its params) is the same."""
+    import numpy as np
+    import torch
+
+    from dualscale.fit.observations import fit_layout
+    from dualscale.fit.stream import BYTES_PER_SAMPLE, RESERVE
+    from dualscale.formats.exr import read_exr
+    from dualscale.formats.maps import load_maps
+
+    _, _, (h, w), images = fit_layout(sample / "micro")
+    memory = RESERVE + (h * w // 4) * images * BYTES_PER_SAMPLE
+    one, two = tmp_path / "one", tmp_path / "two"
+    assert _digitize(sample, one, "--until", "fit") == 0
+    assert _digitize(sample, two, "--until", "fit", "--memory", str(memory)) == 0
+    fit = json.loads((two / "fit" / "maps" / "fit.json").read_text())
+    assert fit["out_of_core"]["parts"] >= 4
+    a, _ = load_maps(one / "fit" / "maps")
+    b, _ = load_maps(two / "fit" / "maps")
+    for (k, v), (_, u) in zip(a.items(), b.items(), strict=True):
+        assert torch.equal(v, u), k
+    ra, rb = (read_exr(r / "fit" / "residual.exr") for r in (one, two))
+    assert np.array_equal(np.isnan(ra), np.isnan(rb)) and np.allclose(ra, rb, rtol=1e-5, atol=1e-7, equal_nan=True)
+    ha, hb = (json.loads((r / "fit" / "heldout" / "heldout.json").read_text()) for r in (one, two))
+    assert ha["lights"] == hb["lights"] and [r["led_id"] for r in ha["renders"]] == [r["led_id"] for r in hb["renders"]]
+    for x, y in zip(ha["renders"], hb["renders"], strict=True):
+        assert x["relative_l1"] == pytest.approx(y["relative_l1"], rel=1e-5)
+        for k in ("capture", "render"):
+            assert np.allclose(read_exr(one / "fit" / "heldout" / x[k]), read_exr(two / "fit" / "heldout" / y[k]),
+                               rtol=1e-5, atol=1e-7)
+    assert _records(one)["fit"]["params"] == _records(two)["fit"]["params"]
+
+
 def test_digitize_a_dozen_photographs_fits_every_light_and_leaves_one_out(tmp_path, capsys):
     """Imported photographs under 12 lights: the final maps are fitted on all 12, the held-out
     error is leave-one-light-out over all 12 on the mask's pixels, and the capture/render pairs

@@ -87,6 +87,7 @@ def cmd_digitize(a: argparse.Namespace) -> int:
     from dualscale.pipeline import CAPTURE_STAGE, DigitizeOptions, Digitizer, RigCapture, digitize
 
     from dualscale.errors import EXIT_CODES, InputError
+    from dualscale.fit.stream import parse_memory
 
     if (a.input is None) == (a.rig is None):
         raise InputError("digitize: give a dataset folder INPUT, or --rig PORT with --camera SPEC (not both)")
@@ -101,7 +102,7 @@ def cmd_digitize(a: argparse.Namespace) -> int:
     opts = DigitizeOptions(input=inp, run=a.output, calibration=a.calibration, guidance=a.guidance,
                            guidance_transfer=a.transfer, guidance_texel_mm=a.guidance_texel_mm, quality=a.quality,
                            until=a.until, threads=apply_threads(a), progress=want_progress(a), seed=a.seed,
-                           engine=engine_spec(a), tile_px=a.tile_px,
+                           engine=engine_spec(a), tile_px=a.tile_px, memory=parse_memory(a.memory),
                            export=tuple(parse_formats(a.export, '--export')), tile=a.tile, name=a.name)
     def start() -> None:
         print(f"digitize {opts.input} -> {opts.run} (quality {opts.quality})", flush=True)
@@ -252,4 +253,8 @@ def register(sub) -> None:
     g.add_argument("--tile-px", type=int, default=None, metavar="PX",
                    help="side of the fit's tiles with --workers/--scheduler/--cluster (default 64; the same maps at "
                         "any side; docs/SCALE.md)")
+    d.add_argument("--memory", default="2G", metavar="SIZE",
+                   help="memory budget of the fit stage, e.g. 2G, 800M, or 'unlimited': a micro capture whose fit "
+                        "needs more is fitted out of core, band by band from disk, with the same maps (default: 2G; "
+                        "docs/SCALE.md)")
     d.set_defaults(fn=cmd_digitize)

@@ -78,9 +78,65 @@ def light_views(maps: MaterialMaps, comps: Components, held: Observations) -> li
         keep = fitted.unsqueeze(-1).to(cap.dtype)
         pred, cap = pred * keep, cap * keep
     out: list[LightView] = []
-    for led in sorted(set(held.led_ids.tolist())):
-        idx = [k for k, i in enumerate(held.led_ids.tolist()) if i == led]
-        k = max(idx, key=lambda j: float(held.w_s[j]))
+    for led, k in _shown(held):
         out.append(LightView(led, [float(x) for x in held.dirs[k]], cap[k], pred[k],
                                relative_l1(pred[k], cap[k], valid[k])))
     return out
+
+
+def _shown(held: Observations) -> list[tuple[int, int]]:
+    """``(led id, image index)`` of each LED of ``held`` (increasing id): its image passing the
+    most specular."""
+    out = []
+    for led in sorted(set(held.led_ids.tolist())):
+        idx = [k for k, i in enumerate(held.led_ids.tolist()) if i == led]
+        out.append((led, max(idx, key=lambda j: float(held.w_s[j]))))
+    return out
+
+
+def residual_by_bands(maps_root, comps: Components, origin, boxes: list[tuple[int, int, int, int]],
+                      shape: tuple[int, int]) -> Tensor:
+    """:func:`residual_map` ``(H, W)`` of a fit out of core (:mod:`.stream`): the maps under
+    ``maps_root`` and the observations ``origin`` names (a :class:`~.observations.DatasetOrigin`)
+    are read a part of ``boxes`` at a time, so that neither is held whole.  The same values as
+    the whole-map function up to the renderer's float32 rounding, which may differ with the size
+    of the tensor a pixel sits in."""
+    from dualscale.formats.maps import load_maps
+
+    from .observations import read_tile
+
+    residual = torch.empty(shape, dtype=torch.float32)
+    for y0, y1, x0, x1 in boxes:
+        maps, _ = load_maps(maps_root, box=(y0, y1, x0, x1))
+        residual[y0:y1, x0:x1] = residual_map(maps, comps, read_tile(origin, (y0, y1, x0, x1)))
+    return residual
+
+
+def views_by_bands(maps_root, comps: Components, origin, boxes: list[tuple[int, int, int, int]],
+                   shape: tuple[int, int], leds: list[int]) -> list[LightView]:
+    """:func:`light_views` of the LEDs ``leds`` for a fit out of core, read as in
+    :func:`residual_by_bands` (one LED's images at a time); each view's two ``(H, W, 3)`` images
+    are held whole."""
+    from dataclasses import replace
+
+    from dualscale.formats.maps import load_maps
+
+    from .observations import read_tile
+
+    h, w = shape
+    views: list[LightView] = []
+    for led in leds:
+        one = replace(origin, leds=(int(led),))
+        cap = torch.zeros((h, w, 3), dtype=torch.float32)
+        ren = torch.zeros((h, w, 3), dtype=torch.float32)
+        ok = torch.zeros((h, w), dtype=torch.bool)
+        direction: list[float] = []
+        for y0, y1, x0, x1 in boxes:
+            maps, _ = load_maps(maps_root, box=(y0, y1, x0, x1))
+            held = read_tile(one, (y0, y1, x0, x1))
+            (v,) = light_views(maps, comps, held)
+            k = _shown(held)[0][1]
+            cap[y0:y1, x0:x1], ren[y0:y1, x0:x1], ok[y0:y1, x0:x1] = v.capture, v.render, _valid(held)[k]
+            direction = v.direction
+        views.append(LightView(int(led), direction, cap, ren, relative_l1(ren, cap, ok)))
+    return views

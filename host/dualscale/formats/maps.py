@@ -270,17 +270,24 @@ def read_material_json(root: str | Path) -> dict[str, Any]:
     return doc
 
 
-def load_maps(root: str | Path, dtype: torch.dtype = torch.float32) -> tuple[MaterialMaps, dict]:
+def load_maps(root: str | Path, dtype: torch.dtype = torch.float32,
+              box: tuple[int, int, int, int] | None = None) -> tuple[MaterialMaps, dict]:
     """Read a maps folder written by :func:`save_maps`; returns ``(maps, meta)`` where ``meta``
-    is the file's ``meta`` plus ``texel_mm`` and ``field_mm`` (``None`` when unknown)."""
+    is the file's ``meta`` plus ``texel_mm`` and ``field_mm`` (``None`` when unknown).  ``box``
+    ``(y0, y1, x0, x1)``: only that region of every map (the whole maps' crop; read by
+    :func:`~dualscale.formats.exr.read_exr` region reads, so a map larger than memory can be
+    read a band at a time), ``ValueError`` when it is outside the maps."""
     root = Path(root)
     doc = read_material_json(root)
     arrays = {}
+    size = (doc["height"], doc["width"])
+    want = size if box is None else (box[1] - box[0], box[3] - box[2])
     for name in doc["maps"]:
         if name not in MAP_CHANNELS:
             raise FormatError(f"{root / 'material.json'}: unknown map {name!r}")
-        arr = read_exr(root / f"{name}.exr", channel_names(name))
-        if arr.shape[:2] != (doc["height"], doc["width"]):
+        arr = (read_exr(root / f"{name}.exr", channel_names(name)) if box is None else
+               read_exr(root / f"{name}.exr", channel_names(name), box=box, size=size))
+        if arr.shape[:2] != want:
             raise FormatError(f"{root / name}.exr is {arr.shape[:2]}, material.json says "
                               f"{(doc['height'], doc['width'])}")
         if not np.isfinite(arr).all():
