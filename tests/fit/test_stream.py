@@ -209,9 +209,9 @@ def test_the_cli_says_it_fitted_out_of_core(datasets, tmp_path, capsys):
 
 
 def test_on_a_cluster_the_driver_reads_bands_and_ships_no_pixels(masked, tmp_path, monkeypatch):
-    """Issue 25 Sec. 1 and 2 together: with ``engine`` and a dataset, the driver surveys the map
-    band by band (never an image whole), each task carries a tile's coordinates (a few kB), the
-    workers read their tiles, and the maps are the whole-map fit's bit for bit."""
+    """Issue 25 Sec. 1 and 2 together: with ``engine`` and a dataset, the driver reads no pixel
+    (the workers run the survey, the gather and the tiles, each reading its part), every task
+    carries coordinates (a few kB), and the maps are the whole-map fit's bit for bit."""
     pytest.importorskip("distributed", reason="the dask extra is not installed (pip install 'dualscale[dask]')")
     import contextlib
 
@@ -251,7 +251,7 @@ def test_on_a_cluster_the_driver_reads_bands_and_ships_no_pixels(masked, tmp_pat
     res, ex = api.fit_dataset(masked, tmp_path / "tiles", p, engine=EngineSpec(workers=2), tile_px=8,
                               memory=budget(masked, 100), **kw)
     assert ex["tiled"]["tiles"] == 9 and ex["tiled"]["tile_data"].startswith("read by the workers")
-    assert ex["out_of_core"]["parts"] == 9 and driver  # the driver's own reads were the survey's bands
+    assert ex["out_of_core"]["parts"] == 9 and driver == []  # the survey and the gather ran on the workers too
     tile_images = 8 * 8 * fit_layout(masked)[3] * 3 * 4
-    assert len(sent) == 9 and max(sent) < min(tile_images / 4, 20_000), sent
+    assert len(sent) == 9 + 4 + 4 and max(sent) < min(tile_images / 4, 20_000), sent  # tiles; survey, gather bands
     _equal_maps(tmp_path / "whole", tmp_path / "tiles")

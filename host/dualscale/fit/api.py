@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -101,18 +102,33 @@ def fit_dataset(dataset: str | Path, out: str | Path, preset: str | Preset = "st
     ooc = None
     if obs is None:
         root, camera, shape, images = fit_layout(dataset)
-        if engine is not None or len(band_boxes(shape, images, memory)) > 1:
-            if p.coarse_factor > 1:
-                fit_parts_refusal(p)
+        banded = len(band_boxes(shape, images, memory)) > 1
+        if banded and p.coarse_factor > 1:
+            fit_parts_refusal(p)
+        if banded or (engine is not None and p.coarse_factor <= 1):
             ooc = _OutOfCore(root, camera, shape, images, memory)
-        else:
+        else:  # (a coarse level within the budget on a cluster: the driver's whole-map coarse start, fit.tiled)
             obs = load_observations(dataset)
     if restart:
         remove_file(ck)
         remove_file(cv_path)
         clear_state(state)
-    if ooc is not None:
-        ooc.open(p, progress)
+    if ooc is None:
+        return _fit(dataset, out, p, obs, None, overrides, cv_pixels, folds, progress, checkpoint_every, stop_after,
+                    seed, previews, comps, gt, engine, tile_px)
+    try:
+        ooc.open(p, progress, engine)
+        return _fit(dataset, out, p, obs, ooc, overrides, cv_pixels, folds, progress, checkpoint_every, stop_after,
+                    seed, previews, comps, gt, engine, tile_px)
+    finally:
+        ooc.close()
+
+
+def _fit(dataset, out: Path, p: Preset, obs, ooc, overrides, cv_pixels: int, folds, progress, checkpoint_every: int,
+         stop_after, seed: int, previews: bool, comps, gt, engine, tile_px: int) -> tuple[FitResult, dict]:
+    """The body of :func:`fit_dataset` after its checks, on ``obs`` in memory or out of core
+    (``ooc``, opened)."""
+    ck, state, cv_path, sel_path = out / "checkpoint.pt", out / "tiles", out / "crossval.json", out / "selection.json"
     resuming = (ck.is_file() or any(state.glob("*.pt"))) and sel_path.is_file()
     if comps is None:
         if resuming:  # resuming: keep the decision already made
@@ -140,7 +156,7 @@ def fit_dataset(dataset: str | Path, out: str | Path, preset: str | Preset = "st
         cv = _cross_validation(head, key, run, p, comps, cv_pixels, folds, seed, cv_path)
     tiled: dict[str, Any] = {}
     if ooc is not None:
-        res, tiled = ooc.fit(p, comps, seed, state, engine, tile_px, progress)
+        res, tiled = ooc.fit(p, comps, seed, state, tile_px, progress)
     elif engine is None:
         res = fit_observations(obs, p, comps, checkpoint=ck, checkpoint_every=checkpoint_every,
                                progress=progress, stop_after=stop_after, seed=seed)
@@ -202,11 +218,19 @@ class _OutOfCore:
         self.read = reader(self.origin)
         self.passes: dict[str, float] = {}
         self._samples: dict[str, Any] | None = None
+        self._stack = contextlib.ExitStack()
+        self.client, self.engine = None, None
 
-    def open(self, preset: Preset, progress) -> None:
-        # the survey and gather read bands within the budget (unlimited with a cluster: one band)
+    def open(self, preset: Preset, progress, engine: EngineSpec | None) -> None:
+        """Connect to ``engine``'s cluster (if any), then survey the dataset: in bands within the
+        budget (a worker's, on a cluster: :data:`.stream.DEFAULT_MEMORY` when unlimited), read
+        here or by the workers."""
+        if engine is not None:
+            self.engine, self.client = engine, self._stack.enter_context(connect(engine))
+        self.threads = 1 if engine is None else engine.threads_per_worker
         self.boxes = band_boxes(self.shape, self.images, self.memory if self.memory is not None else DEFAULT_MEMORY)
-        self.survey = survey(self.read, self.boxes, self.shape, preset.led_stride, progress=progress)
+        self.survey = survey(self.read, self.boxes, self.shape, preset.led_stride, progress=progress,
+                             client=self.client, origin=self.origin, threads=self.threads)
         self.passes["survey"] = round(self.survey.seconds, 2)
         self.origin = DatasetOrigin(self.origin.root, self.origin.camera, None, "float32", self.survey.key)
         warn_albedo(self.survey)
@@ -218,7 +242,8 @@ class _OutOfCore:
             flats = {"selection": selection_pixels(sv.fitted, sv.shape, SELECT_PIXELS, seed)}
             if cv_pixels:
                 flats["cv"] = sample_pixels_of(sv.fitted, sv.shape, cv_pixels, seed)
-            got = gather(self.read, self.boxes, self.shape, list(flats.values()))
+            got = gather(self.read, self.boxes, self.shape, list(flats.values()), client=self.client,
+                         origin=self.origin, threads=self.threads)
             self._samples = {"seed": seed, "cv_pixels": cv_pixels, **dict(zip(flats, got))}
             self.passes["gather"] = round(time.perf_counter() - t0, 2)
         return self._samples
@@ -233,19 +258,17 @@ class _OutOfCore:
             s = self._gather(seed, cv_pixels)
         return s["cv"]
 
-    def fit(self, preset: Preset, comps: Components, seed: int, state: Path, engine: EngineSpec | None,
-            tile_px: int, progress) -> tuple[FitResult, dict[str, Any]]:
+    def close(self) -> None:
+        self._stack.close()
+
+    def fit(self, preset: Preset, comps: Components, seed: int, state: Path, tile_px: int,
+            progress) -> tuple[FitResult, dict[str, Any]]:
         tiled: dict[str, Any] = {}
-        if engine is None:
-            self.parts = fit_parts(self.read, self.origin, self.survey, preset, comps, memory=self.memory,
-                                   state=state, seed=seed, progress=progress)
-        else:
-            with connect(engine) as client:
-                self.parts = fit_parts(self.read, self.origin, self.survey, preset, comps, memory=self.memory,
-                                       state=state, seed=seed, client=client, tile=tile_px,
-                                       threads=engine.threads_per_worker, progress=progress)
+        self.parts = fit_parts(self.read, self.origin, self.survey, preset, comps, memory=self.memory, state=state,
+                               seed=seed, client=self.client, tile=tile_px, threads=self.threads, progress=progress)
+        if self.engine is not None:
             tiled = {"tile_px": tile_px, "tiles": len(self.parts.boxes), "resumed_tiles": self.parts.resumed,
-                     "workers": self.parts.workers, "engine": engine.describe,
+                     "workers": self.parts.workers, "engine": self.engine.describe,
                      "tile_data": "read by the workers from " + self.origin.root}
         self.passes["fit"] = round(self.parts.seconds, 2)
         return result(self.parts, preset, comps), tiled

@@ -8,7 +8,8 @@ cuts it into **bands** of full rows, as many rows as the budget allows
 (:func:`band_boxes`; a scanline EXR reads a band's rows once), fitted one after the other in
 this process, or into ``tile x tile`` **tiles** on a Dask cluster, each read by its worker
 (:func:`.tiled.fit_tile_read`).  What is not per pixel is gathered in passes over the dataset,
-band by band, before the fit (:func:`survey`, :func:`gather`):
+band by band, before the fit (:func:`survey`, :func:`gather`; on a cluster each band is a task
+that its worker reads, so the driver reads no pixel):
 
 - the **survey** (one pass): the sample's pixels (``Observations.fitted_pixels``), each image's
   sum and valid-sample count (the Adam presets' whole-map counts, :class:`.observations.WholeMap`,
@@ -164,50 +165,105 @@ class Survey:
 Reader = Callable[[tuple[int, int, int, int]], Observations]
 
 
+def survey_part(o: Observations, box: tuple[int, int, int, int], shape: tuple[int, int], stride: int,
+                albedo: bool = True) -> dict[str, Any]:
+    """The statistics :func:`survey` takes of one part ``o``, the ``box`` of the ``(H, W)`` map
+    (a plain dict of small tensors and numbers: what a survey task returns)."""
+    y0, y1, x0, x1 = box
+    w = shape[1]
+    step = max(1, (shape[0] * w) // P99_PIXELS)
+    rec: dict[str, Any] = {"box": box, "head": o.pixels(torch.zeros(0, dtype=torch.long)),
+                           "sums": o.images.to(torch.float64).sum(dim=(1, 2, 3)),
+                           "counts": None if o.valid is None else o.valid.sum(dim=(1, 2)).to(torch.float64),
+                           "fitted": o.fitted_pixels,
+                           "back": None if o.back_valid is None else float(o.back_valid.sum()),
+                           "y": None, "bright": 0, "counted": 0}
+    if o.backlight is not None:
+        y = (o.backlight / o.back_wd).mean(-1)
+        flat = (torch.arange(y0, y1).reshape(-1, 1) * w + torch.arange(x0, x1).reshape(1, -1)).reshape(-1)
+        rec["y"] = (int((y > TRANS_LEVEL).sum()), float(y.to(torch.float64).sum()), y.numel(),
+                    y.reshape(-1)[flat % step == 0].to(torch.float64))
+    if albedo:
+        s = stride_leds(o, stride)
+        rec["bright"], rec["counted"] = albedo_counts(s, photometric_stereo(s)[1])
+    return rec
+
+
+def survey_task(origin: DatasetOrigin, box: tuple[int, int, int, int], shape: tuple[int, int], stride: int,
+                albedo: bool, threads: int) -> dict[str, Any]:
+    """:func:`survey_part` of the ``box`` a worker reads itself from ``origin`` (a Dask task)."""
+    from dualscale.engine import in_worker
+
+    in_worker(threads)
+    return survey_part(read_tile(origin, box), box, shape, stride, albedo)
+
+
+def _parts(read: Reader, boxes, client, task, args: tuple, threads: int, bar, origin) -> Any:
+    """Yield ``(box, result)`` of ``task`` (:func:`survey_part`) over ``boxes``: in this process
+    on ``read(box)``, or as Dask tasks on ``client`` (:func:`survey_task`, each worker reading
+    its part from ``origin``), at most two per worker in flight, in the order they finish."""
+    if client is None:
+        for box in boxes:
+            yield box, task(read(box), box, *args)
+            bar.update(1)
+        return
+    from distributed import as_completed
+
+    from .tiled import INFLIGHT_PER_WORKER
+
+    remote = survey_task
+    limit = INFLIGHT_PER_WORKER * max(1, len(client.scheduler_info(n_workers=-1).get("workers", {})))
+    queue = list(boxes)
+    futures = {client.submit(remote, origin, b, *args, threads, pure=False): b for b in queue[:limit]}
+    queue = queue[limit:]
+    pending = as_completed(list(futures))
+    for fut in pending:
+        box = futures.pop(fut)
+        res = fut.result()
+        fut.release()
+        yield box, res
+        bar.update(1)
+        if queue:
+            nxt = queue.pop(0)
+            f = client.submit(remote, origin, nxt, *args, threads, pure=False)
+            futures[f] = nxt
+            pending.add(f)
+
+
 def survey(read: Reader, boxes: list[tuple[int, int, int, int]], shape: tuple[int, int], stride: int,
-           albedo: bool = True, progress: Progress = None) -> Survey:
-    """One pass over the parts ``boxes`` of the map, each read by ``read`` (module doc): the
-    :class:`Survey`.  ``stride``: the preset's ``led_stride`` (the albedo check looks at the
-    images the fit fits, as the whole-map fit does); ``albedo`` False skips that check."""
+           albedo: bool = True, progress: Progress = None, client=None, origin: DatasetOrigin | None = None,
+           threads: int = 1) -> Survey:
+    """One pass over the parts ``boxes`` of the map, each read by ``read`` in this process, or
+    by a worker of the Dask ``client`` from ``origin`` (module doc): the :class:`Survey`.
+    ``stride``: the preset's ``led_stride`` (the albedo check looks at the images the fit fits,
+    as the whole-map fit does); ``albedo`` False skips that check.  The parts' statistics are
+    added in box order, so the result does not depend on where they ran."""
     t0 = time.perf_counter()
-    h, w = shape
-    fitted = None
-    sums = counts = None
+    recs: dict[tuple, dict[str, Any]] = {}
+    with tracker(progress, len(boxes), "survey", unit="band" if client is None else "tile") as bar:
+        for box, rec in _parts(read, boxes, client, survey_part, (shape, stride, albedo), threads, bar, origin):
+            recs[box] = rec
+    first = recs[boxes[0]]
+    head = first["head"]
+    sums = torch.zeros_like(first["sums"])
+    counts = None if first["counts"] is None else torch.zeros_like(first["counts"])
+    fitted = None if first["fitted"] is None else torch.zeros(shape, dtype=torch.bool)
     back = None
     y_above, y_sum, y_n, y_keep = 0, 0.0, 0, []
-    step = max(1, (h * w) // P99_PIXELS)
     bright = counted = 0
-    head = None
-    with tracker(progress, len(boxes), "survey", unit="band") as bar:
-        for box in boxes:
-            o = read(box)
-            y0, y1, x0, x1 = box
-            if head is None:
-                head = o.pixels(torch.zeros(0, dtype=torch.long))
-                sums = torch.zeros(o.n, dtype=torch.float64)
-                counts = None if o.valid is None else torch.zeros(o.n, dtype=torch.float64)
-            sums += o.images.to(torch.float64).sum(dim=(1, 2, 3))
-            if o.valid is not None:
-                counts += o.valid.sum(dim=(1, 2)).to(torch.float64)
-                if fitted is None:
-                    fitted = torch.zeros(shape, dtype=torch.bool)
-                fitted[y0:y1, x0:x1] = o.fitted_pixels
-            if o.back_valid is not None:
-                back = (back or 0.0) + float(o.back_valid.sum())
-            if o.backlight is not None:
-                y = (o.backlight / o.back_wd).mean(-1)
-                y_above += int((y > TRANS_LEVEL).sum())
-                y_sum += float(y.to(torch.float64).sum())
-                y_n += y.numel()
-                flat = (torch.arange(y0, y1).reshape(-1, 1) * w + torch.arange(x0, x1).reshape(1, -1)).reshape(-1)
-                y_keep.append(y.reshape(-1)[flat % step == 0].to(torch.float64))
-            if albedo:
-                s = stride_leds(o, stride)
-                b, c = albedo_counts(s, photometric_stereo(s)[1])
-                bright, counted = bright + b, counted + c
-            del o
-            bar.update(1)
-    assert head is not None
+    for box in boxes:
+        rec = recs.pop(box)
+        y0, y1, x0, x1 = box
+        sums += rec["sums"]
+        if counts is not None:
+            counts += rec["counts"]
+            fitted[y0:y1, x0:x1] = rec["fitted"]
+        if rec["back"] is not None:
+            back = (back or 0.0) + rec["back"]
+        if rec["y"] is not None:
+            y_above, y_sum, y_n = y_above + rec["y"][0], y_sum + rec["y"][1], y_n + rec["y"][2]
+            y_keep.append(rec["y"][3])
+        bright, counted = bright + rec["bright"], counted + rec["counted"]
     trans = {"backlit_capture": False, "transmits": False}
     if y_n:
         trans = transmission_from(y_above / y_n, y_sum / y_n, float(torch.quantile(torch.cat(y_keep), 0.99)))
@@ -218,28 +274,64 @@ def survey(read: Reader, boxes: list[tuple[int, int, int, int]], shape: tuple[in
     return Survey(head, shape, fitted, sums, counts, back, trans, bright, counted, key, time.perf_counter() - t0)
 
 
+def gather_part(o: Observations, box: tuple[int, int, int, int], locals_: list[Tensor]) -> list[Observations]:
+    """The pixels ``locals_`` (flat indices within the part, one tensor per sample) of the part
+    ``o``, each as a ``1 x M`` image."""
+    return [o.pixels(local) for local in locals_]
+
+
+def gather_task(origin: DatasetOrigin, box: tuple[int, int, int, int], locals_: list[Tensor],
+                threads: int) -> list[Observations]:
+    """:func:`gather_part` of the ``box`` a worker reads itself from ``origin`` (a Dask task)."""
+    from dualscale.engine import in_worker
+
+    in_worker(threads)
+    return gather_part(read_tile(origin, box), box, locals_)
+
+
 def gather(read: Reader, boxes: list[tuple[int, int, int, int]], shape: tuple[int, int],
-           flats: list[Tensor]) -> list[Observations]:
+           flats: list[Tensor], client=None, origin: DatasetOrigin | None = None,
+           threads: int = 1) -> list[Observations]:
     """One pass: for each sorted flat-index set of ``flats``, the observations of those pixels
     laid out as a ``1 x M`` image, in index order: what ``whole.pixels(flat)`` gives, read part
-    by part."""
+    by part (in this process, or by the workers of ``client`` as in :func:`survey`); parts
+    holding none of the pixels are not read."""
     w = shape[1]
     pieces: list[list[tuple[Tensor, Observations]]] = [[] for _ in flats]
+    wanted: dict[tuple, list[tuple[Tensor, Tensor]]] = {}
     for box in boxes:
         y0, y1, x0, x1 = box
-        wanted = []
+        sel = []
         for flat in flats:
             y, x = flat // w, flat % w
             inside = (y >= y0) & (y < y1) & (x >= x0) & (x < x1)
-            wanted.append((torch.nonzero(inside).flatten(), (y[inside] - y0) * (x1 - x0) + (x[inside] - x0)))
-        if not any(pos.numel() for pos, _ in wanted):
-            continue
-        o = read(box)
-        for k, (pos, local) in enumerate(wanted):
+            sel.append((torch.nonzero(inside).flatten(), (y[inside] - y0) * (x1 - x0) + (x[inside] - x0)))
+        if any(pos.numel() for pos, _ in sel):
+            wanted[box] = sel
+    todo = list(wanted)
+
+    def per_box(o, box, *_):  # in this process: the box's own local indices
+        return gather_part(o, box, [local for _, local in wanted[box]])
+
+    if client is None:
+        results = ((b, per_box(read(b), b)) for b in todo)
+    else:
+        results = _gathered_remote(client, todo, wanted, origin, threads)
+    for box, got in results:
+        for k, ((pos, _), obs) in enumerate(zip(wanted[box], got)):
             if pos.numel():
-                pieces[k].append((pos, o.pixels(local)))
-        del o
+                pieces[k].append((pos, obs))
     return [_join(p) for p in pieces]
+
+
+def _gathered_remote(client, todo, wanted, origin, threads):
+    from distributed import as_completed
+
+    futures = {client.submit(gather_task, origin, b, [local for _, local in wanted[b]], threads, pure=False): b
+               for b in todo}
+    for fut in as_completed(list(futures)):
+        yield futures[fut], fut.result()
+        fut.release()
 
 
 def _join(pieces: list[tuple[Tensor, Observations]]) -> Observations:
@@ -459,5 +551,5 @@ def memory_record(memory: int | None, parts: Parts, passes: dict[str, float]) ->
 
 
 __all__ = ["DEFAULT_MEMORY", "BYTES_PER_SAMPLE", "RESERVE", "parse_memory", "band_boxes", "Survey", "survey",
-           "gather", "Parts", "fit_parts", "fit_parts_refusal", "write_rows", "result", "reader", "peak_rss_mb", "warn_albedo",
+           "gather", "survey_part", "survey_task", "gather_part", "gather_task", "Parts", "fit_parts", "fit_parts_refusal", "write_rows", "result", "reader", "peak_rss_mb", "warn_albedo",
            "memory_record"]
