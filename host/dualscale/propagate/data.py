@@ -21,6 +21,10 @@ the dataset's ``diffuse`` capture when there is one; otherwise it is synthesised
 ``w_i`` (what the renderer does for the diffuse group, except that the specular part is
 weighted by ``R_s`` instead of ``(R_s + R_p) / 2``).  Images are linear RGB radiance, stored
 as float16 ``(L, 2, 3, H, W)`` (P0, P90).
+
+A source larger than :data:`IN_MEMORY_BYTES` is a :class:`DiskSource`: every training crop is
+read from the EXR files (:meth:`Dataset.load` with a box), with the same values, so training
+is bit for bit the in-memory one's.
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -51,6 +56,25 @@ class Source:
     @property
     def size(self) -> tuple[int, int]:
         return int(self.pairs.shape[-2]), int(self.pairs.shape[-1])
+
+    @property
+    def map_names(self) -> list[str]:
+        return list(self.maps)
+
+    @property
+    def n_lights(self) -> int:
+        return int(self.pairs.shape[0])
+
+    def crop_image(self, li: int, mode: int, y: int, x: int, crop: int) -> Tensor:
+        """``(3, crop, crop)`` float32: light ``li``'s P0 (mode 0), P90 (1) or their mean (2)."""
+        p = self.pairs[li, :, :, y:y + crop, x:x + crop].float()
+        return p.mean(0) if mode == 2 else p[mode]
+
+    def crop_maps(self, y: int, x: int, crop: int) -> dict[str, Tensor]:
+        return {n: m[:, y:y + crop, x:x + crop] for n, m in self.maps.items()}
+
+    def mean_rgb(self) -> list[float]:
+        return self.pairs.float().mean((0, 1, 3, 4)).tolist()
 
     def diffuse_image(self) -> Tensor:
         """``(3, H, W)`` float32: the diffuse light's mean image, else the mean of every image."""
@@ -119,8 +143,10 @@ def _light_images(ds) -> dict[str, list]:
     return out
 
 
-def _synth_diffuse(ds, names: list[str], pairs: np.ndarray) -> np.ndarray | None:
-    """Diffuse image from all dome LEDs (see module docstring), or None if LEDs are missing."""
+def _synth_diffuse(ds, names: list[str], pair) -> np.ndarray | None:
+    """Diffuse image from all dome LEDs (see module docstring), or None if LEDs are missing.
+    ``pair(k)``: light ``k``'s ``(2, 3, H, W)`` float16 images (from memory or read from disk:
+    the same arithmetic either way)."""
     from dualscale.geometry.dome import DomeGeometry
 
     dome = DomeGeometry.from_regmap()
@@ -129,26 +155,198 @@ def _synth_diffuse(ds, names: list[str], pairs: np.ndarray) -> np.ndarray | None
     if any(k not in idx for k in keys) or (ds.manifest.get("dome") or {}).get("source", "regmap") != "regmap":
         return None
     w = dome.diffuse_weights().numpy().astype(np.float32)
-    acc = np.zeros(pairs.shape[2:], np.float32)
+    acc = None
     for wi, k in zip(w, keys):
-        acc += wi * pairs[idx[k]].astype(np.float32).mean(0)
+        term = wi * pair(idx[k]).astype(np.float32).mean(0)
+        acc = term if acc is None else acc + term
     return acc
 
 
-def load_source(path: str | Path, maps: str | Path | None = None) -> Source:
-    """Read one training source (micro dataset + maps) into memory; clear errors on bad input."""
+IN_MEMORY_BYTES = 512 * 2**20
+"""A training source whose images and maps would take more than this in memory (float16
+images, float32 maps) is read crop by crop from its EXR files (:class:`DiskSource`);
+``$DUALSCALE_PROPAGATE_IN_MEMORY_MB`` overrides it (``0``: always from disk)."""
+
+MAPS_SHARE = 0.25
+"""A :class:`DiskSource` still holds its maps in memory when they take at most this share of the
+threshold (float32; 128 MiB by default: 7 woven-fabric maps up to ~1750 px square)."""
+
+
+def in_memory_limit() -> float:
+    import os
+
+    v = os.environ.get("DUALSCALE_PROPAGATE_IN_MEMORY_MB")
+    return IN_MEMORY_BYTES if v in (None, "") else float(v) * 2**20
+
+
+def _read_pair(ds, indices, box=None) -> np.ndarray:
+    """``(2, 3, h, w)`` float16: the P0 and P90 images (one unpolarised image twice) of a light,
+    as :class:`Source` holds them; ``box`` ``(y0, y1, x0, x1)``: only that region."""
+    a = ds.load(indices[0], box).transpose(2, 0, 1).astype(np.float16)
+    b = a if indices[1] == indices[0] else ds.load(indices[1], box).transpose(2, 0, 1).astype(np.float16)
+    return np.stack([a, b])
+
+
+def _check_maps_streamed(maps_dir: Path, doc: dict, names: list[str], rows: int = 256) -> None:
+    """What :func:`~dualscale.formats.maps.load_maps` checks of the maps to propagate (size,
+    finite values, unit normals with z >= 0), reading ``rows`` rows at a time."""
+    from dualscale.errors import FormatError
+    from dualscale.formats.exr import read_exr
+    from dualscale.formats.maps import channel_names, check_normals
+
+    H, W = int(doc["height"]), int(doc["width"])
+    for n in names:
+        f = maps_dir / f"{n}.exr"
+        for y0 in range(0, H, rows):
+            try:
+                a = read_exr(f, channel_names(n), box=(y0, min(H, y0 + rows), 0, W), size=(H, W))
+            except ValueError as e:
+                raise FormatError(str(e) if f.name in str(e) else f"{f}: {e}") from None
+            if not np.isfinite(a).all():
+                raise FormatError(f"{f}: {int((~np.isfinite(a)).sum())} non-finite values")
+            if n == "normal":
+                check_normals(a, str(f))
+
+
+@dataclass
+class DiskSource:
+    """One micro dataset with its maps, read crop by crop from its EXR files.
+
+    Holds the file lists and, in memory, only images that have no file (a synthesised diffuse
+    light: one ``(2, 3, H, W)`` float16 entry).  Every crop has exactly the values of the same
+    crop of the in-memory :class:`Source` (images cast to float16 as it stores them)."""
+
+    name: str
+    dataset: Any  # dualscale.formats.dataset.Dataset
+    maps_dir: Path
+    lights: list  # per light: [P0 record, P90 record] indices, or an in-memory (2, 3, H, W) float16 array
+    map_names: list[str]
+    light_names: list[str]
+    shape: tuple[int, int]
+    texel_mm: float | None = None
+    maps: dict[str, Tensor] | None = None  # name -> (C, H, W) float32 when held in memory, else read per crop
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return self.shape
+
+    @property
+    def n_lights(self) -> int:
+        return len(self.lights)
+
+    def pair(self, li: int, box=None) -> np.ndarray:
+        v = self.lights[li]
+        if isinstance(v, np.ndarray):
+            return v if box is None else v[:, :, box[0]:box[1], box[2]:box[3]]
+        return _read_pair(self.dataset, v, box)
+
+    def crop_image(self, li: int, mode: int, y: int, x: int, crop: int) -> Tensor:
+        v = self.lights[li]
+        box = (y, y + crop, x, x + crop)
+        if mode < 2 and not isinstance(v, np.ndarray):  # one image read, not two
+            a = self.dataset.load(v[mode], box).transpose(2, 0, 1).astype(np.float16)
+            return torch.from_numpy(np.ascontiguousarray(a)).float()
+        p = torch.from_numpy(np.ascontiguousarray(self.pair(li, box))).float()
+        return p.mean(0) if mode == 2 else p[mode]
+
+    def crop_maps(self, y: int, x: int, crop: int) -> dict[str, Tensor]:
+        from dualscale.formats.exr import read_exr
+        from dualscale.formats.maps import channel_names
+
+        if self.maps is not None:
+            return {n: m[:, y:y + crop, x:x + crop] for n, m in self.maps.items()}
+        out = {}
+        for n in self.map_names:
+            a = read_exr(self.maps_dir / f"{n}.exr", channel_names(n), box=(y, y + crop, x, x + crop), size=self.shape)
+            out[n] = torch.from_numpy(np.ascontiguousarray(a.transpose(2, 0, 1))).float()
+        return out
+
+    def diffuse_image(self) -> Tensor:
+        if "diffuse" in self.light_names:
+            return torch.from_numpy(self.pair(self.light_names.index("diffuse"))).float().mean(0)
+        return torch.tensor(self.mean_rgb(per_pixel=True))
+
+    def diffuse_mean(self) -> list[float]:
+        i = self.light_names.index("diffuse")
+        return torch.from_numpy(self.pair(i)).float().mean(0).mean((1, 2)).tolist()
+
+    def mean_rgb(self, per_pixel: bool = False):
+        """Mean of every image, accumulated one light at a time in float64 (the in-memory mean
+        over the whole array can differ in the last float32 bits)."""
+        acc = np.zeros((3,) + self.shape, np.float64)
+        for li in range(self.n_lights):
+            acc += self.pair(li).astype(np.float64).sum(0)
+        acc /= 2 * self.n_lights
+        return acc.astype(np.float32) if per_pixel else acc.mean((1, 2)).tolist()
+
+
+def source_bytes(n_lights: int, h: int, w: int, map_channels: int) -> int:
+    """Memory of an in-memory :class:`Source`: float16 ``(L, 2, 3, H, W)`` images, float32 maps."""
+    return n_lights * 2 * 3 * h * w * 2 + map_channels * h * w * 4
+
+
+def load_source(path: str | Path, maps: str | Path | None = None,
+                in_memory_bytes: float | None = None) -> "Source | DiskSource":
+    """Read one training source (micro dataset + maps); clear errors on bad input.
+
+    In memory (:class:`Source`) when it takes at most ``in_memory_bytes`` (default
+    :func:`in_memory_limit`, :data:`IN_MEMORY_BYTES`), else a :class:`DiskSource` that reads its
+    crops from the EXR files (the same crops: training is bit for bit the same)."""
     from dualscale.formats.dataset import read_dataset
-    from dualscale.formats.maps import load_maps
+    from dualscale.formats.maps import MAP_CHANNELS, read_material_json
 
     micro, maps_dir = resolve_source(path, maps)
-    mm, mmeta = load_maps(maps_dir)
-    present = [n for n, _ in mm.items()]
+    doc = read_material_json(maps_dir)
+    present = [n for n in doc["maps"] if n in MAP_CHANNELS]
     names = required_maps(maps_dir, present)
     ds = read_dataset(micro)
     groups = _light_images(ds)
     if not groups:
         raise ValueError(f"{micro}: no usable images (need P0/P90 relative-analyser pairs or unpolarised images)")
     light_names = sorted(groups)
+    rec = ds.records[groups[light_names[0]][0]]
+    h, w = int(rec.height), int(rec.width)
+    n_lights = len(light_names) + (0 if "diffuse" in groups else 1)
+    limit = in_memory_limit() if in_memory_bytes is None else in_memory_bytes
+    if source_bytes(n_lights, h, w, sum(MAP_CHANNELS[n] for n in names)) <= limit:
+        return _load_in_memory(path, micro, maps_dir, names, ds, groups, light_names)
+    if (h, w) != (int(doc["height"]), int(doc["width"])):
+        raise ValueError(f"{micro}: images are {(h, w)} but the maps in {maps_dir} are "
+                         f"{(int(doc['height']), int(doc['width']))}")
+    tmaps = None
+    if sum(MAP_CHANNELS[n] for n in names) * h * w * 4 <= limit * MAPS_SHARE:
+        # the maps alone fit: held in memory (load_maps checks them), one file read per crop instead of 1 + maps
+        from dualscale.formats.maps import load_maps
+
+        mm, _ = load_maps(maps_dir)
+        tmaps = {n: getattr(mm, n).permute(2, 0, 1).contiguous().float() for n in names}
+        del mm
+    else:
+        if "albedo" not in present or "roughness" not in present:
+            from dualscale.errors import FormatError
+
+            raise FormatError(f"{maps_dir}: albedo and roughness maps are required")
+        _check_maps_streamed(maps_dir, doc, names)
+    lights: list = [list(groups[n]) for n in light_names]
+    # an opaque sample's back-lit image is black (as float16), with nothing to learn
+    black = [k for k, n in enumerate(light_names) if n.startswith("backlight") and not np.any(_read_pair(ds, lights[k]))]
+    if black:
+        keep = [k for k in range(len(light_names)) if k not in black]
+        lights, light_names = [lights[k] for k in keep], [light_names[k] for k in keep]
+    if "diffuse" not in groups:
+        d = _synth_diffuse(ds, light_names, lambda k: _read_pair(ds, lights[k]))
+        if d is not None:
+            lights.append(np.ascontiguousarray(np.broadcast_to(d.astype(np.float16), (2,) + d.shape)))
+            light_names.append("diffuse")
+    maps_texel = doc.get("texel_mm", (doc.get("meta") or {}).get("texel_mm"))
+    return DiskSource(str(path), ds, maps_dir, lights, names, light_names, (h, w),
+                      _texel_mm(ds, groups[light_names[0]][0], maps_texel), tmaps)
+
+
+def _load_in_memory(path, micro, maps_dir, names, ds, groups, light_names) -> Source:
+    from dualscale.formats.maps import load_maps
+
+    mm, mmeta = load_maps(maps_dir)
     first = ds.load(groups[light_names[0]][0])
     h, w = first.shape[:2]
     if (h, w) != mm.shape:
@@ -163,7 +361,7 @@ def load_source(path: str | Path, maps: str | Path | None = None) -> Source:
         keep = [k for k in range(len(light_names)) if k not in black]
         pairs, light_names = pairs[keep], [light_names[k] for k in keep]
     if "diffuse" not in groups:
-        d = _synth_diffuse(ds, light_names, pairs)
+        d = _synth_diffuse(ds, light_names, lambda k: pairs[k])
         if d is not None:
             pairs = np.concatenate([pairs, np.broadcast_to(d.astype(np.float16), (1, 2) + d.shape)], 0)
             light_names.append("diffuse")
@@ -191,11 +389,11 @@ def check_sources(sources: list[Source]) -> list[str]:
     """All sources must propagate the same maps; returns that list."""
     if not sources:
         raise ValueError("need at least one training dataset")
-    first = list(sources[0].maps)
+    first = list(sources[0].map_names)
     for s in sources[1:]:
-        if list(s.maps) != first:
+        if list(s.map_names) != first:
             raise ValueError(f"datasets propagate different maps: {sources[0].name} has {first}, "
-                             f"{s.name} has {list(s.maps)}")
+                             f"{s.name} has {list(s.map_names)}")
     return first
 
 
@@ -205,19 +403,19 @@ def sample_batch(sources: list[Source], batch: int, crop: int,
 
     Returns ``(images (B, 3, crop, crop) float32, {map: (B, C, crop, crop)})``.
     """
-    names = list(sources[0].maps)
+    names = list(sources[0].map_names)
     xs, ys = [], {n: [] for n in names}
     for _ in range(batch):
         s = sources[int(torch.randint(len(sources), (1,), generator=gen))]
         h, w = s.size
         if h < crop or w < crop:
             raise ValueError(f"{s.name}: images are {(h, w)}, smaller than the {crop}px crop")
-        li = int(torch.randint(s.pairs.shape[0], (1,), generator=gen))
+        li = int(torch.randint(s.n_lights, (1,), generator=gen))
         mode = int(torch.randint(MODES, (1,), generator=gen))
         y = int(torch.randint(h - crop + 1, (1,), generator=gen))
         x = int(torch.randint(w - crop + 1, (1,), generator=gen))
-        p = s.pairs[li, :, :, y:y + crop, x:x + crop].float()
-        xs.append(p.mean(0) if mode == 2 else p[mode])
+        xs.append(s.crop_image(li, mode, y, x, crop))
+        m = s.crop_maps(y, x, crop)
         for n in names:
-            ys[n].append(s.maps[n][:, y:y + crop, x:x + crop])
+            ys[n].append(m[n])
     return torch.stack(xs), {n: torch.stack(v) for n, v in ys.items()}

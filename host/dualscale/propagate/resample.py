@@ -82,6 +82,9 @@ def resample_source(src, scale: float, texel_mm: float | None = None):
     training checkpoint of another scale is not resumed."""
     if not (math.isfinite(scale) and scale > 0):
         raise ValueError(f"resampling scale must be a positive number, got {scale!r}")
+    if not hasattr(src, "pairs"):
+        raise TypeError(f"{src.name}: resample_source needs the source in memory "
+                        "(load_source(..., in_memory_bytes=float('inf'))), not a DiskSource")
     L, P, C, H, W = src.pairs.shape
     h, w = new_size(H, W, scale)
     imgs = src.pairs.float().reshape(L * P * C, H, W).permute(1, 2, 0).numpy()

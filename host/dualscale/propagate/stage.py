@@ -148,7 +148,7 @@ def run_propagation(dataset: Path, maps: Path, guidance: Path, out: Path, *, pre
     g = read_guidance(guidance, transfer, texel_mm_guidance)
     warnings += g.warnings
     tex = _guidance_texel(g, warnings)
-    src = load_source(dataset, maps)
+    src = load_source(dataset, maps, in_memory_bytes=float("inf"))  # resample_source needs the whole images
     if src.texel_mm is None:
         raise InputError(f"{dataset}: the micro texel size is unknown (no texel_mm in {maps}/material.json and no "
                          "camera field_mm in the dataset manifest): it is needed to bridge the two scales")

@@ -28,7 +28,7 @@ from dualscale.errors import FormatError
 from dualscale.formats.torchfile import load_torch, save_torch
 
 from .augment import BLUR_SIGMA, augment
-from .data import Source, check_sources, sample_batch
+from .data import DiskSource, Source, check_sources, sample_batch
 from .model import load_model, save_model
 from .losses import PropagationLoss
 from .unet import PropagationUNet, UNetConfig
@@ -97,11 +97,11 @@ def warm_start(model: PropagationUNet, path: str | Path) -> list[str]:
     return copied
 
 
-def input_reference(sources: list[Source]) -> list[float]:
+def input_reference(sources: list[Source | DiskSource]) -> list[float]:
     """Mean RGB of the training diffuse images (mean of all images when there is none)."""
     refs = []
     for s in sources:
-        refs.append(s.diffuse_mean() if "diffuse" in s.light_names else s.pairs.float().mean((0, 1, 3, 4)).tolist())
+        refs.append(s.diffuse_mean() if "diffuse" in s.light_names else s.mean_rgb())
     return [sum(r[c] for r in refs) / len(refs) for c in range(3)]
 
 
@@ -110,7 +110,7 @@ def _autocast(device: str, enabled: bool):
     return torch.autocast(device.split(":")[0], dtype=dtype, enabled=enabled)
 
 
-def train(sources: list[Source], preset: Preset, out: str | Path, opts: TrainOptions = TrainOptions(),
+def train(sources: list[Source | DiskSource], preset: Preset, out: str | Path, opts: TrainOptions = TrainOptions(),
           half_file: bool = False) -> TrainResult:
     """Train on ``sources`` and write the model file ``out`` (+ ``out.ckpt`` checkpoints)."""
     from tqdm import tqdm
