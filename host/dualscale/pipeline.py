@@ -561,9 +561,17 @@ class Digitizer:
         from dualscale.fit.flyouts import detect_dataset
         from dualscale.fit.observations import load_observations
 
+        from dualscale.fit.flyouts import confidence_by_bands
+        from dualscale.fit.observations import DatasetOrigin, fit_layout, read_tile
+        from dualscale.fit.stream import band_boxes
+
         if not self.quality.flyouts:
             return {"skipped": f"quality {self.quality.name} does not detect fly-outs"}
-        obs = load_observations(self.dataset)
+        root, camera, shape, images = fit_layout(self.dataset)
+        bands = band_boxes(shape, images, self.opts.memory)
+        origin = DatasetOrigin(root, camera, None, "float32", "")
+        # over the memory budget: one pixel for the lights, the confidence map band by band
+        obs = load_observations(self.dataset) if len(bands) == 1 else read_tile(origin, (0, 1, 0, 1))
         if not obs.has_polarisation:
             return {"skipped": "fly-out detection needs captures with the specular passed and blocked "
                                "(polarised LEDs with the P0/P90 analyser); this dataset has none"}
@@ -572,7 +580,8 @@ class Digitizer:
                                f"light here is at {90 - float(obs.dirs[:, 2].min().acos().rad2deg()):.0f} deg"}
         maps = self.out("fit") / "maps"
         tangent = maps if (maps / "tangent.exr").is_file() else None
-        rep = detect_dataset(self.dataset, work, tangent_maps=tangent, obs=obs, seed=self.opts.seed)
+        conf = None if len(bands) == 1 else confidence_by_bands(origin, bands, shape)
+        rep = detect_dataset(self.dataset, work, tangent_maps=tangent, obs=obs, seed=self.opts.seed, conf=conf)
         out = {"count": rep["count"], "tangent_filter": rep["tangent_filter"], "pixel_mm": rep["pixel_mm"],
                "resolvability": rep["resolvability"]}
         out["warnings"] = [rep["resolvability"]["warning"]] if rep["resolvability"]["warning"] else []

@@ -255,3 +255,14 @@ def test_on_a_cluster_the_driver_reads_bands_and_ships_no_pixels(masked, tmp_pat
     tile_images = 8 * 8 * fit_layout(masked)[3] * 3 * 4
     assert len(sent) == 9 + 4 + 4 and max(sent) < min(tile_images / 4, 20_000), sent  # tiles; survey, gather bands
     _equal_maps(tmp_path / "whole", tmp_path / "tiles")
+
+
+def test_the_flyouts_confidence_map_by_bands_is_the_whole_maps(datasets):
+    """digitize's flyouts stage over the budget reads the two light rings it needs band by band."""
+    from dualscale.fit.flyouts import confidence_by_bands, confidence_map
+    from dualscale.fit.observations import load_observations
+
+    obs = load_observations(datasets("twill", 16) / "micro")
+    boxes = band_boxes(obs.shape, obs.n, RESERVE + 40 * obs.n * BYTES_PER_SAMPLE)
+    assert len(boxes) > 4
+    assert np.array_equal(confidence_by_bands(obs.origin, boxes, obs.shape), confidence_map(obs))

@@ -184,8 +184,9 @@ def test_digitize_fits_in_tiles_on_workers_with_the_same_maps(sample, tmp_path, 
 def test_the_fit_stage_out_of_core_gives_the_same_maps_and_evidence(sample, tmp_path):
     """``--memory`` below the micro dataset's fit (issue 25): the fit stage reads the dataset
     band by band and writes the maps by rows, and its residual map and re-renders are read band
-    by band too; the maps equal the in-memory stage's bit for bit, the evidence to float32
-    rounding, and the stage's record (its params) is the same."""
+    by band too, as is the fly-out stage's confidence map; the maps equal the in-memory stage's
+    bit for bit, the evidence to float32 rounding, and the stage's record (its params) is the
+    same."""
     import numpy as np
     import torch
 
@@ -197,10 +198,13 @@ def test_the_fit_stage_out_of_core_gives_the_same_maps_and_evidence(sample, tmp_
     _, _, (h, w), images = fit_layout(sample / "micro")
     memory = RESERVE + (h * w // 4) * images * BYTES_PER_SAMPLE
     one, two = tmp_path / "one", tmp_path / "two"
-    assert _digitize(sample, one, "--until", "fit") == 0
-    assert _digitize(sample, two, "--until", "fit", "--memory", str(memory)) == 0
+    assert _digitize(sample, one, "--until", "flyouts") == 0
+    assert _digitize(sample, two, "--until", "flyouts", "--memory", str(memory)) == 0
     fit = json.loads((two / "fit" / "maps" / "fit.json").read_text())
     assert fit["out_of_core"]["parts"] >= 4
+    # the fly-out stage read its confidence map band by band: the same map, the same fibres
+    assert np.array_equal(read_exr(one / "flyouts" / "confidence.exr"), read_exr(two / "flyouts" / "confidence.exr"))
+    assert _records(one)["flyouts"]["summary"] == _records(two)["flyouts"]["summary"]
     a, _ = load_maps(one / "fit" / "maps")
     b, _ = load_maps(two / "fit" / "maps")
     for (k, v), (_, u) in zip(a.items(), b.items(), strict=True):

@@ -82,6 +82,28 @@ def confidence_map(obs) -> np.ndarray:
     return (grazing - ortho).clamp(min=0).to(torch.float64).numpy()
 
 
+def confidence_by_bands(origin, boxes: list[tuple[int, int, int, int]], shape: tuple[int, int]) -> np.ndarray:
+    """:func:`confidence_map` ``(H, W)`` of a micro capture too large to load (issue 25): the
+    lowest ring's and the most vertical LED's images only (of the observations ``origin``, a
+    :class:`~dualscale.fit.observations.DatasetOrigin`), read a part of ``boxes`` at a time.  The
+    same values as the whole map's: the map is per pixel."""
+    from dataclasses import replace
+
+    import torch
+
+    from .observations import read_tile
+
+    head = read_tile(origin, (0, 1, 0, 1))
+    spec = head.select(torch.nonzero(head.w_s > 0.5).flatten()) if bool((head.w_s > 0.5).any()) else head
+    z = spec.dirs[:, 2]
+    ids = set(spec.led_ids[z <= z.min() + 1e-3].tolist()) | {int(spec.led_ids[int(torch.argmax(z))])}
+    few = replace(origin, leds=tuple(sorted(ids)))
+    conf = np.empty(shape, np.float64)
+    for y0, y1, x0, x1 in boxes:
+        conf[y0:y1, x0:x1] = confidence_map(read_tile(few, (y0, y1, x0, x1)))
+    return conf
+
+
 def _raster(path: list[tuple[float, float]], shape: tuple[int, int]) -> np.ndarray:
     m = np.zeros(shape, bool)
     for (r0, c0), (r1, c1) in zip(path[:-1], path[1:]):
@@ -338,11 +360,13 @@ def resolvability(texel_mm: float, fibre_diameter_mm: float = FIBRE_DIAMETER_MM)
 
 def detect_dataset(dataset: str | Path, out: str | Path, tangent_maps: str | Path | None = None, seeds: int = 10000,
                    min_length_mm: float = 0.27, gt_dir: str | Path | None = None, seed: int = 0,
-                   obs=None, progress: Progress = None) -> dict[str, Any]:
+                   obs=None, progress: Progress = None, conf: np.ndarray | None = None) -> dict[str, Any]:
     """Run :func:`detect` on a dataset; write the fibres (:mod:`dualscale.formats.flyouts`) and
     ``confidence.exr`` to ``out``; score against the ground truth in ``gt_dir`` (a folder with
     ``flyout_mask.exr``) only when it is given.  ``obs``: observations already loaded (then
-    ``dataset`` is only recorded).  The report (and ``flyouts.json``) carries
+    ``dataset`` is only recorded); ``conf``: their :func:`confidence_map`, computed already (a
+    capture too large to load: :func:`confidence_by_bands`; ``obs`` then needs only the lights
+    and the texel size).  The report (and ``flyouts.json``) carries
     ``resolvability``: :func:`resolvability` of the dataset's texel."""
     from dualscale.formats.exr import read_exr, write_exr
     from dualscale.formats.flyouts import read_flyouts, write_flyouts
@@ -350,7 +374,7 @@ def detect_dataset(dataset: str | Path, out: str | Path, tangent_maps: str | Pat
     from .observations import load_observations
 
     obs = load_observations(dataset) if obs is None else obs
-    conf = confidence_map(obs)
+    conf = confidence_map(obs) if conf is None else conf
     tan = None
     if tangent_maps is not None:
         tpath = Path(tangent_maps) / "tangent.exr"
