@@ -232,6 +232,30 @@ def job_script(spec: EngineSpec) -> str:
         cluster.close()
 
 
+def bounded(client, items: list, submit, per_worker: int = 2) -> Iterator[tuple[Any, Any]]:
+    """Yield ``(item, result)`` of ``submit(item)`` (a function returning a Dask future) for every
+    item, in the order they finish, with at most ``per_worker`` tasks per worker of ``client``
+    in flight (which bounds the memory of the driver and of the workers); each future is released
+    once its result is taken.  A task's error is raised here as the worker raised it."""
+    from distributed import as_completed
+
+    limit = per_worker * max(1, len(client.scheduler_info(n_workers=-1).get("workers", {})))
+    queue = list(items)
+    futures = {submit(it): it for it in queue[:limit]}
+    queue = queue[limit:]
+    pending = as_completed(list(futures))
+    for fut in pending:
+        item = futures.pop(fut)
+        res = fut.result()
+        fut.release()
+        if queue:
+            nxt = queue.pop(0)
+            f = submit(nxt)
+            futures[f] = nxt
+            pending.add(f)
+        yield item, res
+
+
 def in_worker(threads: int) -> None:
     """Call first in a task: :func:`dualscale.threads.set_threads` with the worker's thread count
     (a worker restarted after a crash starts with the libraries' defaults again, so every task

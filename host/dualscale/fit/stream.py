@@ -63,6 +63,7 @@ from .metrics import image_loss_sums, losses_from_sums
 from .observations import DatasetOrigin, Observations, WholeMap, read_tile
 from .presets import Preset
 from .select import TRANS_LEVEL, transmission_from
+from .tiled import INFLIGHT_PER_WORKER, _tile_path
 
 #: the default memory budget of a fit (``dualscale fit --memory``): a 512^2 map of 254 images
 #: fits in four bands under it (docs/SCALE.md)
@@ -207,27 +208,14 @@ def _parts(read: Reader, boxes, client, task, args: tuple, threads: int, bar, or
             yield box, task(read(box), box, *args)
             bar.update(1)
         return
-    from distributed import as_completed
+    from dualscale.engine import bounded
 
-    from .tiled import INFLIGHT_PER_WORKER
+    def submit(box):
+        return client.submit(survey_task, origin, box, *args, threads, pure=False)
 
-    remote = survey_task
-    limit = INFLIGHT_PER_WORKER * max(1, len(client.scheduler_info(n_workers=-1).get("workers", {})))
-    queue = list(boxes)
-    futures = {client.submit(remote, origin, b, *args, threads, pure=False): b for b in queue[:limit]}
-    queue = queue[limit:]
-    pending = as_completed(list(futures))
-    for fut in pending:
-        box = futures.pop(fut)
-        res = fut.result()
-        fut.release()
+    for box, res in bounded(client, boxes, submit, INFLIGHT_PER_WORKER):
         yield box, res
         bar.update(1)
-        if queue:
-            nxt = queue.pop(0)
-            f = client.submit(remote, origin, nxt, *args, threads, pure=False)
-            futures[f] = nxt
-            pending.add(f)
 
 
 def survey(read: Reader, boxes: list[tuple[int, int, int, int]], shape: tuple[int, int], stride: int,
@@ -325,13 +313,12 @@ def gather(read: Reader, boxes: list[tuple[int, int, int, int]], shape: tuple[in
 
 
 def _gathered_remote(client, todo, wanted, origin, threads):
-    from distributed import as_completed
+    from dualscale.engine import bounded
 
-    futures = {client.submit(gather_task, origin, b, [local for _, local in wanted[b]], threads, pure=False): b
-               for b in todo}
-    for fut in as_completed(list(futures)):
-        yield futures[fut], fut.result()
-        fut.release()
+    def submit(box):
+        return client.submit(gather_task, origin, box, [local for _, local in wanted[box]], threads, pure=False)
+
+    yield from bounded(client, todo, submit, INFLIGHT_PER_WORKER)
 
 
 def _join(pieces: list[tuple[Tensor, Observations]]) -> Observations:
@@ -349,26 +336,11 @@ def _join(pieces: list[tuple[Tensor, Observations]]) -> Observations:
                    back_valid=cat("back_valid", 1), view=view)
 
 
-def _part_path(state: Path, box: tuple[int, int, int, int]) -> Path:
-    return state / f"{box[0]:05d}_{box[2]:05d}.pt"
-
-
 def _done(state: Path, key: str, boxes: list[tuple[int, int, int, int]]) -> dict[tuple, dict]:
-    """The parts an earlier run of the same fit saved, without their maps (those stay on disk);
-    a part of another fit is refused (:class:`~dualscale.errors.FormatError`)."""
-    done: dict[tuple, dict] = {}
-    if not state.is_dir():
-        return done
-    for box in boxes:
-        p = _part_path(state, box)
-        if not p.is_file():
-            continue
-        rec = load_torch(p, "fit part", "delete the tiles folder or pass --restart", weights_only=False)
-        if not isinstance(rec, dict) or rec.get("fingerprint") != key or tuple(rec.get("box", ())) != box:
-            raise FormatError(f"{p}: a part of a different fit (data, preset, components, memory budget or tile size "
-                              "changed); delete the folder or pass --restart")
-        done[box] = {k: rec[k] for k in ("history", "pixels", "sums")}
-    return done
+    """The parts an earlier run of the same fit saved, without their maps (those stay on disk)."""
+    from .tiled import _load_done
+
+    return _load_done(state, key, boxes, ("history", "pixels", "sums"))
 
 
 @dataclass
@@ -432,7 +404,7 @@ def fit_parts(read: Reader, origin: DatasetOrigin, sv: Survey, preset: Preset, c
     todo = [b for b in boxes if b not in records]
 
     def finish(box, rec) -> None:
-        save_torch(_part_path(state, box), {**rec, "box": box, "fingerprint": key})
+        save_torch(_tile_path(state, box), {**rec, "box": box, "fingerprint": key})
         records[box] = {k: rec[k] for k in ("history", "pixels", "sums")}
 
     unit = "band" if client is None else "tile"
@@ -463,12 +435,11 @@ def _on_cluster(client, todo, origin, sv: Survey, preset: Preset, comps: Compone
                 finish, bar) -> int:
     """The tiles ``todo`` as Dask tasks, at most :data:`.tiled.INFLIGHT_PER_WORKER` per worker
     in flight, each read by its worker; returns the number of workers."""
-    from distributed import as_completed
+    from dualscale.engine import bounded
 
-    from .tiled import INFLIGHT_PER_WORKER, fit_tile_read
+    from .tiled import fit_tile_read
 
     n_workers = max(1, len(client.scheduler_info(n_workers=-1).get("workers", {})))
-    limit = INFLIGHT_PER_WORKER * n_workers
     whole = None
     if preset.optimizer == "adam":  # the whole map's counts of the fitted (strided) images
         whole = stride_leds(replace(sv.head, whole=sv.whole), preset.led_stride).whole
@@ -478,22 +449,10 @@ def _on_cluster(client, todo, origin, sv: Survey, preset: Preset, comps: Compone
         return client.submit(fit_tile_read, origin, box, preset.led_stride, whole, tile_preset, comps, None, seed,
                              threads, True, key=f"dualscale-fit-part-{sv.key[:16]}-{box[0]}-{box[2]}", pure=False)
 
-    queue = list(todo)
-    futures = {submit(b): b for b in queue[:limit]}
-    queue = queue[limit:]
-    pending = as_completed(list(futures))
-    for fut in pending:
-        box = futures.pop(fut)
-        rec = fut.result()
-        fut.release()
+    for box, rec in bounded(client, todo, submit, INFLIGHT_PER_WORKER):
         finish(box, rec)
         del rec
         bar.update(1, f"tile {box[0]},{box[2]}")
-        if queue:
-            nxt = queue.pop(0)
-            f = submit(nxt)
-            futures[f] = nxt
-            pending.add(f)
     return n_workers
 
 
@@ -504,13 +463,13 @@ def write_rows(parts: Parts) -> tuple[list[str], Any]:
     rows: dict[tuple[int, int], list[tuple[int, int, int, int]]] = {}
     for box in parts.boxes:
         rows.setdefault((box[0], box[1]), []).append(box)
-    first = load_torch(_part_path(parts.state, parts.boxes[0]), "fit part", "pass --restart", weights_only=False)
+    first = load_torch(_tile_path(parts.state, parts.boxes[0]), "fit part", "pass --restart", weights_only=False)
     names = list(first["maps"])
     del first
 
     def strips():
         for (y0, _), boxes in sorted(rows.items()):
-            maps = [load_torch(_part_path(parts.state, b), "fit part", "pass --restart", weights_only=False)["maps"]
+            maps = [load_torch(_tile_path(parts.state, b), "fit part", "pass --restart", weights_only=False)["maps"]
                     for b in sorted(boxes, key=lambda b: b[2])]
             yield y0, {n: torch.cat([m[n] for m in maps], dim=1).numpy() for n in names}
             del maps

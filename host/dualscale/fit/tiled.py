@@ -163,8 +163,10 @@ def _tile_path(state: Path, box: tuple[int, int, int, int]) -> Path:
     return state / f"{box[0]:05d}_{box[2]:05d}.pt"
 
 
-def _load_done(state: Path | None, key: str, boxes: list[tuple[int, int, int, int]]) -> dict[tuple, dict]:
-    """The tiles saved by an earlier run of the same fit; a tile of another fit is refused."""
+def _load_done(state: Path | None, key: str, boxes: list[tuple[int, int, int, int]],
+               fields: tuple[str, ...] | None = None) -> dict[tuple, dict]:
+    """The tiles (or bands) saved by an earlier run of the same fit, whole or only their
+    ``fields``; a part of another fit is refused (:class:`~dualscale.errors.FormatError`)."""
     done: dict[tuple, dict] = {}
     if state is None or not state.is_dir():
         return done
@@ -172,11 +174,11 @@ def _load_done(state: Path | None, key: str, boxes: list[tuple[int, int, int, in
         p = _tile_path(state, box)
         if not p.is_file():
             continue
-        rec = load_torch(p, "fit tile", "delete the tiles folder or pass --restart", weights_only=False)
+        rec = load_torch(p, "fit part", "delete the tiles folder or pass --restart", weights_only=False)
         if not isinstance(rec, dict) or rec.get("fingerprint") != key or tuple(rec.get("box", ())) != box:
-            raise FormatError(f"{p}: a tile of a different fit (data, preset, components or tile size changed); "
-                              "delete the folder or pass --restart")
-        done[box] = rec
+            raise FormatError(f"{p}: a part of a different fit (data, preset, components, tile size or memory "
+                              "budget changed); delete the folder or pass --restart")
+        done[box] = rec if fields is None else {k: rec[k] for k in fields}
     return done
 
 
@@ -232,7 +234,7 @@ def fit_tiled(obs: Observations, preset: Preset, comps: Components, client, *,
     (:func:`check_tileable`) or a bad tile side,
     :class:`~dualscale.errors.FormatError` for a saved tile of another fit; a
     task's own error is raised here as it was raised in the worker."""
-    from distributed import as_completed
+    from dualscale.engine import bounded
 
     check_tileable(preset)
     t0 = time.perf_counter()
@@ -250,7 +252,6 @@ def fit_tiled(obs: Observations, preset: Preset, comps: Components, client, *,
         check_albedo_range(strided, photometric_stereo(strided)[1])
     todo = [b for b in boxes if b not in parts]
     n_workers = max(1, len(client.scheduler_info(n_workers=-1).get("workers", {})))
-    limit = INFLIGHT_PER_WORKER * n_workers
     # the tiles hold the strided LEDs already: fit_observations must not stride them again (with
     # 127 LEDs and draft's stride 2 it fitted 32 of the 64 in the tiles, 64 in one process)
     tile_preset = replace(preset, led_stride=1)
@@ -273,26 +274,12 @@ def fit_tiled(obs: Observations, preset: Preset, comps: Components, client, *,
         warnings.filterwarnings("ignore", message=r"Sending large graph", category=UserWarning)
         if resumed:  # the tiles saved by an earlier run count as done (all of them: the bar is full)
             bar.update(resumed, f"{resumed} tile(s) done before")
-        queue = list(todo)
-        futures = {}
-        for box in queue[:limit]:
-            futures[submit(box)] = box
-        queue = queue[limit:]
-        pending = as_completed(list(futures))
-        for fut in pending:
-            box = futures.pop(fut)
-            rec = fut.result()
-            fut.release()
+        for box, rec in bounded(client, todo, submit, INFLIGHT_PER_WORKER):
             rec["box"] = box
             if state is not None:
                 save_torch(_tile_path(state, box), {**rec, "fingerprint": key})
             parts[box] = rec
             bar.update(1, f"tile {box[0]},{box[2]}")
-            if queue:
-                nxt = queue.pop(0)
-                f = submit(nxt)
-                futures[f] = nxt
-                pending.add(f)
     maps = _stitch(obs.shape, {b: parts[b] for b in boxes})
     res = FitResult(maps, comps, preset, preset.total, time.perf_counter() - t0,
                     fit_losses(maps, comps, strided, held_out), _history({b: parts[b] for b in boxes}, adam))
