@@ -266,3 +266,48 @@ def test_the_flyouts_confidence_map_by_bands_is_the_whole_maps(datasets):
     boxes = band_boxes(obs.shape, obs.n, RESERVE + 40 * obs.n * BYTES_PER_SAMPLE)
     assert len(boxes) > 4
     assert np.array_equal(confidence_by_bands(obs.origin, boxes, obs.shape), confidence_map(obs))
+
+
+def test_out_of_core_on_a_cluster_survives_a_worker_killed_mid_tile(datasets, tmp_path, monkeypatch):
+    """SIGKILL the worker fitting a tile of an out-of-core fit: the task carries coordinates, so
+    the scheduler reruns it on another worker, and the maps are still the whole-map fit's."""
+    pytest.importorskip("distributed", reason="the dask extra is not installed (pip install 'dualscale[dask]')")
+    import contextlib
+    import os
+    import signal
+    import threading
+    import time
+
+    from dualscale.engine import EngineSpec, connect
+
+    root = datasets("twill", 16) / "micro"
+    p = get_preset("standard").scaled(0.3)
+    kw = dict(cv_pixels=0, previews=False)
+    api.fit_dataset(root, tmp_path / "whole", p, memory=None, **kw)
+    with connect(EngineSpec(workers=2)) as c:
+        pids = c.run(os.getpid)
+        monkeypatch.setattr(api, "connect", lambda spec: contextlib.nullcontext(c))
+        out: dict = {}
+
+        def run():
+            try:
+                out["res"] = api.fit_dataset(root, tmp_path / "tiles", p, engine=EngineSpec(workers=2), tile_px=6,
+                                             **kw)
+            except BaseException as e:  # noqa: BLE001 - reported below
+                out["error"] = e
+
+        t = threading.Thread(target=run)
+        t.start()
+        killed = None
+        deadline = time.monotonic() + 120
+        while killed is None and time.monotonic() < deadline and t.is_alive():
+            busy = [w for w, keys in c.processing().items() if any("fit-part" in str(k) for k in keys)]
+            if busy:
+                killed = pids[busy[0]]
+                os.kill(killed, signal.SIGKILL)
+            else:
+                time.sleep(0.02)
+        t.join(300)
+        assert killed is not None, "no worker was seen fitting a tile"
+        assert "error" not in out, out.get("error")
+    _equal_maps(tmp_path / "whole", tmp_path / "tiles")
