@@ -1,0 +1,235 @@
+"""Per-pixel uncertainty of an LM fit (issue 26, first part): a library function, not yet wired
+into any fit, file or command.
+
+At the fitted parameters ``x`` of a pixel, with the joint step's free parameters, the fused
+kernel builds (one more pass, :meth:`.fused.Problem.normal_equations`) the two matrices
+
+* ``A = J^T C J`` and ``B = J^T C^2 J``
+
+over the *kept* rows only (invalid samples and the rows :meth:`.lm.Loss.keep` sets aside as cast
+shadows have zero weight), ``C`` the row weights of :class:`.lm.Loss` (1 per LED row,
+``back_weight`` per back-lit row).  The fit minimises ``sum c rho(r)``; its asymptotic
+(sandwich) covariance, for residuals of a common density ``f`` and scale ``sigma``, is
+
+* ``loss='l2'`` (``rho = r^2``): ``Sigma = sigma^2 A^-1 B A^-1``;
+* ``loss='l1'`` (``rho = |r|``, the presets' default): the least-absolute-deviations
+  covariance ``Sigma = 1 / (4 f(0)^2) A^-1 B A^-1``.  The IRLS matrix ``J^T W J``,
+  ``W = 1/|r|``, that the optimiser solves with is *not* used: ``E[1/|r|]`` diverges, so it
+  says nothing about the spread of the estimate.
+
+With 0/1 weights (no back-lit rows, or ``back_weight`` 1) ``B = A`` and this is the familiar
+``s^2 A^-1`` (one build; otherwise two).  **Noise-scale assumption**: the residuals at the
+solution are Gaussian of one scale per pixel, ``sigma = 1.4826 median|r|`` over the pixel's
+kept rows (the MAD about zero: at an L1 fit the residuals' median is zero by construction), so
+``1 / (4 f(0)^2) = (pi / 2) sigma^2``.  No sensor noise model is used yet: where the noise is
+heteroscedastic (shot noise), the MAD follows the many dark rows and understates the noise of
+the highlights.
+
+A prior (:attr:`.lm.Loss.priors`, the presets' IOR prior) is added in information units: the
+data give the information ``Sigma_data^-1 = A B^-1 A / kappa`` (``kappa`` = ``sigma^2`` or
+``pi sigma^2 / 2``), the Gaussian prior ``1 / sd^2`` on its channel (:meth:`.lm.Loss.prior_terms`'
+curvature divided by its likelihood scale ``k``: the LM cost is the negative log posterior
+times ``k``), and ``Sigma = (Sigma_data^-1 + diag(1 / sd^2))^-1``, a Laplace approximation of
+the posterior.
+
+**Undetermined** (``determined`` False; the parameter's rows and columns of ``Sigma`` are NaN,
+and the others' covariance is that of the determined sub-block, i.e. conditional on it):
+
+* a parameter within :data:`BOUND_TOL` of its box (:data:`.params.BOX`; the tangent wraps and
+  has none), or a roughness below the GGX alpha floor ``sqrt(1e-3)`` (``ggx.ggx_alphas``);
+* a parameter the data do not see: ``A_jj <= DIAG_TOL * max_i A_ii``;
+* a direction the data do not constrain: the smallest eigenvalue of the unit-diagonal
+  (correlation-scaled) ``A`` below :data:`EIG_TOL`; the parameter with the largest share of
+  that eigenvector is set aside and the test repeated;
+* every parameter of a pixel with fewer kept rows than ``P + 1`` (a pixel with no valid
+  sample among them), or whose solve fails.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from dualscale.bsdf import Components, normal_from_square
+from dualscale.bsdf.maps import IOR_MAX, IOR_MIN
+
+from . import lm
+from .core import stride_leds
+from .loop import free_names, step_data
+from .observations import Observations
+from .params import PARAM_CHANNELS, pack
+from .presets import Preset
+
+#: a parameter this close to its box (normalised units) is pinned there
+BOUND_TOL = 1e-3
+#: GGX alphas floor at 1e-3 = r^2 (``ggx.ggx_alphas``): below, roughness only reaches the retro term
+ROUGHNESS_FLOOR = math.sqrt(1e-3)
+#: a parameter whose normal-matrix diagonal is below this fraction of the largest one is unseen
+DIAG_TOL = 1e-10
+#: smallest eigenvalue of the correlation-scaled normal matrix below which a direction is taken as
+#: unconstrained: its variance is then inflated > 1e6 x (sigma > 1000 x) over an uncorrelated one
+EIG_TOL = 1e-6
+#: below this anisotropy the tangent is undetermined: the lobe's alphas differ by
+#: ``1 - sqrt(1 - 0.9 a)`` < 2.3 %, so its axis is not an observable of the material
+TANGENT_MIN_ANISOTROPY = 0.05
+
+
+def _offsets(names: tuple[str, ...]) -> dict[str, slice]:
+    out, c = {}, 0
+    for n in names:
+        out[n] = slice(c, c + PARAM_CHANNELS[n])
+        c += PARAM_CHANNELS[n]
+    return out
+
+
+def normal_matrices(params: dict[str, Tensor], comps: Components, obs: Observations, preset: Preset
+                    ) -> dict[str, Tensor | tuple[str, ...]]:
+    """The pieces of :func:`pixel_covariance` at ``params``: ``names`` (joint free parameters),
+    ``x`` ``(H, W, P)``, ``A = J^T C J`` and ``B = J^T C^2 J`` ``(H, W, P, P)`` float64 over the
+    kept rows, ``keep`` ``(H, W, K)``, ``residuals`` ``(H, W, K)``, ``sigma`` ``(H, W)`` (1.4826
+    median |r| over the kept rows) and ``prior_info`` ``(H, W, P)`` (1 / sd^2 on a prior's
+    channel).  ``obs``: as given to ``fit_observations`` (the preset's LED stride is applied)."""
+    loss = lm.preset_loss(preset)
+    names = free_names("joint", params)
+    fixed = {k: v for k, v in params.items() if k not in names}
+    d = step_data(stride_leds(obs, preset.led_stride), "joint", "fused")
+    x = pack(params, names)
+    a_l, b_l, keep_l, r_l = [], [], [], []
+    for y0, y1 in lm._chunks(*x.shape[:2]):
+        xb = x[y0:y1]
+        fx = {k: v[y0:y1] for k, v in fixed.items()}
+        prob = lm._problem(lm._block(d, y0, y1), comps)
+        r = prob.residuals(xb, names, fx)
+        keep = prob.irls(r, loss)[0].double()  # kept rows: valid and not in a cast shadow
+        c = torch.from_numpy(prob.row_weights(loss.back_weight)).double()
+        a, _ = prob.normal_equations(xb, names, fx, r, (c * keep).sqrt())
+        if bool((c != 1.0).any()) and bool((keep[..., c != 1.0] > 0).any()):
+            b, _ = prob.normal_equations(xb, names, fx, r, c * keep)
+        else:
+            b = a
+        a_l.append(a)
+        b_l.append(b)
+        keep_l.append(keep)
+        r_l.append(r.double())
+    a, b, keep, r = (torch.cat(t, 0) for t in (a_l, b_l, keep_l, r_l))
+    med = torch.nan_to_num(r.abs().masked_fill(keep <= 0, float("nan")).nanmedian(-1).values, nan=0.0)
+    one = torch.ones(x.shape[:2], dtype=torch.float64)
+    _, _, curv = loss.prior_terms(x.double(), names, one)  # k = 1: the curvature is 1 / sd^2
+    return {"names": names, "x": x.double(), "A": a, "B": b, "keep": keep, "residuals": r, "sigma": 1.4826 * med,
+            "prior_info": curv, "kind": loss.kind}
+
+
+def _candidates(x: Tensor, names: tuple[str, ...], a: Tensor, keep: Tensor) -> Tensor:
+    """``(H, W, P)`` bool: not at a bound, seen by the data, in a pixel with enough kept rows."""
+    lo, hi = lm._lohi(names, {}, x)
+    ok = (x - lo > BOUND_TOL) & (hi - x > BOUND_TOL)
+    if "roughness" in names:
+        j = _offsets(names)["roughness"].start
+        ok[..., j] &= x[..., j] > ROUGHNESS_FLOOR
+    diag = torch.diagonal(a, dim1=-2, dim2=-1)
+    ok &= diag > DIAG_TOL * diag.amax(-1, keepdim=True).clamp(min=1e-300)
+    ok &= (keep.sum(-1) > x.shape[-1]).unsqueeze(-1)
+    return ok
+
+
+def _masked(m: Tensor, det: Tensor, fill: float) -> Tensor:
+    """``m`` on the determined block, ``fill`` on the other diagonal entries, 0 elsewhere."""
+    outer = det.unsqueeze(-1) & det.unsqueeze(-2)
+    return torch.where(outer, m, torch.zeros_like(m)) + torch.diag_embed((~det).to(m.dtype) * fill)
+
+
+def pixel_covariance(params: dict[str, Tensor], comps: Components, obs: Observations,
+                     preset: Preset) -> tuple[Tensor, tuple[str, ...], Tensor]:
+    """``(cov (H, W, P, P) float64, names, determined (H, W, P) bool)`` of the joint step's free
+    parameters at the fitted ``params`` (normalised units, as :func:`.lm.run_lm` leaves them),
+    for the LM presets (module doc: the formula, the noise scale, the undetermined rules).
+    Undetermined parameters have NaN rows and columns."""
+    m = normal_matrices(params, comps, obs, preset)
+    names, x, a, b, keep = m["names"], m["x"], m["A"], m["B"], m["keep"]
+    p = x.shape[-1]
+    det = _candidates(x, names, a, keep)
+    for _ in range(p):  # set aside unconstrained directions one parameter at a time
+        am = _masked(a, det, 1.0)
+        s = torch.diagonal(am, dim1=-2, dim2=-1).clamp(min=1e-300).rsqrt()
+        ev, vec = torch.linalg.eigh(am * s.unsqueeze(-1) * s.unsqueeze(-2))
+        bad = (ev[..., 0] < EIG_TOL) & det.any(-1)
+        if not bool(bad.any()):
+            break
+        share = torch.where(det, vec[..., :, 0].abs(), torch.full_like(ev, -1.0))
+        drop = torch.nn.functional.one_hot(share.argmax(-1), p).bool() & bad.unsqueeze(-1)
+        det &= ~drop
+    sigma = m["sigma"]
+    kappa = sigma ** 2 * (math.pi / 2 if m["kind"] == "l1" else 1.0)  # 1 / (4 f(0)^2) or sigma^2
+    det &= (kappa > 0).unsqueeze(-1)
+    am, bm = _masked(a, det, 1.0), _masked(b, det, 1.0)
+    y, info_b = torch.linalg.solve_ex(bm, am)  # B^-1 A
+    info = am @ y / kappa.clamp(min=1e-300)[..., None, None]  # data information A B^-1 A / kappa
+    info = info + torch.diag_embed(m["prior_info"] * det)
+    cov, info_i = torch.linalg.inv_ex(_masked(info, det, 1.0))
+    good = (info_b == 0) & (info_i == 0) & torch.isfinite(cov).all((-2, -1))
+    diag = torch.diagonal(cov, dim1=-2, dim2=-1)
+    good &= ((diag > 0) | ~det).all(-1)
+    det &= good.unsqueeze(-1)
+    outer = det.unsqueeze(-1) & det.unsqueeze(-2)
+    cov = torch.where(outer, cov, torch.full_like(cov, float("nan")))
+    return cov, names, det
+
+
+def _normal_jacobian(s: Tensor) -> Tensor:
+    """``d normal_from_square / d s``: ``(H, W, 3, 2)`` (pixels are independent)."""
+    s = s.detach().double().clone().requires_grad_(True)
+    with torch.enable_grad():
+        n = normal_from_square(s)
+        rows = [torch.autograd.grad(n[..., k].sum(), s, retain_graph=k < 2)[0] for k in range(3)]
+    return torch.stack(rows, -2)
+
+
+def map_sigmas(params: dict[str, Tensor], cov: Tensor, names: tuple[str, ...], determined: Tensor,
+               comps: Components) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
+    """``(sigma, undetermined)``: per map of ``names`` (the maps ``comps`` fits), the 1-sigma
+    uncertainty ``(H, W, C)`` in the map's own units (NaN where undetermined) and its
+    undetermined mask ``(H, W, C)`` bool, by the delta method through the parametrisation
+    (:func:`.params.to_maps`):
+
+    * albedo, transmittance (per channel), roughness, anisotropy, specular tint, opacity: the
+      maps are the normalised parameters themselves, ``sigma = sqrt(Sigma_jj)``;
+    * ior: in ``eta = 1 + 2 v`` (``bsdf.ior_from_map``), ``sigma_eta = 2 sigma_v``;
+    * normal ``(H, W, 1)``, degrees: ``Sigma_n = J Sigma_s J^T`` through ``normal_from_square``
+      (``J`` its 3x2 Jacobian at the square point ``s``), and ``sqrt(trace Sigma_n)``: the RMS
+      angle between the estimated and the true normal (a 2-D error, so not a 1-D sigma: it covers
+      ~63 % under an isotropic Gaussian, not 68 %);
+    * tangent ``(H, W, 1)``, degrees of azimuth (``phi = pi v``): ``180 sigma_v``; undetermined
+      also where the anisotropy is below :data:`TANGENT_MIN_ANISOTROPY` or below twice its own
+      sigma (or undetermined), since the axis of a round lobe is not a property of the material.
+    """
+    off = _offsets(names)
+    var = torch.diagonal(cov, dim1=-2, dim2=-1)
+    sig, und = {}, {}
+    for n in names:
+        sl = off[n]
+        d = determined[..., sl]
+        if n == "normal":
+            j = _normal_jacobian(params["normal"])
+            cn = j @ cov[..., sl, sl] @ j.transpose(-1, -2)
+            s = torch.diagonal(cn, dim1=-2, dim2=-1).sum(-1, keepdim=True).clamp(min=0).sqrt() * (180 / math.pi)
+            u = ~d.all(-1, keepdim=True) | ~torch.isfinite(s)
+        else:
+            s = var[..., sl].clamp(min=0).sqrt()
+            if n == "ior":
+                s = s * (IOR_MAX - IOR_MIN)
+            elif n == "tangent":
+                s = s * 180.0
+            u = ~d | ~torch.isfinite(s)
+        sig[n], und[n] = s, u
+    if "tangent" in und:
+        if "anisotropy" in names:
+            aniso = params["anisotropy"].double()
+            round_lobe = (aniso < TANGENT_MIN_ANISOTROPY) | und["anisotropy"] | (aniso < 2 * sig["anisotropy"])
+        else:
+            round_lobe = torch.ones_like(und["tangent"])
+        und["tangent"] = und["tangent"] | round_lobe
+    for n in sig:
+        sig[n] = torch.where(und[n], torch.full_like(sig[n], float("nan")), sig[n].double())
+    return sig, und
