@@ -24,6 +24,11 @@ import numpy as np
 import torch
 
 MAX_CV_CHANNELS = 4  # cv2.resize's area average at a fractional scale takes at most 4 channels per call
+LIGHTS_PER_CALL = 2
+"""Lights of a :class:`~dualscale.propagate.data.DiskSource` resampled together: 2 lights are 12
+channels (P0 and P90, RGB), 3 whole groups of :data:`MAX_CV_CHANNELS`, so every OpenCV call sees
+the very channels it sees when the whole ``(H, W, 6 L)`` array is resized at once (groups start
+at multiples of 4 either way): the streamed result is the in-memory one bit for bit."""
 
 
 def new_size(height: int, width: int, scale: float) -> tuple[int, int]:
@@ -79,22 +84,66 @@ def resample_source(src, scale: float, texel_mm: float | None = None):
     """A :class:`dualscale.propagate.data.Source` resampled by ``scale`` (new texel = old / scale):
     every image of ``pairs`` ``(L, 2, 3, H, W)`` and every map.  ``texel_mm`` (the new texel, for
     the record) defaults to ``src.texel_mm / scale``.  The name gets ``@<texel> mm`` so that a
-    training checkpoint of another scale is not resumed."""
+    training checkpoint of another scale is not resumed.
+
+    A :class:`~dualscale.propagate.data.DiskSource` (a capture over the in-memory threshold) is
+    resampled streaming: :data:`LIGHTS_PER_CALL` lights read from disk at a time and one map at a
+    time, into an in-memory :class:`~dualscale.propagate.data.Source` at the new size that equals
+    the one of the in-memory capture bit for bit (peak: the small source plus a few full-size
+    images, not the whole capture in float32)."""
+    from .data import Source
+
     if not (math.isfinite(scale) and scale > 0):
         raise ValueError(f"resampling scale must be a positive number, got {scale!r}")
-    if not hasattr(src, "pairs"):
-        raise TypeError(f"{src.name}: resample_source needs the source in memory "
-                        "(load_source(..., in_memory_bytes=float('inf'))), not a DiskSource")
-    L, P, C, H, W = src.pairs.shape
+    H, W = src.size
     h, w = new_size(H, W, scale)
-    imgs = src.pairs.float().reshape(L * P * C, H, W).permute(1, 2, 0).numpy()
-    small = resize(imgs, (h, w))
-    pairs = torch.from_numpy(np.ascontiguousarray(small.transpose(2, 0, 1))).reshape(L, P, C, h, w)
-    if scale > 1:
-        pairs = pairs.clamp(min=0)
-    maps = {k: torch.from_numpy(np.ascontiguousarray(resize_map(k, v.permute(1, 2, 0).numpy(), (h, w))
-                                                     .transpose(2, 0, 1))) for k, v in src.maps.items()}
+    if hasattr(src, "pairs"):
+        L, P, C = src.pairs.shape[:3]
+        imgs = src.pairs.float().reshape(L * P * C, H, W).permute(1, 2, 0).numpy()
+        pairs = _resize_pairs(imgs, L, (h, w), scale)
+        maps = {k: _resize_map_chw(k, v.permute(1, 2, 0).numpy(), (h, w)) for k, v in src.maps.items()}
+    else:
+        L = src.n_lights
+        pairs = torch.empty((L, 2, 3, h, w), dtype=torch.float16)
+        for l0 in range(0, L, LIGHTS_PER_CALL):
+            n = min(LIGHTS_PER_CALL, L - l0)
+            block = np.stack([src.pair(li) for li in range(l0, l0 + n)])  # (n, 2, 3, H, W) float16
+            imgs = block.astype(np.float32).reshape(n * 6, H, W).transpose(1, 2, 0)
+            del block
+            pairs[l0:l0 + n] = _resize_pairs(imgs, n, (h, w), scale)
+            del imgs
+        maps = {k: _resize_map_chw(k, v, (h, w)) for k, v in _disk_maps(src)}
     tex = texel_mm if texel_mm is not None else (None if src.texel_mm is None else
                                                   resampled_texel(src.texel_mm, W, w))
     name = src.name if tex is None else f"{src.name}@{tex:.6g}mm"
-    return replace(src, name=name, pairs=pairs.to(torch.float16), maps=maps, texel_mm=tex)
+    if isinstance(src, Source):
+        return replace(src, name=name, pairs=pairs, maps=maps, texel_mm=tex)
+    return Source(name, pairs, maps, list(src.light_names), tex)
+
+
+def _resize_pairs(imgs: np.ndarray, n: int, size: tuple[int, int], scale: float) -> torch.Tensor:
+    """``(H, W, 6 n)`` float32 images of ``n`` lights -> ``(n, 2, 3, h, w)`` float16."""
+    h, w = size
+    small = resize(imgs, size)
+    pairs = torch.from_numpy(np.ascontiguousarray(small.transpose(2, 0, 1))).reshape(n, 2, 3, h, w)
+    if scale > 1:
+        pairs = pairs.clamp(min=0)
+    return pairs.to(torch.float16)
+
+
+def _resize_map_chw(name: str, value: np.ndarray, size: tuple[int, int]) -> torch.Tensor:
+    """``(H, W, C)`` map -> ``(C, h, w)`` float32 tensor (:func:`resize_map`)."""
+    return torch.from_numpy(np.ascontiguousarray(resize_map(name, value, size).transpose(2, 0, 1)))
+
+
+def _disk_maps(src):
+    """``(name, (H, W, C) float32)`` for every map of a DiskSource, one at a time: the held maps,
+    else each read whole from its EXR file (checked when the source was loaded)."""
+    from dualscale.formats.exr import read_exr
+    from dualscale.formats.maps import channel_names
+
+    for k in src.map_names:
+        if src.maps is not None:
+            yield k, src.maps[k].permute(1, 2, 0).numpy()
+        else:
+            yield k, read_exr(src.maps_dir / f"{k}.exr", channel_names(k))

@@ -5,11 +5,13 @@ a guidance image to maps over the whole guidance, at the guidance's texel size.
 
 1. read the guidance (:mod:`.guidance`: linear, non-finite pixels refused, the transfer of
    display-encoded images stated) and write it as ``out/guidance.exr``;
-2. read the micro capture and its maps (:mod:`.data`) and their texel size;
+2. read the micro capture and its maps (:mod:`.data`) and their texel size (a capture over the
+   in-memory threshold as a :class:`~.data.DiskSource`, its images left on disk);
 3. locate the micro field in the guidance (:mod:`.bridge`: the rig geometry's prior, refined by
    OpenCV registration; a poor match falls back to the prior with a warning);
-4. resample the micro images and maps to the guidance's texel size (:mod:`.resample`), so the
-   network learns the structure at the scale it will see it;
+4. resample the micro images and maps to the guidance's texel size (:mod:`.resample`, a
+   DiskSource a few lights at a time), so the network learns the structure at the scale it will
+   see it;
 5. train (:mod:`.train`; resumable from ``out/model.dsp.ckpt``; a finished model is reused) with
    the preset's crops, or smaller ones that still move around the resampled micro field
    (:func:`training_crop`; at least :data:`MIN_TRAIN_PX`);
@@ -115,7 +117,7 @@ def run_propagation(dataset: Path, maps: Path, guidance: Path, out: Path, *, pre
                     threads: int | None = None, progress: bool = False, init: str | Path | None = None,
                     search_mm: float = SEARCH_MM, micro_centre_mm: tuple[float, float] = (0.0, 0.0),
                     tile: int = 512, overlap: int = 64, seed: int = 0, iterations: int | None = None,
-                    batch: int | None = None) -> dict[str, Any]:
+                    batch: int | None = None, in_memory_bytes: float | None = None) -> dict[str, Any]:
     """Train on ``dataset`` (micro photometric dataset) + ``maps`` (its fitted maps) and propagate
     over ``guidance`` (image file or dataset folder); writes into ``out`` (module docstring).
 
@@ -125,7 +127,11 @@ def run_propagation(dataset: Path, maps: Path, guidance: Path, out: Path, *, pre
     display-encoded guidance (``srgb``, ``linear``, ``gamma:G``); ``threads``: torch and
     onnxruntime threads; ``init``: a warm-start model; ``search_mm``: registration search radius;
     ``micro_centre_mm``: the micro field's centre on the sample (a calibration's; default the
-    origin); ``iterations``, ``batch``: override the preset's.
+    origin); ``iterations``, ``batch``: override the preset's; ``in_memory_bytes``: the micro
+    capture's in-memory threshold (default :func:`dualscale.propagate.data.in_memory_limit`): a
+    larger capture is read from disk a few lights at a time while it is resampled to the guidance
+    texel (the same resampled source, so the same model and maps), so the stage's peak memory is
+    the resampled source's plus a few full-size images, not the whole capture's.
 
     Returns ``{"guidance", "texel_mm", "micro_box_px": [x, y, w, h], "registration": {...},
     "train_seconds", "run_seconds", "preset", "warnings": [...], ...}``.  Raises
@@ -148,7 +154,9 @@ def run_propagation(dataset: Path, maps: Path, guidance: Path, out: Path, *, pre
     g = read_guidance(guidance, transfer, texel_mm_guidance)
     warnings += g.warnings
     tex = _guidance_texel(g, warnings)
-    src = load_source(dataset, maps, in_memory_bytes=float("inf"))  # resample_source needs the whole images
+    # over the in-memory threshold (data.IN_MEMORY_BYTES, $DUALSCALE_PROPAGATE_IN_MEMORY_MB) a DiskSource,
+    # which resample_source reads a few lights at a time: the same resampled source, bit for bit
+    src = load_source(dataset, maps, in_memory_bytes=in_memory_bytes)
     if src.texel_mm is None:
         raise InputError(f"{dataset}: the micro texel size is unknown (no texel_mm in {maps}/material.json and no "
                          "camera field_mm in the dataset manifest): it is needed to bridge the two scales")
