@@ -14,6 +14,10 @@ and propagation); version-1 files (no size) are still read, with ``texel_mm`` nu
 conventions (:data:`CONVENTIONS`) are the single source of truth for every map on disk; the
 canonical in-memory maps are :class:`dualscale.bsdf.MaterialMaps` (seed Sec. 5).
 
+``MAPS/uncertainty/`` (issue 26; :func:`save_uncertainty`, :func:`load_uncertainty`): the
+1-sigma uncertainty of each map in its own units (:data:`SIGMA_UNITS`), half float, NaN where
+undetermined, with ``undetermined.exr`` and ``uncertainty.json`` (version 1).
+
 Loading refuses (``FormatError``/``GeometryError``) names it does not know, sizes that disagree
 with ``material.json``, non-finite values and normal maps whose vectors are not unit length
 (tolerance 1e-2) or point below the sample plane (z < 0; z = 0, in the plane, is accepted).
@@ -322,3 +326,134 @@ def check_normals(normal: np.ndarray, where: str) -> None:
         r, c = np.argwhere(below)[0]
         raise GeometryError(f"{where}: {int(below.sum())} normals point below the sample plane "
                             f"(z < 0; first at row {r}, col {c})")
+
+
+# --------------------------------------------------------------------------- uncertainty (issue 26)
+
+#: the per-pixel uncertainty beside a maps folder, ``MAPS/uncertainty/`` (issue 26):
+#: ``uncertainty.json`` (written last) and one half-float EXR per map
+UNCERTAINTY_FORMAT = "dualscale-uncertainty"
+UNCERTAINTY_VERSION = 1
+UNCERTAINTY_DIR = "uncertainty"
+#: channels of each map's 1-sigma uncertainty (the normal and the tangent as one angle)
+SIGMA_CHANNELS = {"albedo": 3, "transmittance": 3, "specular_tint": 3, "opacity": 1, "roughness": 1,
+                  "anisotropy": 1, "ior": 1, "normal": 1, "tangent": 1}
+#: each map's uncertainty unit
+SIGMA_UNITS = {"albedo": "reflectance (the map's linear value)", "transmittance": "the map's linear value",
+               "specular_tint": "the map's value", "opacity": "the map's value", "roughness": "the map's value",
+               "anisotropy": "the map's value", "ior": "eta (index of refraction)",
+               "normal": "degrees (RMS angle to the true normal)", "tangent": "degrees of azimuth"}
+
+
+def _sigma_names(name: str) -> tuple[str, ...]:
+    c = SIGMA_CHANNELS[name]
+    return ("Y",) if c == 1 else ("R", "G", "B")
+
+
+def save_uncertainty(root: str | Path, sigma: dict[str, np.ndarray], undetermined: dict[str, np.ndarray],
+                     meta: dict | None = None) -> Path:
+    """Write the 1-sigma uncertainty of the maps under ``root`` into ``root/uncertainty/``:
+    ``<name>.exr`` per map (half float, zip; :data:`SIGMA_CHANNELS` channels; NaN where the value
+    is undetermined), ``undetermined.exr`` (one half-float channel per map and sigma channel,
+    named ``<name>.<channel>``, 1 = undetermined) and ``uncertainty.json`` (written last,
+    atomically: ``{"format", "version", "maps", "height", "width", "units", "meta"}``; an
+    earlier one is removed first).  ``sigma``: ``{name: (H, W, C)}``, finite and >= 0 where
+    determined; ``undetermined``: ``{name: (H, W, C)}`` bool.  Half float keeps the folder at
+    half the maps' own size (a sigma needs 3 significant digits, half float has 3.3).  Returns
+    the path of ``uncertainty.json``.  ``ValueError`` for an unknown map, a shape that is not
+    the others', or a sigma that is negative or not finite where determined."""
+    import OpenImageIO as oiio
+
+    from .exr import write_pixels
+
+    folder = Path(root) / UNCERTAINTY_DIR
+    if set(sigma) != set(undetermined) or not sigma:
+        raise ValueError(f"sigma maps {sorted(sigma)} and undetermined masks {sorted(undetermined)} must name "
+                         "the same maps")
+    shape = None
+    arrays, masks = {}, []
+    for name in sigma:
+        if name not in SIGMA_CHANNELS:
+            raise ValueError(f"unknown map {name!r}; expected one of {list(SIGMA_CHANNELS)}")
+        s = np.asarray(sigma[name], np.float64)
+        u = np.asarray(undetermined[name], bool)
+        s = s[..., None] if s.ndim == 2 else s
+        u = u[..., None] if u.ndim == 2 else u
+        if s.ndim != 3 or s.shape[2] != SIGMA_CHANNELS[name] or u.shape != s.shape:
+            raise ValueError(f"sigma of {name!r} is {s.shape}, its mask {u.shape}; expected (H, W, "
+                             f"{SIGMA_CHANNELS[name]}) both")
+        if shape is not None and s.shape[:2] != shape:
+            raise ValueError(f"sigma of {name!r} is {s.shape[:2]}, the others {shape}")
+        shape = s.shape[:2]
+        bad = ~u & ~(np.isfinite(s) & (s >= 0))
+        if bad.any():
+            raise ValueError(f"sigma of {name!r}: {int(bad.sum())} determined values are negative or not finite")
+        arrays[name] = np.where(u, np.nan, s).astype(np.float16)
+        masks.append((name, u))
+    remove_file(folder / "uncertainty.json")
+    folder.mkdir(parents=True, exist_ok=True)
+    for name, a in arrays.items():
+        spec = oiio.ImageSpec(shape[1], shape[0], a.shape[2], "half")
+        spec.channelnames = _sigma_names(name)
+        spec.attribute("compression", "zip")
+        spec.attribute("DateTime", "")
+        spec.attribute("dualscale:sigma_of", name)
+        spec.attribute("dualscale:unit", SIGMA_UNITS[name])
+        write_pixels(folder / f"{name}.exr", a, spec)
+    names = [f"{n}.{c}" for n, u in masks for c in _sigma_names(n)]
+    mask = np.concatenate([u for _, u in masks], -1).astype(np.float16)
+    spec = oiio.ImageSpec(shape[1], shape[0], mask.shape[2], "half")
+    spec.channelnames = names
+    spec.attribute("compression", "zip")
+    spec.attribute("DateTime", "")
+    write_pixels(folder / "undetermined.exr", np.ascontiguousarray(mask), spec)
+    for stale in folder.glob("*.exr"):  # the maps of an earlier set that this one lacks
+        if stale.stem not in arrays and stale.stem != "undetermined":
+            remove_file(stale)
+    doc = {"format": UNCERTAINTY_FORMAT, "version": UNCERTAINTY_VERSION, "maps": list(arrays),
+           "height": int(shape[0]), "width": int(shape[1]), "units": {n: SIGMA_UNITS[n] for n in arrays},
+           "meta": meta or {}}
+    return write_json(folder / "uncertainty.json", doc)
+
+
+def load_uncertainty(root: str | Path) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], dict[str, Any]]:
+    """``(sigma, undetermined, doc)`` written by :func:`save_uncertainty` under ``root``
+    (float32 ``(H, W, C)`` with NaN where undetermined; bool ``(H, W, C)``; the
+    ``uncertainty.json`` record).  Raises ``FileNotFoundError`` when there is none,
+    :class:`~dualscale.errors.FormatError` for another format or version, an unknown map, sizes
+    that disagree with the record, a sigma that is negative or not finite where determined, or
+    NaN where the mask says determined."""
+    folder = Path(root) / UNCERTAINTY_DIR
+    path = folder / "uncertainty.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no uncertainty beside these maps")
+    doc = read_versioned_json(path, UNCERTAINTY_FORMAT, UNCERTAINTY_VERSION)
+    h, w = doc.get("height"), doc.get("width")
+    mask = read_exr(folder / "undetermined.exr")
+    if mask.shape[:2] != (h, w):
+        raise FormatError(f"{folder / 'undetermined.exr'} is {mask.shape[:2]}, uncertainty.json says {(h, w)}")
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(str(folder / "undetermined.exr"))
+    try:
+        channels = list(inp.spec().channelnames)
+    finally:
+        inp.close()
+    sigma, und = {}, {}
+    for name in doc.get("maps", []):
+        if name not in SIGMA_CHANNELS:
+            raise FormatError(f"{path}: unknown map {name!r}")
+        s = read_exr(folder / f"{name}.exr", _sigma_names(name))
+        if s.shape[:2] != (h, w):
+            raise FormatError(f"{folder / name}.exr is {s.shape[:2]}, uncertainty.json says {(h, w)}")
+        try:
+            idx = [channels.index(f"{name}.{c}") for c in _sigma_names(name)]
+        except ValueError:
+            raise FormatError(f"{folder / 'undetermined.exr'}: no mask channel for {name!r}") from None
+        u = mask[..., idx] > 0.5
+        ok = np.isfinite(s) & (s >= 0)
+        if (~u & ~ok).any():
+            raise FormatError(f"{folder / name}.exr: {int((~u & ~ok).sum())} determined values are negative or "
+                              "not finite")
+        sigma[name], und[name] = np.where(u, np.nan, s).astype(np.float32), u
+    return sigma, und, doc

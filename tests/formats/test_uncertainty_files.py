@@ -1,0 +1,112 @@
+"""The uncertainty beside a maps folder (issue 26, ``formats.maps.save_uncertainty`` /
+``load_uncertainty``): the round trip, half float within its precision, NaN exactly where
+undetermined, stale maps removed, and every malformed file refused."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from dualscale.errors import FormatError
+from dualscale.formats.maps import load_uncertainty, save_uncertainty
+
+
+def _set(h=9, w=7, seed=0):
+    rng = np.random.default_rng(seed)
+    sigma = {"albedo": rng.uniform(0, 0.2, (h, w, 3)), "normal": rng.uniform(0, 20, (h, w, 1)),
+             "roughness": rng.uniform(0, 0.1, (h, w, 1)), "tangent": rng.uniform(0, 90, (h, w, 1))}
+    und = {k: rng.random(v.shape) < 0.2 for k, v in sigma.items()}
+    und["tangent"][:] = True  # a round lobe: the tangent undetermined everywhere
+    return sigma, und
+
+
+def test_the_round_trip_keeps_sigma_to_half_float_and_the_mask_exactly(tmp_path):
+    sigma, und = _set()
+    path = save_uncertainty(tmp_path, sigma, und, meta={"noise_scale": "robust residual"})
+    assert path == tmp_path / "uncertainty" / "uncertainty.json"
+    s2, u2, doc = load_uncertainty(tmp_path)
+    assert doc["maps"] == list(sigma) and doc["units"]["normal"].startswith("degrees")
+    assert doc["meta"] == {"noise_scale": "robust residual"} and (doc["height"], doc["width"]) == (9, 7)
+    for k in sigma:
+        assert np.array_equal(u2[k], und[k]), k
+        assert np.isnan(s2[k][und[k]]).all() and np.isfinite(s2[k][~und[k]]).all()
+        assert np.allclose(s2[k][~und[k]], sigma[k][~und[k]], rtol=1e-3, atol=1e-7), k  # half float: 11 bits
+
+
+def test_the_uncertainty_is_at_most_the_maps_own_size(tmp_path):
+    """Issue 26's cost: the uncertainty may double the maps folder at most; half float keeps it
+    near half (measured against the same arrays written as the maps' float32 EXRs)."""
+    from dualscale.formats.exr import write_exr
+
+    sigma, und = _set(128, 128, seed=1)
+    save_uncertainty(tmp_path / "u", sigma, und)
+    for k, v in sigma.items():
+        write_exr(tmp_path / "f" / f"{k}.exr", v.astype(np.float32))
+    size = lambda d: sum(p.stat().st_size for p in d.glob("*.exr"))  # noqa: E731
+    ratio = size(tmp_path / "u" / "uncertainty") / size(tmp_path / "f")
+    assert 0.3 < ratio < 0.8, ratio
+
+
+def test_a_new_set_removes_the_maps_an_earlier_set_had(tmp_path):
+    sigma, und = _set()
+    save_uncertainty(tmp_path, sigma, und)
+    save_uncertainty(tmp_path, {"albedo": sigma["albedo"]}, {"albedo": und["albedo"]})
+    assert sorted(p.name for p in (tmp_path / "uncertainty").glob("*.exr")) == ["albedo.exr", "undetermined.exr"]
+    assert list(load_uncertainty(tmp_path)[0]) == ["albedo"]
+
+
+@pytest.mark.parametrize("bad", ["negative", "nan", "shape", "name", "mismatch"])
+def test_bad_sigma_is_refused_and_nothing_is_written(tmp_path, bad):
+    sigma, und = _set()
+    if bad == "negative":
+        sigma["albedo"][0, 0, 0], und["albedo"][0, 0, 0] = -1.0, False
+    elif bad == "nan":
+        sigma["roughness"][1, 1, 0], und["roughness"][1, 1, 0] = np.nan, False
+    elif bad == "shape":
+        sigma["normal"] = np.zeros((9, 7, 3))
+    elif bad == "name":
+        sigma["sheen"], und["sheen"] = np.zeros((9, 7, 1)), np.zeros((9, 7, 1), bool)
+    else:
+        del und["albedo"]
+    with pytest.raises(ValueError):
+        save_uncertainty(tmp_path, sigma, und)
+    assert not (tmp_path / "uncertainty" / "uncertainty.json").exists()
+
+
+def test_malformed_files_are_refused(tmp_path):
+    with pytest.raises(FileNotFoundError, match="no uncertainty"):
+        load_uncertainty(tmp_path)
+    sigma, und = _set()
+    save_uncertainty(tmp_path, sigma, und)
+    j = tmp_path / "uncertainty" / "uncertainty.json"
+    doc = json.loads(j.read_text())
+    j.write_text(json.dumps({**doc, "version": 99}))
+    with pytest.raises(FormatError):
+        load_uncertainty(tmp_path)
+    j.write_text(json.dumps({**doc, "height": 10}))
+    with pytest.raises(FormatError, match="uncertainty.json says"):
+        load_uncertainty(tmp_path)
+    j.write_text(json.dumps({**doc, "maps": ["albedo", "sheen"]}))
+    with pytest.raises(FormatError, match="unknown map"):
+        load_uncertainty(tmp_path)
+    # a sigma file whose determined value is NaN (the mask says determined)
+    j.write_text(json.dumps(doc))
+    sigma2 = {k: v.copy() for k, v in sigma.items()}
+    und2 = {k: v.copy() for k, v in und.items()}
+    save_uncertainty(tmp_path, sigma2, und2)
+    import OpenImageIO as oiio
+
+    from dualscale.formats.exr import write_pixels
+
+    p = tmp_path / "uncertainty" / "roughness.exr"
+    inp = oiio.ImageInput.open(str(p))
+    spec = inp.spec()
+    a = np.asarray(inp.read_image(0, 0, 0, 1, "half")).reshape(9, 7, 1).copy()
+    inp.close()
+    k = np.argwhere(~und2["roughness"][..., 0])[0]
+    a[k[0], k[1], 0] = np.nan
+    write_pixels(p, a, spec)
+    with pytest.raises(FormatError, match="determined values are negative or not finite"):
+        load_uncertainty(tmp_path)
