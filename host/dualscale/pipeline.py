@@ -606,7 +606,7 @@ class Digitizer:
         return run_propagation(self.dataset, self.out("fit") / "maps", self.guidance, work,
                                preset=self.quality.propagate_preset, texel_mm_guidance=self.opts.guidance_texel_mm,
                                transfer=self.opts.guidance_transfer, threads=self.opts.threads,
-                               progress=self.opts.progress)
+                               progress=self.opts.progress, in_memory_bytes=_propagate_in_memory(self.opts.memory))
 
     def export(self) -> StageResult:
         inputs = {"fit": self._prev("fit"), "propagate": self._prev("propagate")}
@@ -777,6 +777,22 @@ def _rendered_lights(obs: Any, per_light: list[dict[str, Any]]) -> list[int]:
         return sorted(ids)
     step = (len(ids) - 1) / (RENDERED_LIGHTS - 1)
     return sorted({ids[round(k * step)] for k in range(RENDERED_LIGHTS)})
+
+
+#: the propagate stage's peak over the micro capture's own bytes held in memory (float16 images and
+#: float32 maps: the resampling copies them; docs/PROPAGATION.md, "Memory", measured 5.4x at 512^2)
+PROPAGATE_PEAK_FACTOR = 5.5
+
+
+def _propagate_in_memory(memory: int | None) -> float | None:
+    """The propagate stage's in-memory threshold (``propagate.stage.run_propagation``
+    ``in_memory_bytes``) under digitize's memory budget: the lesser of its own
+    (``propagate.data.in_memory_limit``, which ``$DUALSCALE_PROPAGATE_IN_MEMORY_MB`` sets) and the
+    budget's share; above it the stage reads the micro capture from disk, with the same results
+    (``None``, an unlimited budget: the stage's own threshold)."""
+    from dualscale.propagate.data import in_memory_limit
+
+    return None if memory is None else min(in_memory_limit(), memory / PROPAGATE_PEAK_FACTOR)
 
 
 def _options_json(o: DigitizeOptions) -> dict[str, Any]:

@@ -248,3 +248,17 @@ def test_digitize_a_dozen_photographs_fits_every_light_and_leaves_one_out(tmp_pa
     ren = read_exr(run / "fit" / "heldout" / ho["renders"][0]["render"])
     assert (ren[~s.mask] == 0).all() and (ren[s.mask].max(-1) > 0).mean() > 0.5
     assert "maps fitted on 12 of 12 images" in capsys.readouterr().out
+
+
+def test_the_memory_budget_reaches_the_propagate_stage(monkeypatch):
+    """digitize --memory bounds the propagate stage too: its in-memory threshold is the budget's
+    share (the stage peaks at about 5.5x what it holds), never above the stage's own."""
+    from dualscale.pipeline import PROPAGATE_PEAK_FACTOR, _propagate_in_memory
+    from dualscale.propagate.data import IN_MEMORY_BYTES
+
+    monkeypatch.delenv("DUALSCALE_PROPAGATE_IN_MEMORY_MB", raising=False)
+    assert _propagate_in_memory(None) is None
+    assert _propagate_in_memory(2 * 1024 ** 3) == pytest.approx(2 * 1024 ** 3 / PROPAGATE_PEAK_FACTOR)
+    assert _propagate_in_memory(64 * 1024 ** 3) == IN_MEMORY_BYTES
+    monkeypatch.setenv("DUALSCALE_PROPAGATE_IN_MEMORY_MB", "0")
+    assert _propagate_in_memory(2 * 1024 ** 3) == 0
