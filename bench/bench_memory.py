@@ -26,7 +26,7 @@ that selection stays out of the timings; ``--cv-pixels 0``, ``--no-progress --no
   pixel with the largest measured *before*'s, and says so.
 - **Tiled** (``--tiled-sizes``, 2 local workers, 64 px tiles, preset ``draft`` to keep it short):
   *after* is ``dualscale fit DATASET --workers 2 --tile-px 64`` run by a child process of this
-  script (``dualscale.cli.main``), whose peak is ``fit.json``'s ``out_of_core.peak_rss_mb`` (the
+  script (``dualscale.cli.main``), whose peak is ``fit.json``'s ``out_of_core.peak_rss_mib`` (the
   driver's own ``getrusage(RUSAGE_SELF)``; ``/usr/bin/time``'s figure would be the largest of the
   driver and its worker processes); *before* is the way the tiled fit worked when the issue was
   filed: ``load_observations`` of the whole dataset, ``select_components``, then
@@ -343,7 +343,7 @@ def child_tiled(mode: str, ds: str, out: str, threads: int) -> None:
                        "--cv-pixels", "0", *COMPONENT_ARGS])
         assert rc == 0, rc
         doc = json.loads((Path(out) / "fit.json").read_text())
-        driver_mb = doc["out_of_core"]["peak_rss_mb"]
+        driver_mb = doc["out_of_core"]["peak_rss_mib"]
         tiles = doc["tiled"]["tiles"]
         tile_data = doc["tiled"].get("tile_data")
     else:
@@ -398,7 +398,7 @@ def tiled_row(n: int, ds: Path, out: Path, threads: int) -> dict:
 
 def tiled_table(rows: list[dict]) -> str:
     out = [f"**Tiled fit, {WORKERS} local workers x 1 thread, {TILE} px tiles, `--preset {TILED_PRESET}`** (to keep "
-           "it short); the driver's own peak (`getrusage(RUSAGE_SELF)`; after: `fit.json` `out_of_core.peak_rss_mb`); "
+           "it short); the driver's own peak (`getrusage(RUSAGE_SELF)`; after: `fit.json` `out_of_core.peak_rss_mib`); "
            "shipped = the pickled tasks (function + arguments) the driver submits.  Before = the whole dataset "
            "loaded in the driver, each tile's pixels sent with its task (origin None); after = `dualscale fit "
            f"DATASET --workers {WORKERS} --tile-px {TILE}`, the workers read their own tiles.", "",

@@ -351,8 +351,8 @@ class Digitizer:
 
     def _preflight(self) -> None:
         """Refuse, before anything is written, what a later stage would refuse: captures in
-        camera counts without a calibration, a calibration file that is not one, a
-        display-encoded guidance image without its transfer function."""
+        camera counts without a calibration, a memory budget below the fit's least, a calibration
+        file that is not one, a display-encoded guidance image without its transfer function."""
         from dualscale.formats.calibration import read_calibration
         from dualscale.formats.dataset import read_dataset
         from dualscale.formats.photo import parse_transfer
@@ -364,6 +364,11 @@ class Digitizer:
                              f"give the rig's calibration file {self.opts.give('calibration')} "
                              "(dualscale calibrate)")
         _check_images(ds, "")
+        from dualscale.fit.observations import fit_camera
+        from dualscale.fit.stream import check_memory
+
+        cam = fit_camera(ds)
+        check_memory(self.opts.memory, sum(1 for r in ds.records if r.camera == cam and r.light_kind == "led"))
         if self.opts.calibration is not None:
             read_calibration(self.opts.calibration)
         g = self.opts.guidance

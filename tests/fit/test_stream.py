@@ -22,6 +22,13 @@ from dualscale.fit.stream import BYTES_PER_SAMPLE, RESERVE, band_boxes, parse_me
 from dualscale.formats.maps import load_maps
 
 
+@pytest.fixture(autouse=True)
+def small_parts(monkeypatch):
+    """Parts of a few pixels, so that these tiny maps cut into several (the product's least is a
+    64^2 tile: ``stream.MIN_PART_PIXELS``)."""
+    monkeypatch.setattr(stream, "MIN_PART_PIXELS", 1)
+
+
 def budget(root: Path, pixels: int) -> int:
     """A memory budget whose bands hold ``pixels`` pixels of the dataset ``root``."""
     images = fit_layout(root)[3]
@@ -96,6 +103,17 @@ def test_bands_cover_the_map_once_within_the_budget():
         band_boxes((512, 512), 254, RESERVE)
 
 
+def test_the_least_budget_holds_a_64px_tile(monkeypatch):
+    monkeypatch.setattr(stream, "MIN_PART_PIXELS", 4096)
+    least = stream.minimum_memory(254)
+    assert least == RESERVE + 4096 * 254 * BYTES_PER_SAMPLE
+    assert len(band_boxes((4096, 4096), 254, least)) == 4096 * 4096 // 4096  # one-row runs of 4096 columns
+    with pytest.raises(InputError, match=r"--memory 511 MiB is below what a fit of 254 images needs: 611 MiB"):
+        band_boxes((64, 64), 254, least - 100 * 2 ** 20)
+    with pytest.raises(InputError, match=r"--memory 500.0 KiB"):
+        stream.check_memory(500 * 1024, 254)
+
+
 @pytest.mark.parametrize("preset", ["standard", "adam-fast"])
 def test_out_of_core_equals_the_whole_map_fit(masked, tmp_path, preset, monkeypatch):
     p = get_preset(preset).scaled(0.25)
@@ -128,22 +146,26 @@ def test_out_of_core_equals_the_whole_map_fit(masked, tmp_path, preset, monkeypa
     assert [h[:2] for h in a["loss_history"]] == [h[:2] for h in b["loss_history"]]
     for (_, _, x), (_, _, y) in zip(a["loss_history"], b["loss_history"], strict=True):
         assert x == pytest.approx(y, rel=1e-5)
-    assert b["out_of_core"]["peak_rss_mb"] > 0
+    assert b["out_of_core"]["peak_rss_mib"] > 0 and b["memory"]["path"] == "out of core"
     assert (tmp_path / "bands" / "albedo.png").is_file() and not (tmp_path / "bands" / "tiles").exists()
     assert json.loads((tmp_path / "bands" / "material.json").read_text())["maps"] == \
         json.loads((tmp_path / "whole" / "material.json").read_text())["maps"]
 
 
 def test_the_bright_albedo_check_counts_the_whole_map(masked):
-    from dualscale.fit.init import check_albedo_range, photometric_stereo
+    """The survey's statistics and the bands' albedo counts (the fit's own start) add up to the
+    whole map's: the sample's pixels, the valid counts, the transmittance evidence, the share."""
+    from dualscale.fit.init import check_albedo_range, photometric_stereo, start_params
     from dualscale.fit.observations import load_observations, read_tile
+    from dualscale.fit.params import fit_components
     from dualscale.fit.stream import survey
 
     obs = load_observations(masked)
     share = check_albedo_range(obs, photometric_stereo(obs)[1])
     boxes = band_boxes(obs.shape, obs.n, budget(masked, 45))
-    sv = survey(lambda b: read_tile(obs.origin, b), boxes, obs.shape, 1)
-    assert len(boxes) > 3 and sv.albedo_share == share
+    sv = survey(lambda b: read_tile(obs.origin, b), boxes, obs.shape)
+    counts = [start_params(read_tile(obs.origin, b), fit_components(False, True, False))[1] for b in boxes]
+    assert len(boxes) > 3 and sum(c[0] for c in counts) / sum(c[1] for c in counts) == share
     assert torch.equal(sv.fitted, obs.fitted_pixels)
     assert sv.counts.tolist() == obs.valid.sum(dim=(1, 2)).double().tolist()
     from dualscale.fit.select import transmission_evidence
@@ -152,6 +174,29 @@ def test_the_bright_albedo_check_counts_the_whole_map(masked):
     assert sv.transmission["transmits"] == ev["transmits"]
     for k in ("backlit_mean", "backlit_p99", "fraction_above_level"):
         assert sv.transmission[k] == pytest.approx(ev[k], rel=1e-6), k
+
+
+def test_a_bright_map_is_warned_about_once_after_its_bands(datasets, tmp_path, monkeypatch):
+    """Photographs brighter than relative radiance: the out-of-core fit warns once, with the
+    whole map's share (the bands' own warnings are not raised)."""
+    import warnings
+
+    from dualscale.fit import init
+
+    monkeypatch.setattr(init, "BRIGHT_SHARE", -1.0)  # any share warns
+    root = datasets("twill", 16) / "micro"
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        api.fit_dataset(root, tmp_path / "m", get_preset("draft").scaled(0.2), cv_pixels=0, previews=False,
+                        memory=budget(root, 64), comps=replace(stream_comps(), opaque=True))
+    bright = [w for w in caught if "Lambertian albedo" in str(w.message)]
+    assert len(bright) == 1, [str(w.message) for w in caught]
+
+
+def stream_comps():
+    from dualscale.fit.params import fit_components
+
+    return fit_components(True, True, False)
 
 
 def test_an_interrupted_fit_resumes_from_its_finished_bands(datasets, tmp_path, monkeypatch):
@@ -191,6 +236,9 @@ def test_what_the_fit_out_of_core_cannot_run_is_refused_before_any_work(datasets
     assert "--memory 'lots'" in capsys.readouterr().err
     assert main(["fit", str(root), "-o", str(tmp_path / "e"), "--memory", "100M"]) == 2
     assert "below what a fit of 254 images needs" in capsys.readouterr().err
+    assert main(["fit", str(root), "-o", str(tmp_path / "f"), "--memory", "0.5"]) == 2
+    assert "at least one byte (a plain number is bytes" in capsys.readouterr().err
+    assert not any((tmp_path / n).exists() for n in "cdef")
 
 
 def test_the_cli_says_it_fitted_out_of_core(datasets, tmp_path, capsys):
@@ -202,9 +250,12 @@ def test_the_cli_says_it_fitted_out_of_core(datasets, tmp_path, capsys):
             "--threads", "1", "--cv-pixels", "0"]
     assert main(["fit", str(root), "-o", str(tmp_path / "a"), *args, "--memory", mem]) == 0
     out = capsys.readouterr().out
-    assert "out of core: 2 band(s) of 8 rows within" in out and "peak memory" in out
+    assert "memory: out of core (estimated" in out and ": 2 bands of 8 rows x 16 columns; peak " in out, out
     assert main(["fit", str(root), "-o", str(tmp_path / "b"), *args, "--memory", "unlimited"]) == 0
-    assert "out of core" not in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "memory: in memory (estimated" in out and "within no budget" in out, out
+    rec = json.loads((tmp_path / "b" / "fit.json").read_text())["memory"]
+    assert rec["path"] == "in memory" and rec["memory_bytes"] is None and rec["estimate_bytes"] > RESERVE
     _equal_maps(tmp_path / "a", tmp_path / "b")
 
 

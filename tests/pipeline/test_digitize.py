@@ -181,7 +181,7 @@ def test_digitize_fits_in_tiles_on_workers_with_the_same_maps(sample, tmp_path, 
     assert "fit        up to date" in out and "calibrate  up to date" in out, out
 
 
-def test_the_fit_stage_out_of_core_gives_the_same_maps_and_evidence(sample, tmp_path):
+def test_the_fit_stage_out_of_core_gives_the_same_maps_and_evidence(sample, tmp_path, monkeypatch):
     """``--memory`` below the micro dataset's fit (issue 25): the fit stage reads the dataset
     band by band and writes the maps by rows, and its residual map and re-renders are read band
     by band too, as is the fly-out stage's confidence map; the maps equal the in-memory stage's
@@ -195,7 +195,10 @@ def test_the_fit_stage_out_of_core_gives_the_same_maps_and_evidence(sample, tmp_
     from dualscale.formats.exr import read_exr
     from dualscale.formats.maps import load_maps
 
+    from dualscale.fit import stream
+
     _, _, (h, w), images = fit_layout(sample / "micro")
+    monkeypatch.setattr(stream, "MIN_PART_PIXELS", 1)  # a small sample: parts below the product's least
     memory = RESERVE + (h * w // 4) * images * BYTES_PER_SAMPLE
     one, two = tmp_path / "one", tmp_path / "two"
     assert _digitize(sample, one, "--until", "flyouts") == 0
@@ -262,3 +265,10 @@ def test_the_memory_budget_reaches_the_propagate_stage(monkeypatch):
     assert _propagate_in_memory(64 * 1024 ** 3) == IN_MEMORY_BYTES
     monkeypatch.setenv("DUALSCALE_PROPAGATE_IN_MEMORY_MB", "0")
     assert _propagate_in_memory(2 * 1024 ** 3) == 0
+
+
+def test_a_memory_budget_below_the_fits_least_is_refused_before_the_run_folder(sample, tmp_path, capsys):
+    run = tmp_path / "run"
+    assert _digitize(sample, run, "--memory", "10M", "--until", "fit") == 2
+    assert "--memory 10 MiB is below what a fit of 64 images needs" in capsys.readouterr().err
+    assert not run.exists()

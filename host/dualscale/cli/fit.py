@@ -86,11 +86,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
         t = extra["tiled"]
         print(f"tiles: {t['tiles']} of {t['tile_px']} px on {t['workers']} worker{'' if t['workers'] == 1 else 's'}"
               + (f" ({t['resumed_tiles']} done before)" if t["resumed_tiles"] else ""))
-    if "out_of_core" in extra and "tiled" not in extra:
-        m = extra["out_of_core"]
-        print(f"out of core: {m['parts']} band(s) of {m['part_rows']} rows within "
-              f"{m['memory_bytes'] / 2 ** 30:.3g} GiB; peak memory {m['peak_rss_mb']:.0f} MiB"
-              + (f" ({m['resumed_parts']} done before)" if m["resumed_parts"] else ""))
+    print(_memory_line(extra))
     lights = extra["lights"]
     print(f"fitted on {lights['fitted_images']} of {lights['images']} images ({lights['fitted_leds']} of "
           f"{lights['leds']} lights)" + ("" if lights["fitted_leds"] == lights["leds"] else
@@ -104,6 +100,26 @@ def cmd_fit(args: argparse.Namespace) -> int:
         print("vs ground truth: " + ", ".join(f"{k}={v:.4g}" for k, v in extra["ground_truth"]["errors"].items()))
     print(f"wrote {Path(args.output) / 'fit.json'}")
     return 0
+
+
+def _memory_line(extra: dict) -> str:
+    """The fit's memory, as the user reads it: in memory or out of core, against the budget."""
+    mem = extra.get("memory") or {}
+    budget = "no budget" if mem.get("memory_bytes") is None else f"the {_size(mem['memory_bytes'])} budget"
+    need = f"estimated {_size(mem['estimate_bytes'])}" if mem.get("estimate_bytes") else "given in memory"
+    if "out_of_core" not in extra:
+        return f"memory: in memory ({need}, within {budget})"
+    m = extra["out_of_core"]
+    parts = (f"{m['parts']} band{'s' if m['parts'] != 1 else ''} of {m['part_rows']} row{'s' if m['part_rows'] != 1 else ''}"
+             f" x {m['part_columns']} columns" if m["part_kind"] == "bands" else
+             f"{m['parts']} tiles read by the workers")
+    return (f"memory: out of core ({need}, over {budget}): {parts}; peak {m['peak_rss_mib']:.0f} MiB"
+            + (" in this process (the driver)" if m["part_kind"] == "tiles" else "")
+            + (f"; {m['resumed_parts']} done before" if m["resumed_parts"] else ""))
+
+
+def _size(n: float) -> str:
+    return f"{n / 2 ** 30:.3g} GiB" if n >= 2 ** 30 else f"{n / 2 ** 20:.0f} MiB"
 
 
 def cmd_study_lights(args: argparse.Namespace) -> int:

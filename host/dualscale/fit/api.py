@@ -25,8 +25,8 @@ from .observations import DatasetOrigin, Observations, fit_layout, load_observat
 from .presets import Preset, get_preset
 from .select import PIXELS as SELECT_PIXELS
 from .select import choose_components, preset_for, select_components, selection_pixels
-from .stream import (DEFAULT_MEMORY, band_boxes, fit_parts, fit_parts_refusal, gather, memory_record, reader, result,
-                     survey, warn_albedo, write_rows)
+from .stream import (DEFAULT_MEMORY, band_boxes, estimate_bytes, fit_parts, fit_parts_refusal, gather, memory_record,
+                     reader, result, survey, warn_albedo, write_rows)
 from .tiled import TILE, check_tile, check_tileable, clear_state, fit_tiled
 
 
@@ -109,23 +109,28 @@ def fit_dataset(dataset: str | Path, out: str | Path, preset: str | Preset = "st
             ooc = _OutOfCore(root, camera, shape, images, memory)
         else:  # (a coarse level within the budget on a cluster: the driver's whole-map coarse start, fit.tiled)
             obs = load_observations(dataset)
+        memory_note = {"memory_bytes": memory, "estimate_bytes": estimate_bytes(shape, images),
+                       "path": "out of core" if ooc is not None else "in memory"}
+    else:
+        memory_note = {"memory_bytes": memory, "path": "in memory (observations given)"}
     if restart:
         remove_file(ck)
         remove_file(cv_path)
         clear_state(state)
     if ooc is None:
         return _fit(dataset, out, p, obs, None, overrides, cv_pixels, folds, progress, checkpoint_every, stop_after,
-                    seed, previews, comps, gt, engine, tile_px)
+                    seed, previews, comps, gt, engine, tile_px, memory_note)
     try:
         ooc.open(p, progress, engine)
         return _fit(dataset, out, p, obs, ooc, overrides, cv_pixels, folds, progress, checkpoint_every, stop_after,
-                    seed, previews, comps, gt, engine, tile_px)
+                    seed, previews, comps, gt, engine, tile_px, memory_note)
     finally:
         ooc.close()
 
 
 def _fit(dataset, out: Path, p: Preset, obs, ooc, overrides, cv_pixels: int, folds, progress, checkpoint_every: int,
-         stop_after, seed: int, previews: bool, comps, gt, engine, tile_px: int) -> tuple[FitResult, dict]:
+         stop_after, seed: int, previews: bool, comps, gt, engine, tile_px: int,
+         memory_note: dict[str, Any]) -> tuple[FitResult, dict]:
     """The body of :func:`fit_dataset` after its checks, on ``obs`` in memory or out of core
     (``ooc``, opened)."""
     ck, state, cv_path, sel_path = out / "checkpoint.pt", out / "tiles", out / "crossval.json", out / "selection.json"
@@ -169,7 +174,7 @@ def _fit(dataset, out: Path, p: Preset, obs, ooc, overrides, cv_pixels: int, fol
     extra: dict[str, Any] = {"dataset": str(dataset),
                              "lights": {"images": head.n, "leds": len(set(head.led_ids.tolist())),
                                         "fitted_images": fitted.n, "fitted_leds": len(set(fitted.led_ids.tolist()))},
-                             "cross_validation": cv, "threads": effective_threads()}
+                             "cross_validation": cv, "threads": effective_threads(), "memory": memory_note}
     if tiled:
         extra["tiled"] = tiled
     rad = _radiometry(dataset)
@@ -229,11 +234,10 @@ class _OutOfCore:
             self.engine, self.client = engine, self._stack.enter_context(connect(engine))
         self.threads = 1 if engine is None else engine.threads_per_worker
         self.boxes = band_boxes(self.shape, self.images, self.memory if self.memory is not None else DEFAULT_MEMORY)
-        self.survey = survey(self.read, self.boxes, self.shape, preset.led_stride, progress=progress,
-                             client=self.client, origin=self.origin, threads=self.threads)
+        self.survey = survey(self.read, self.boxes, self.shape, progress=progress, client=self.client,
+                             origin=self.origin, threads=self.threads)
         self.passes["survey"] = round(self.survey.seconds, 2)
         self.origin = DatasetOrigin(self.origin.root, self.origin.camera, None, "float32", self.survey.key)
-        warn_albedo(self.survey)
 
     def _gather(self, seed: int, cv_pixels: int | None) -> dict[str, Any]:
         if self._samples is None:
@@ -271,10 +275,11 @@ class _OutOfCore:
                      "workers": self.parts.workers, "engine": self.engine.describe,
                      "tile_data": "read by the workers from " + self.origin.root}
         self.passes["fit"] = round(self.parts.seconds, 2)
+        warn_albedo(self.parts, self.survey.head.imported)
         return result(self.parts, preset, comps), tiled
 
     def record(self) -> dict[str, Any]:
-        return memory_record(self.memory, self.parts, self.passes)
+        return memory_record(self.memory, self.parts, self.passes, self.shape, self.images)
 
 
 def _cross_validation(head: Observations, key_parts: dict[str, Any], run, preset: Preset, comps: Components,

@@ -112,10 +112,22 @@ def warn_bright(share: float, imported: bool) -> None:
 def initial_params(obs: Observations, comps: Components) -> dict[str, Tensor]:
     """Starting parameters for ``comps`` (normalised units, normal as a square point); warns
     when the albedo would leave its box (:func:`check_albedo_range`)."""
+    params, (bright, counted) = start_params(obs, comps)
+    warn_bright(bright / counted if counted else 0.0, obs.imported)
+    return params
+
+
+def start_params(obs: Observations, comps: Components) -> tuple[dict[str, Tensor], tuple[int, int]]:
+    """:func:`initial_params` without the warning, and the bright-albedo counts of
+    :func:`albedo_counts` at the same photometric stereo: a part of a map (the fit out of core,
+    :mod:`.stream`) returns its counts, and the whole map's share is warned about once."""
+    albedo, normal = photometric_stereo(obs)
+    return _params(obs, comps, albedo, normal), albedo_counts(obs, normal)
+
+
+def _params(obs: Observations, comps: Components, albedo: Tensor, normal: Tensor) -> dict[str, Tensor]:
     h, w = obs.shape
     dt = obs.images.dtype
-    albedo, normal = photometric_stereo(obs)
-    check_albedo_range(obs, normal)
     out: dict[str, Tensor] = {}
     for name in param_names(comps):
         if name == "albedo":

@@ -13,15 +13,16 @@ that its worker reads, so the driver reads no pixel):
 
 - the **survey** (one pass): the sample's pixels (``Observations.fitted_pixels``), each image's
   sum and valid-sample count (the Adam presets' whole-map counts, :class:`.observations.WholeMap`,
-  and the resume fingerprint), the back-lit statistics of the transmittance decision
-  (:func:`.select.transmission_from`) and the bright-albedo check's counts
-  (:func:`.init.albedo_counts`, summed over the bands);
+  and the resume fingerprint) and the back-lit statistics of the transmittance decision
+  (:func:`.select.transmission_from`);
 - the **gather** (one pass, only when a decision is still to make): the sample pixels of the
   component selection (:func:`.select.selection_pixels`) and of the cross-validation
   (:func:`.holdout.sample_pixels_of`), the very pixels the whole-map steps draw;
 - the **fit** (one pass): each part's maps go to ``out/tiles/`` as they finish (a rerun
-  resumes from them), and its loss sums (:func:`.metrics.image_loss_sums`) add up to the
-  report's losses; then the maps are written by rows (:func:`write_rows`).
+  resumes from them), its loss sums (:func:`.metrics.image_loss_sums`) add up to the report's
+  losses and its start's bright-albedo counts (:func:`.init.start_params`, the photometric
+  stereo the fit starts from) to the whole map's albedo check, warned about once after the
+  fit; then the maps are written by rows (:func:`write_rows`).
 
 **Same result.**  The maps equal the whole-map fit's bit for bit, and so do the component
 decision, the cross-validation and the albedo check (the same pixels, the same counts).  The
@@ -58,7 +59,7 @@ from dualscale.progress import Progress, tracker
 
 from .checkpoint import fingerprint
 from .core import FitResult, fit_observations, stride_leds
-from .init import albedo_counts, photometric_stereo, warn_bright
+from .init import start_params, warn_bright
 from .metrics import image_loss_sums, losses_from_sums
 from .observations import DatasetOrigin, Observations, WholeMap, read_tile
 from .presets import Preset
@@ -72,8 +73,13 @@ DEFAULT_MEMORY = 2 * 1024 ** 3
 #: 64^2 .. 256^2 crops of a 254-image twill, docs/SCALE.md), with a margin
 BYTES_PER_SAMPLE = 100
 #: the process's resident memory before its first band (imports: 281 MB; fixed costs of a fit:
-#: 124 MB; measured, docs/SCALE.md), with a margin
-RESERVE = 450 * 1024 ** 2
+#: 124 MB; measured, docs/SCALE.md; the CLI with one-row bands held 500 MiB), with a margin
+RESERVE = 512 * 1024 ** 2
+#: the fewest pixels a part may hold (a 64^2 tile): below, the passes' per-part cost (opening every
+#: image of the dataset) dominates (a 192^2 map in one-row bands took 16x as long)
+MIN_PART_PIXELS = 4096
+#: what a fitted part's record keeps in memory (its maps stay on disk)
+RECORD = ("history", "pixels", "sums", "albedo")
 #: back-lit pixels kept for the transmittance statistics' 99th percentile (all of them up to a
 #: 2048^2 map; every k-th above)
 P99_PIXELS = 1 << 22
@@ -82,8 +88,8 @@ _UNITS = {"": 1, "k": 1024, "m": 1024 ** 2, "g": 1024 ** 3, "t": 1024 ** 4}
 
 
 def parse_memory(text: str | int | None) -> int | None:
-    """Bytes of a memory budget: ``"2G"``, ``"1.5GiB"``, ``"800M"``, ``"64k"``, a plain number of
-    bytes, or ``"unlimited"`` (``None``: the whole map in memory, as before issue 25).  Raises
+    """Bytes of a memory budget: ``"2G"``, ``"1.5GiB"``, ``"800M"``, ``"64k"`` (binary units:
+    K = 1024; ``GB`` and ``GiB`` alike), a plain number of bytes, or ``"unlimited"`` (``None``: the whole map in memory, as before issue 25).  Raises
     :class:`~dualscale.errors.InputError` for anything else, or a budget of zero."""
     if text is None or (isinstance(text, str) and text.strip().lower() in ("unlimited", "none")):
         return None
@@ -95,8 +101,29 @@ def parse_memory(text: str | int | None) -> int | None:
             raise InputError(f"--memory {text!r}: give a size such as 2G, 1.5GiB, 800M, or 'unlimited'")
         value = int(float(m.group(1)) * _UNITS[m.group(2)])
     if value <= 0:
-        raise InputError(f"--memory {text!r}: the budget must be above zero")
+        raise InputError(f"--memory {text!r}: the budget must be at least one byte (a plain number is bytes; "
+                         "give a size such as 2G, 800M)")
     return value
+
+
+def minimum_memory(images: int) -> int:
+    """The smallest budget for a fit of ``images`` LED images: :data:`RESERVE` plus one part of
+    :data:`MIN_PART_PIXELS` pixels."""
+    return RESERVE + MIN_PART_PIXELS * max(1, images) * BYTES_PER_SAMPLE
+
+
+def check_memory(memory: int | None, images: int) -> None:
+    """Raise :class:`~dualscale.errors.InputError` when ``memory`` (bytes; ``None``: unlimited)
+    is below :func:`minimum_memory` for ``images`` LED images (checked before any work)."""
+    if memory is not None and memory < minimum_memory(images):
+        raise InputError(f"--memory {_mib(memory)} is below what a fit of {images} images needs: "
+                         f"{_mib(minimum_memory(images))} at least (the process's {_mib(RESERVE)} and a part of "
+                         f"{MIN_PART_PIXELS} pixels at {BYTES_PER_SAMPLE * max(1, images) / 2 ** 10:.0f} KiB each); "
+                         "give more, e.g. --memory 2G")
+
+
+def _mib(n: float) -> str:
+    return f"{n / 2 ** 20:.0f} MiB" if n >= 2 ** 20 else f"{n / 2 ** 10:.1f} KiB" if n >= 1024 else f"{n:.0f} bytes"
 
 
 def band_boxes(shape: tuple[int, int], images: int, memory: int | None) -> list[tuple[int, int, int, int]]:
@@ -105,17 +132,12 @@ def band_boxes(shape: tuple[int, int], images: int, memory: int | None) -> list[
     down to a multiple of 64 (or 16) rows, the EXR chunks' heights, when there are that many;
     a single row split into runs of columns when even one row is over the budget.  ``memory``
     ``None``: one part, the whole map.  Raises :class:`~dualscale.errors.InputError` when the
-    budget is below :data:`RESERVE` plus one pixel's share."""
+    budget is below :func:`minimum_memory`."""
     h, w = shape
     if memory is None:
         return [(0, h, 0, w)]
-    per_pixel = max(1, images) * BYTES_PER_SAMPLE
-    pixels = (memory - RESERVE) // per_pixel
-    if pixels < 1:
-        raise InputError(f"--memory {memory / 2 ** 20:.0f} MiB is below what a fit of {images} images needs: "
-                         f"{(RESERVE + per_pixel) / 2 ** 20:.0f} MiB at least (the process's "
-                         f"{RESERVE / 2 ** 20:.0f} MiB and one pixel's {per_pixel / 2 ** 10:.0f} kiB); "
-                         "give more, e.g. --memory 2G")
+    check_memory(memory, images)
+    pixels = (memory - RESERVE) // (max(1, images) * BYTES_PER_SAMPLE)
     if pixels >= h * w:
         return [(0, h, 0, w)]
     rows = pixels // w
@@ -138,7 +160,7 @@ class Survey:
     pixel, no valid-sample mask); ``sums`` ``(N,)`` float64 per image; ``counts`` ``(N,)``
     float64 valid samples per image (``None``: all); ``back``: valid back-lit pixels (``None``:
     all, or no back-lit image); ``transmission``: :func:`.select.transmission_evidence`;
-    ``bright`` and ``counted``: :func:`.init.albedo_counts` summed; ``key``: a SHA-256 of it all
+    ``key``: a SHA-256 of it all
     (the resume fingerprint's data part); ``seconds``: the pass's wall time."""
 
     head: Observations
@@ -148,8 +170,6 @@ class Survey:
     counts: Tensor | None
     back: float | None
     transmission: dict[str, Any]
-    bright: int
-    counted: int
     key: str
     seconds: float
 
@@ -158,16 +178,11 @@ class Survey:
         """The whole map's sample counts (the Adam presets' loss divides by them)."""
         return WholeMap(self.shape[0] * self.shape[1], self.counts, self.back)
 
-    @property
-    def albedo_share(self) -> float:
-        return self.bright / self.counted if self.counted else 0.0
-
 
 Reader = Callable[[tuple[int, int, int, int]], Observations]
 
 
-def survey_part(o: Observations, box: tuple[int, int, int, int], shape: tuple[int, int], stride: int,
-                albedo: bool = True) -> dict[str, Any]:
+def survey_part(o: Observations, box: tuple[int, int, int, int], shape: tuple[int, int]) -> dict[str, Any]:
     """The statistics :func:`survey` takes of one part ``o``, the ``box`` of the ``(H, W)`` map
     (a plain dict of small tensors and numbers: what a survey task returns)."""
     y0, y1, x0, x1 = box
@@ -178,25 +193,22 @@ def survey_part(o: Observations, box: tuple[int, int, int, int], shape: tuple[in
                            "counts": None if o.valid is None else o.valid.sum(dim=(1, 2)).to(torch.float64),
                            "fitted": o.fitted_pixels,
                            "back": None if o.back_valid is None else float(o.back_valid.sum()),
-                           "y": None, "bright": 0, "counted": 0}
+                           "y": None}
     if o.backlight is not None:
         y = (o.backlight / o.back_wd).mean(-1)
         flat = (torch.arange(y0, y1).reshape(-1, 1) * w + torch.arange(x0, x1).reshape(1, -1)).reshape(-1)
         rec["y"] = (int((y > TRANS_LEVEL).sum()), float(y.to(torch.float64).sum()), y.numel(),
                     y.reshape(-1)[flat % step == 0].to(torch.float64))
-    if albedo:
-        s = stride_leds(o, stride)
-        rec["bright"], rec["counted"] = albedo_counts(s, photometric_stereo(s)[1])
     return rec
 
 
-def survey_task(origin: DatasetOrigin, box: tuple[int, int, int, int], shape: tuple[int, int], stride: int,
-                albedo: bool, threads: int) -> dict[str, Any]:
+def survey_task(origin: DatasetOrigin, box: tuple[int, int, int, int], shape: tuple[int, int],
+                threads: int) -> dict[str, Any]:
     """:func:`survey_part` of the ``box`` a worker reads itself from ``origin`` (a Dask task)."""
     from dualscale.engine import in_worker
 
     in_worker(threads)
-    return survey_part(read_tile(origin, box), box, shape, stride, albedo)
+    return survey_part(read_tile(origin, box), box, shape)
 
 
 def _parts(read: Reader, boxes, client, task, args: tuple, threads: int, bar, origin) -> Any:
@@ -218,18 +230,16 @@ def _parts(read: Reader, boxes, client, task, args: tuple, threads: int, bar, or
         bar.update(1)
 
 
-def survey(read: Reader, boxes: list[tuple[int, int, int, int]], shape: tuple[int, int], stride: int,
-           albedo: bool = True, progress: Progress = None, client=None, origin: DatasetOrigin | None = None,
+def survey(read: Reader, boxes: list[tuple[int, int, int, int]], shape: tuple[int, int],
+           progress: Progress = None, client=None, origin: DatasetOrigin | None = None,
            threads: int = 1) -> Survey:
     """One pass over the parts ``boxes`` of the map, each read by ``read`` in this process, or
-    by a worker of the Dask ``client`` from ``origin`` (module doc): the :class:`Survey`.
-    ``stride``: the preset's ``led_stride`` (the albedo check looks at the images the fit fits,
-    as the whole-map fit does); ``albedo`` False skips that check.  The parts' statistics are
-    added in box order, so the result does not depend on where they ran."""
+    by a worker of the Dask ``client`` from ``origin`` (module doc): the :class:`Survey`.  The
+    parts' statistics are added in box order, so the result does not depend on where they ran."""
     t0 = time.perf_counter()
     recs: dict[tuple, dict[str, Any]] = {}
     with tracker(progress, len(boxes), "survey", unit="band" if client is None else "tile") as bar:
-        for box, rec in _parts(read, boxes, client, survey_part, (shape, stride, albedo), threads, bar, origin):
+        for box, rec in _parts(read, boxes, client, survey_part, (shape,), threads, bar, origin):
             recs[box] = rec
     first = recs[boxes[0]]
     head = first["head"]
@@ -238,7 +248,6 @@ def survey(read: Reader, boxes: list[tuple[int, int, int, int]], shape: tuple[in
     fitted = None if first["fitted"] is None else torch.zeros(shape, dtype=torch.bool)
     back = None
     y_above, y_sum, y_n, y_keep = 0, 0.0, 0, []
-    bright = counted = 0
     for box in boxes:
         rec = recs.pop(box)
         y0, y1, x0, x1 = box
@@ -251,7 +260,6 @@ def survey(read: Reader, boxes: list[tuple[int, int, int, int]], shape: tuple[in
         if rec["y"] is not None:
             y_above, y_sum, y_n = y_above + rec["y"][0], y_sum + rec["y"][1], y_n + rec["y"][2]
             y_keep.append(rec["y"][3])
-        bright, counted = bright + rec["bright"], counted + rec["counted"]
     trans = {"backlit_capture": False, "transmits": False}
     if y_n:
         trans = transmission_from(y_above / y_n, y_sum / y_n, float(torch.quantile(torch.cat(y_keep), 0.99)))
@@ -259,7 +267,7 @@ def survey(read: Reader, boxes: list[tuple[int, int, int, int]], shape: tuple[in
                       wd=head.w_d, sums=sums, counts=torch.zeros(0) if counts is None else counts,
                       fitted=torch.zeros(0) if fitted is None else fitted.sum(dim=0), back=back or 0.0,
                       trans=trans, px=head.pixel_mm, imported=head.imported)
-    return Survey(head, shape, fitted, sums, counts, back, trans, bright, counted, key, time.perf_counter() - t0)
+    return Survey(head, shape, fitted, sums, counts, back, trans, key, time.perf_counter() - t0)
 
 
 def gather_part(o: Observations, box: tuple[int, int, int, int], locals_: list[Tensor]) -> list[Observations]:
@@ -340,13 +348,14 @@ def _done(state: Path, key: str, boxes: list[tuple[int, int, int, int]]) -> dict
     """The parts an earlier run of the same fit saved, without their maps (those stay on disk)."""
     from .tiled import _load_done
 
-    return _load_done(state, key, boxes, ("history", "pixels", "sums"))
+    return _load_done(state, key, boxes, RECORD)
 
 
 @dataclass
 class Parts:
     """The fitted parts of a map (:func:`fit_parts`): their boxes, their records without maps
-    (``history``, ``pixels``, ``sums``), the folder their maps are in, how many an earlier run
+    (:data:`RECORD`: loss history, pixels, loss sums, albedo counts), the folder their maps are
+    in, how many an earlier run
     had finished, and the fit's wall time."""
 
     boxes: list[tuple[int, int, int, int]]
@@ -355,6 +364,14 @@ class Parts:
     resumed: int
     seconds: float
     workers: int | None = None
+
+    @property
+    def albedo_share(self) -> float:
+        """The share of the sample's pixels with a start albedo >= 1 (:func:`.init.albedo_counts`
+        summed over the parts)."""
+        bright = sum(r["albedo"][0] for r in self.records.values())
+        counted = sum(r["albedo"][1] for r in self.records.values())
+        return bright / counted if counted else 0.0
 
     def losses(self) -> dict[str, float]:
         """The whole map's ``train_l1`` and ``train_rmse`` from the parts' sums."""
@@ -405,7 +422,7 @@ def fit_parts(read: Reader, origin: DatasetOrigin, sv: Survey, preset: Preset, c
 
     def finish(box, rec) -> None:
         save_torch(_tile_path(state, box), {**rec, "box": box, "fingerprint": key})
-        records[box] = {k: rec[k] for k in ("history", "pixels", "sums")}
+        records[box] = {k: rec[k] for k in RECORD}
 
     unit = "band" if client is None else "tile"
     workers = None
@@ -417,12 +434,12 @@ def fit_parts(read: Reader, origin: DatasetOrigin, sv: Survey, preset: Preset, c
                 band = read(box)
                 if adam:
                     band = replace(band, whole=whole)
-                with warnings.catch_warnings():  # the survey checked the albedo range on the whole map
-                    warnings.filterwarnings("ignore", message=r".*Lambertian albedo", category=RuntimeWarning)
-                    res = fit_observations(band, preset, comps, seed=seed)
+                # the start of the whole-map fit, and its albedo counts (the map's share is warned about once)
                 fitted = stride_leds(band, preset.led_stride)
+                init, counts = start_params(fitted, comps)
+                res = fit_observations(band, preset, comps, seed=seed, init=init)
                 finish(box, {"maps": dict(res.maps.items()), "history": list(res.history),
-                             "pixels": band.shape[0] * band.shape[1],
+                             "pixels": band.shape[0] * band.shape[1], "albedo": counts,
                              "sums": image_loss_sums(res.maps, comps, fitted)})
                 del band, res, fitted
                 bar.update(1, f"rows {box[0]}..{box[1] - 1}")
@@ -482,9 +499,10 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def warn_albedo(sv: Survey) -> None:
-    """The bright-albedo warning of :func:`.init.check_albedo_range`, for the whole map."""
-    warn_bright(sv.albedo_share, sv.head.imported)
+def warn_albedo(parts: "Parts", imported: bool) -> None:
+    """The bright-albedo warning of :func:`.init.check_albedo_range`, for the whole map (its
+    parts' counts summed)."""
+    warn_bright(parts.albedo_share, imported)
 
 
 def result(parts: Parts, preset: Preset, comps: Components) -> FitResult:
@@ -502,13 +520,24 @@ def reader(origin: DatasetOrigin) -> Reader:
     return lambda box: read_tile(origin, box)
 
 
-def memory_record(memory: int | None, parts: Parts, passes: dict[str, float]) -> dict[str, Any]:
-    """``fit.json``'s ``out_of_core`` record."""
-    return {"memory_bytes": memory, "parts": len(parts.boxes), "part_rows": [b[1] - b[0] for b in parts.boxes[:1]][0],
-            "resumed_parts": parts.resumed, "workers": parts.workers, "pass_seconds": passes,
-            "peak_rss_mb": round(peak_rss_mb(), 1)}
+def estimate_bytes(shape: tuple[int, int], images: int) -> int:
+    """The estimated peak of a whole-map fit of a ``(H, W)`` map of ``images`` LED images (the
+    module doc's model)."""
+    return RESERVE + shape[0] * shape[1] * max(1, images) * BYTES_PER_SAMPLE
+
+
+def memory_record(memory: int | None, parts: Parts, passes: dict[str, float], shape: tuple[int, int],
+                  images: int) -> dict[str, Any]:
+    """``fit.json``'s ``out_of_core`` record: the budget, the whole map's estimated need, the
+    parts (``bands`` of ``part_rows`` rows fitted here, or ``tiles`` on a cluster), the passes'
+    times, and this process's peak resident memory in MiB (the driver's, on a cluster)."""
+    b = parts.boxes[0]
+    return {"memory_bytes": memory, "estimate_bytes": estimate_bytes(shape, images),
+            "part_kind": "bands" if parts.workers is None else "tiles", "parts": len(parts.boxes),
+            "part_rows": b[1] - b[0], "part_columns": b[3] - b[2], "resumed_parts": parts.resumed,
+            "workers": parts.workers, "pass_seconds": passes, "peak_rss_mib": round(peak_rss_mb(), 1)}
 
 
 __all__ = ["DEFAULT_MEMORY", "BYTES_PER_SAMPLE", "RESERVE", "parse_memory", "band_boxes", "Survey", "survey",
            "gather", "survey_part", "survey_task", "gather_part", "gather_task", "Parts", "fit_parts", "fit_parts_refusal", "write_rows", "result", "reader", "peak_rss_mb", "warn_albedo",
-           "memory_record"]
+           "memory_record", "estimate_bytes", "minimum_memory", "check_memory", "MIN_PART_PIXELS"]

@@ -78,7 +78,7 @@ from dualscale.progress import Progress, tracker
 
 from .checkpoint import fingerprint
 from .core import FitResult, coarse_start, fit_losses, fit_observations, stride_leds
-from .init import check_albedo_range, photometric_stereo
+from .init import check_albedo_range, photometric_stereo, start_params
 from .observations import DatasetOrigin, Observations, WholeMap, read_tile
 from .presets import Preset
 
@@ -118,10 +118,14 @@ def fit_tile(obs: Observations, preset: Preset, comps: Components, init: dict[st
     """The task: fit one tile's observations (``fit_observations`` with no held-out lights, no
     checkpoint) on ``threads`` threads; returns ``{"maps": {name: (h, w, C) float32},
     "history": [(iteration, step, mean cost)], "pixels": h * w}``, and with ``sums`` its loss
-    sums (:func:`.metrics.image_loss_sums`: the fit out of core adds them up, :mod:`.stream`)."""
+    sums (:func:`.metrics.image_loss_sums`) and its start's albedo counts
+    (:func:`.init.start_params`): the fit out of core adds them up (:mod:`.stream`)."""
     from dualscale.engine import in_worker
 
     in_worker(threads)
+    counts = None
+    if sums and init is None and preset.coarse_factor <= 1:  # the start, and its albedo counts (.stream)
+        init, counts = start_params(stride_leds(obs, preset.led_stride), comps)
     with warnings.catch_warnings():  # the driver checks the albedo range on the whole map
         warnings.filterwarnings("ignore", message=r".*Lambertian albedo", category=RuntimeWarning)
         res = fit_observations(obs, preset, comps, seed=seed, init=init)
@@ -130,6 +134,7 @@ def fit_tile(obs: Observations, preset: Preset, comps: Components, init: dict[st
         from .metrics import image_loss_sums
 
         rec["sums"] = image_loss_sums(res.maps, comps, stride_leds(obs, preset.led_stride))
+        rec["albedo"] = counts
     return rec
 
 

@@ -185,6 +185,7 @@ class MapsWriter:
                 spec = oiio.ImageSpec(self.width, self.height, MAP_CHANNELS[name], "float")
                 spec.channelnames = channel_names(name)
                 spec.attribute("compression", "zip")  # as formats.exr.write_exr
+                spec.attribute("DateTime", "")  # as write_exr: the same pixels give the same bytes
                 for k, v in (_attributes(name, self.attributes) or {}).items():
                     spec.attribute(k, str(v))
                 self._open(self.root / f"{name}.exr", spec)
