@@ -218,6 +218,7 @@ def _parts(read: Reader, boxes, client, task, args: tuple, threads: int, bar, or
     if client is None:
         for box in boxes:
             yield box, task(read(box), box, *args)
+            release_memory()
             bar.update(1)
         return
     from dualscale.engine import bounded
@@ -309,8 +310,13 @@ def gather(read: Reader, boxes: list[tuple[int, int, int, int]], shape: tuple[in
     def per_box(o, box, *_):  # in this process: the box's own local indices
         return gather_part(o, box, [local for _, local in wanted[box]])
 
+    def here(b):
+        got = per_box(read(b), b)
+        release_memory()
+        return b, got
+
     if client is None:
-        results = ((b, per_box(read(b), b)) for b in todo)
+        results = (here(b) for b in todo)
     else:
         results = _gathered_remote(client, todo, wanted, origin, threads)
     for box, got in results:
@@ -441,7 +447,8 @@ def fit_parts(read: Reader, origin: DatasetOrigin, sv: Survey, preset: Preset, c
                 finish(box, {"maps": dict(res.maps.items()), "history": list(res.history),
                              "pixels": band.shape[0] * band.shape[1], "albedo": counts,
                              "sums": image_loss_sums(res.maps, comps, fitted)})
-                del band, res, fitted
+                del band, res, fitted, init
+                release_memory()
                 bar.update(1, f"rows {box[0]}..{box[1] - 1}")
         else:
             workers = _on_cluster(client, todo, origin, sv, preset, comps, seed, threads, finish, bar)
@@ -494,6 +501,20 @@ def write_rows(parts: Parts) -> tuple[list[str], Any]:
     return names, strips()
 
 
+def release_memory() -> None:
+    """Hand the heap a part freed back to the system (glibc ``malloc_trim``): without it the
+    freed temporaries of one band stay in the process, fragmented, and the peak crept up with the
+    number of bands (2.11 GB over 4 bands at 512^2, 2.33 GB over 16 at 1024^2, the same band
+    size).  A no-op where there is no glibc."""
+    import ctypes
+    import ctypes.util
+
+    try:
+        ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+
+
 def peak_rss_mb() -> float:
     """This process's peak resident memory so far, in MiB (``getrusage``: Linux reports kiB)."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
@@ -539,5 +560,5 @@ def memory_record(memory: int | None, parts: Parts, passes: dict[str, float], sh
 
 
 __all__ = ["DEFAULT_MEMORY", "BYTES_PER_SAMPLE", "RESERVE", "parse_memory", "band_boxes", "Survey", "survey",
-           "gather", "survey_part", "survey_task", "gather_part", "gather_task", "Parts", "fit_parts", "fit_parts_refusal", "write_rows", "result", "reader", "peak_rss_mb", "warn_albedo",
+           "gather", "survey_part", "survey_task", "gather_part", "gather_task", "Parts", "fit_parts", "fit_parts_refusal", "write_rows", "result", "reader", "peak_rss_mb", "release_memory", "warn_albedo",
            "memory_record", "estimate_bytes", "minimum_memory", "check_memory", "MIN_PART_PIXELS"]
