@@ -70,6 +70,8 @@ DIGITIZE_STAGES_S = (1.3, 23.1, 0.2, 44.7, 0.5, 7.3)
 WORKER_FIRST_TASK_S = 2.4
 #: the network the extrapolation assumes for the driver and the storage (bytes/s): 10 GbE
 NETWORK_BPS = 1.25e9
+#: the shared storage's read rate the extrapolation assumes (a 10 Gb/s file server)
+STORAGE_BPS = NETWORK_BPS
 
 
 # --------------------------------------------------------------------------- measuring helpers
@@ -403,20 +405,31 @@ def extrapolate(rep: dict, tile: int = 128) -> dict:
     f32 = FULL_LED_IMAGES * px * 3 * 4
     meas_bpp = rep["dataset"]["exr_bytes"] / (rep["dataset"]["exr_files"] * rep["size"] ** 2)  # per pixel & image
     exr_meas = meas_bpp * (FULL_LED_IMAGES + 2) * px
-    decode_bps = rep["dataset"]["exr_bytes"] / rep["dataset"]["load_s"]  # this driver, decoding + float32
-    driver_pp = (ip["driver_albedo_check_s"] + ip["driver_losses_s"]) / rep["size"] ** 2 * (FULL_LED_IMAGES / k_meas)
-    serial = ip["selection_s"] * (FULL_LED_IMAGES / k_meas) + driver_pp * px
-    read = exr_meas / decode_bps
+    decode_bps = rep["dataset"]["exr_bytes"] / rep["dataset"]["load_s"]  # one process, decoding + float32
+    # issue 25: the workers read their own tiles (a tile's EXR bytes at one worker's decode rate, no
+    # shipping), and the survey and the gather are band tasks on the workers, each a read of the
+    # dataset plus the survey's per-pixel work (the albedo check's photometric stereo); the driver
+    # keeps the selection and writes the maps by rows
+    tile_read = meas_bpp * (FULL_LED_IMAGES + 2) * tile * tile / decode_bps
+    o = big["noop_roundtrip_s"] + tile_read
+    from dualscale.fit.stream import DEFAULT_MEMORY, band_boxes
+
+    n_bands = len(band_boxes((BIG, BIG), FULL_LED_IMAGES, DEFAULT_MEMORY))
+    maps_bytes = px * ip["channels"] * 4
+    serial = ip["selection_s"] * (FULL_LED_IMAGES / k_meas) + maps_bytes / decode_bps  # selection; the maps' rows
+    read = exr_meas / decode_bps  # one pass by one process
     fit_rows = []
     for n in CORES:
         waves = math.ceil(n_tiles / n)
         compute = waves * (t_tile + o)
-        sched = n_tiles / sched_rate
-        ship = f32 / min(rate, NETWORK_BPS)  # every tile's images leave the driver once, through the scheduler
-        wall = read + serial + max(compute, sched, ship)
+        sched = (n_tiles + 2 * n_bands) / sched_rate
+        passes = 2 * max(read / n, exr_meas / STORAGE_BPS)  # survey + gather on the workers: reads
+        storage = exr_meas / STORAGE_BPS  # the tiles' own reads, at the storage's rate
+        wall = passes + serial + max(compute, sched, storage)
         fit_rows.append({"cores": n, "tiles": n_tiles, "waves": waves, "compute_s": compute, "scheduler_s": sched,
-                         "ship_s": ship, "read_s": read, "serial_s": serial, "wall_s": wall,
-                         "storage_bps_to_keep_up": exr_meas / compute, "overhead_fraction": o / (t_tile + o)})
+                         "passes_s": passes, "storage_s": storage, "read_s": read, "serial_s": serial,
+                         "wall_s": wall, "storage_bps_to_keep_up": exr_meas / compute,
+                         "overhead_fraction": o / (t_tile + o)})
     one_core = n_tiles * (t_tile + o)
     stages = sum(DIGITIZE_STAGES_S)
     lib_rows = []
@@ -425,10 +438,12 @@ def extrapolate(rep: dict, tile: int = 128) -> dict:
         # a full-size sample: its fit as one task chain on one worker (b_full x 4096²) plus the other
         # stages as measured; the library as many tiles as there are cores can take
         full_fit_core_s = px * b_full + n_tiles * a
-        full = LIBRARY * (full_fit_core_s + stages - DIGITIZE_STAGES_S[1]) / n + WORKER_FIRST_TASK_S
-        lib_rows.append({"cores": n, "small_s": small, "full_s": full, "tasks": LIBRARY * 6,
-                         "scheduler_s": LIBRARY * 6 / sched_rate,
-                         "full_storage_bps": LIBRARY * exr_meas / full})
+        work = LIBRARY * (full_fit_core_s + stages - DIGITIZE_STAGES_S[1]) / n + WORKER_FIRST_TASK_S
+        reads = LIBRARY * 3 * exr_meas / STORAGE_BPS  # each material's survey, gather and tiles read its dataset
+        full = max(work, reads)
+        lib_rows.append({"cores": n, "small_s": small, "full_s": full, "work_s": work, "storage_s": reads,
+                         "tasks": LIBRARY * 6, "scheduler_s": LIBRARY * 6 / sched_rate,
+                         "full_storage_bps": LIBRARY * 3 * exr_meas / work})
     default = [t for t in rep["tiled"] if not t["unset_trim"] and t["worker_trim"] != ["None"]]
     factors = [t["tile_in_worker_s"] / t["tile_here_s"] for t in default]
     return {"tile": tile, "per_pixel_full_s": b_full, "worker_env_factor": statistics.median(factors) if factors else None, "per_image_s": per_image, "fixed_s": a, "task_overhead_s": o,
@@ -436,7 +451,7 @@ def extrapolate(rep: dict, tile: int = 128) -> dict:
             "tile_out_bytes": tile * tile * ip["channels"] * 4, "t_tile_s": t_tile, "one_core_s": one_core,
             "exr_half_bytes": exr_half, "float32_bytes": f32, "exr_measured_bytes": exr_meas,
             "exr_bytes_per_px_image": meas_bpp, "decode_bps": decode_bps, "serial_s": serial, "read_s": read,
-            "fit": fit_rows, "library": lib_rows, "material_s": stages}
+            "bands": n_bands, "tile_read_s": tile_read, "fit": fit_rows, "library": lib_rows, "material_s": stages}
 
 
 def hms(s: float) -> str:
@@ -538,24 +553,27 @@ def extrapolation_tables(rep: dict) -> list[str]:
            "worker per core x 1 thread). Measured here: per-pixel cost "
            f"{1e3 * ex['per_pixel_full_s']:.3f} ms at {FULL_LED_IMAGES} images (linear in the images from the two "
            f"light sets), {1e3 * ex['fixed_s']:.0f} ms per call, so {ex['t_tile_s']:.1f} s per tile; per-task "
-           f"overhead {1e3 * ex['task_overhead_s']:.0f} ms (no-op round trip + the tile's "
-           f"{ex['tile_in_bytes'] / 1e6:.0f} MB at the {ex['dask_bytes_per_s'] / 1e6:.0f} MB/s Dask moved here); "
+           f"overhead {1e3 * ex['task_overhead_s']:.0f} ms (no-op round trip + the worker's read of its tile, "
+           f"{ex['tile_read_s']:.2f} s at one process's decode rate); "
            f"scheduler {ex['scheduler_tasks_per_s']:.0f} tasks/s (Dask's docs: 200 us to 1 ms per task). "
            + (f"The tile fits assume workers without Dask's `{TRIM}` (with it they took "
               f"x{ex['worker_env_factor']:.2f} here). " if ex.get("worker_env_factor") else "")
-           + f"Assumed: the driver holds the whole dataset as float32 ({ex['float32_bytes'] / gb:.0f} GB) and "
-           f"ships every tile's images once, through the scheduler, at the lesser of the rate measured here and a "
-           f"{NETWORK_BPS * 8 / 1e9:.0f} Gb/s link; the EXR dataset "
+           + f"The design since issue 25: the driver holds no pixel (the float32 dataset would be "
+           f"{ex['float32_bytes'] / gb:.0f} GB); the workers read their own tiles from shared storage, and run the "
+           f"survey and the gather as {ex['bands']} band tasks each (two reads of the dataset: their sums and "
+           "sample pixels cost little beside the decoding); the EXR dataset is "
            f"{ex['exr_measured_bytes'] / gb:.0f} GB at this synthetic dataset's "
            f"{ex['exr_bytes_per_px_image']:.1f} bytes per pixel and image (half float, uncompressed: "
-           f"{ex['exr_half_bytes'] / gb:.0f} GB), read and decoded by the driver at the "
-           f"{ex['decode_bps'] / 1e6:.0f} MB/s measured here (from the page cache, 1 thread); the driver's serial work (selection, albedo check, "
-           f"losses) scaled to the map: {hms(ex['serial_s'])}. One core: {hms(ex['one_core_s'])} of tile fits.", "",
-           "| cores | tiles | waves | tile fits | scheduler bound | shipping bound | EXR read (driver) | driver serial | "
-           "**wall** | storage to keep up |", "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+           f"{ex['exr_half_bytes'] / gb:.0f} GB), decoded at the {ex['decode_bps'] / 1e6:.0f} MB/s one process "
+           f"reached here (page cache, 1 thread), every pass and the tiles' reads capped by a shared storage of "
+           f"{STORAGE_BPS * 8 / 1e9:.0f} Gb/s (assumed); the driver's serial work (selection, the maps written by "
+           f"rows at the same rate): {hms(ex['serial_s'])}. One core: {hms(ex['one_core_s'])} of tile fits.", "",
+           "| cores | tiles | waves | tile fits | scheduler bound | survey + gather (workers) | tiles' reads at the "
+           "storage's rate | driver serial | **wall** | storage to keep up |",
+           "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in ex["fit"]:
         out.append(f"| {r['cores']} | {r['tiles']} | {r['waves']} | {hms(r['compute_s'])} | {hms(r['scheduler_s'])} | "
-                   f"{hms(r['ship_s'])} | {hms(r['read_s'])} | {hms(r['serial_s'])} | **{hms(r['wall_s'])}** | "
+                   f"{hms(r['passes_s'])} | {hms(r['storage_s'])} | {hms(r['serial_s'])} | **{hms(r['wall_s'])}** | "
                    f"{r['storage_bps_to_keep_up'] / 1e6:.0f} MB/s |")
     out += ["", f"**Extrapolation: a library of {LIBRARY} materials** (`dualscale batch`: one material per worker, "
             f"six stage tasks each). Small samples: the stages of a {sum(DIGITIZE_STAGES_S):.0f} s `digitize "
@@ -564,11 +582,15 @@ def extrapolation_tables(rep: dict) -> list[str]:
             f"task {WORKER_FIRST_TASK_S:g} s of imports (docs/BATCH.md). Full-size samples: the same stages but a "
             f"{BIG}² fit ({hms(ex['one_core_s'])} on one core, above); the library's fits are spread over the "
             "cores (tiled, or one material per core: the same total when materials >= cores).", "",
-            "| cores | small samples | full-size samples | stage tasks | scheduler time for them | storage read "
-            "rate (full-size) |", "|---:|---:|---:|---:|---:|---:|"]
+            f"Full-size samples read their dataset three times each (survey, gather, tiles): at the assumed "
+            f"{STORAGE_BPS * 8 / 1e9:.0f} Gb/s that is a floor on the wall.", "",
+            "| cores | small samples | full-size samples: work | full-size: storage floor | **full-size wall** | "
+            "stage tasks | scheduler time for them | storage read rate to keep up (full-size) |",
+            "|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in ex["library"]:
-        out.append(f"| {r['cores']} | {hms(r['small_s'])} | {hms(r['full_s'])} | {r['tasks']} | "
-                   f"{r['scheduler_s']:.1f} s | {r['full_storage_bps'] / 1e6:.0f} MB/s |")
+        out.append(f"| {r['cores']} | {hms(r['small_s'])} | {hms(r['work_s'])} | {hms(r['storage_s'])} | "
+                   f"**{hms(r['full_s'])}** | {r['tasks']} | {r['scheduler_s']:.1f} s | "
+                   f"{r['full_storage_bps'] / 1e6:.0f} MB/s |")
     return out
 
 
