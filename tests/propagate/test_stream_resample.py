@@ -69,6 +69,7 @@ def _digitize(sample, run) -> int:
                  "--quality", "draft", "--threads", "1", "--no-progress", "--until", "propagate"])
 
 
+@pytest.mark.slow  # a whole digitize run (28 s); the streamed resampling's equality is tested above, fast
 def test_digitize_propagate_stage_from_disk_gives_the_same_maps(digitized, tmp_path, monkeypatch):
     from dualscale.formats.maps import load_maps
 
