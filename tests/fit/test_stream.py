@@ -324,11 +324,8 @@ def test_out_of_core_on_a_cluster_survives_a_worker_killed_mid_tile(datasets, tm
     the scheduler reruns it on another worker, and the maps are still the whole-map fit's."""
     pytest.importorskip("distributed", reason="the dask extra is not installed (pip install 'dualscale[dask]')")
     import contextlib
-    import os
-    import signal
-    import threading
-    import time
 
+    from dask_kill import run_killing_a_busy_worker
     from dualscale.engine import EngineSpec, connect
 
     root = datasets("twill", 16) / "micro"
@@ -336,29 +333,10 @@ def test_out_of_core_on_a_cluster_survives_a_worker_killed_mid_tile(datasets, tm
     kw = dict(cv_pixels=0, previews=False)
     api.fit_dataset(root, tmp_path / "whole", p, memory=None, **kw)
     with connect(EngineSpec(workers=2)) as c:
-        pids = c.run(os.getpid)
         monkeypatch.setattr(api, "connect", lambda spec: contextlib.nullcontext(c))
-        out: dict = {}
-
-        def run():
-            try:
-                out["res"] = api.fit_dataset(root, tmp_path / "tiles", p, engine=EngineSpec(workers=2), tile_px=6,
-                                             **kw)
-            except BaseException as e:  # noqa: BLE001 - reported below
-                out["error"] = e
-
-        t = threading.Thread(target=run)
-        t.start()
-        killed = None
-        deadline = time.monotonic() + 120
-        while killed is None and time.monotonic() < deadline and t.is_alive():
-            busy = [w for w, keys in c.processing().items() if any("fit-part" in str(k) for k in keys)]
-            if busy:
-                killed = pids[busy[0]]
-                os.kill(killed, signal.SIGKILL)
-            else:
-                time.sleep(0.02)
-        t.join(300)
-        assert killed is not None, "no worker was seen fitting a tile"
+        out = run_killing_a_busy_worker(c, lambda: api.fit_dataset(root, tmp_path / "tiles", p,
+                                                                   engine=EngineSpec(workers=2), tile_px=6, **kw),
+                                        "fit-part")
+        assert out["killed"] is not None, "no worker was seen fitting a tile"
         assert "error" not in out, out.get("error")
     _equal_maps(tmp_path / "whole", tmp_path / "tiles")

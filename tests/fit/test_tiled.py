@@ -5,9 +5,6 @@ from __future__ import annotations
 
 import json
 import os
-import signal
-import threading
-import time
 from dataclasses import replace
 
 import pytest
@@ -22,6 +19,8 @@ from dualscale.fit.observations import load_observations  # noqa: E402
 from dualscale.fit.params import fit_components  # noqa: E402
 from dualscale.fit.presets import get_preset  # noqa: E402
 from dualscale.fit.tiled import fit_tiled, tiles  # noqa: E402
+
+from dask_kill import run_killing_a_busy_worker  # noqa: E402
 
 
 
@@ -138,27 +137,8 @@ def test_a_worker_killed_mid_tile_is_survived(data, tmp_path):
     other worker (or the nanny's restarted one), and the maps are still the single-process fit's."""
     obs, comps, p = data["twill"], fit_components(True, False, False), get_preset("standard")
     with connect(EngineSpec(workers=2)) as c:
-        pids = c.run(os.getpid)
-        out: dict = {}
-
-        def run():
-            try:
-                out["res"] = fit_tiled(obs, p, comps, c, tile=12)
-            except BaseException as e:  # noqa: BLE001 - reported below
-                out["error"] = e
-
-        t = threading.Thread(target=run)
-        t.start()
-        killed = None
-        deadline = time.monotonic() + 120
-        while killed is None and time.monotonic() < deadline and t.is_alive():
-            busy = [w for w, keys in c.processing().items() if any("fit-tile" in str(k) for k in keys)]
-            if busy:
-                killed = pids[busy[0]]
-                os.kill(killed, signal.SIGKILL)
-            else:
-                time.sleep(0.02)
-        t.join(300)
+        out = run_killing_a_busy_worker(c, lambda: fit_tiled(obs, p, comps, c, tile=12), "fit-tile")
+        killed = out["killed"]
         assert killed is not None, "no worker was seen fitting a tile"
         assert "error" not in out, out.get("error")
         assert killed not in c.run(os.getpid).values()  # the killed process is gone (restarted by its nanny)
