@@ -319,6 +319,7 @@ def test_the_flyouts_confidence_map_by_bands_is_the_whole_maps(datasets):
     assert np.array_equal(confidence_by_bands(obs.origin, boxes, obs.shape), confidence_map(obs))
 
 
+@pytest.mark.slow  # 10 s; the tiled fit's own killed-worker test (test_tiled.py) stays in make test
 def test_out_of_core_on_a_cluster_survives_a_worker_killed_mid_tile(datasets, tmp_path, monkeypatch):
     """SIGKILL the worker fitting a tile of an out-of-core fit: the task carries coordinates, so
     the scheduler reruns it on another worker, and the maps are still the whole-map fit's."""
