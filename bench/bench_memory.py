@@ -86,14 +86,10 @@ def mem_available() -> int:
 
 
 def machine() -> str:
-    model = platform.processor() or platform.machine()
-    try:
-        for line in subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout.splitlines():
-            if line.startswith("Model name:"):
-                model = line.split(":", 1)[1].strip()
-    except (OSError, subprocess.CalledProcessError):
-        pass
-    return f"{platform.platform()}, {model}, os.cpu_count() = {os.cpu_count()} (2 shared cores)"
+    """bench_scale's machine line (the CPU model, cores and usable cores, the host), marked shared."""
+    from bench_scale import machine as cpu
+
+    return f"{platform.platform()}, {cpu()} (shared)"
 
 
 def commit() -> str:
