@@ -475,6 +475,21 @@ class Digitizer:
         cal = self.out("calibrate") / "guidance"
         return cal if (cal / "manifest.json").is_file() else self.opts.guidance
 
+    def _micro(self) -> tuple[Any, Any, tuple[int, int], list[tuple[int, int, int, int]]]:
+        """``(obs, origin, (H, W), bands)`` of the micro dataset under the memory budget: its
+        :class:`~dualscale.fit.observations.DatasetOrigin`, the bands of
+        :func:`dualscale.fit.stream.band_boxes`, and the observations loaded whole when one band
+        holds the map, else one pixel of them (the lights, the texel size) for a stage that then
+        reads the dataset band by band."""
+        from dualscale.fit.observations import DatasetOrigin, fit_layout, load_observations, read_tile
+        from dualscale.fit.stream import band_boxes
+
+        root, camera, shape, images = fit_layout(self.dataset)
+        bands = band_boxes(shape, images, self.opts.memory)
+        origin = DatasetOrigin(root, camera, None, "float32", "")
+        obs = load_observations(self.dataset) if len(bands) == 1 else read_tile(origin, (0, 1, 0, 1))
+        return obs, origin, shape, bands
+
     def fit(self) -> StageResult:
         params = {"preset": self.quality.fit_preset, "cv_pixels": self.quality.cv_pixels,
                   "cv_folds": self.quality.cv_folds, "seed": self.opts.seed}
@@ -490,20 +505,12 @@ class Digitizer:
         which was fitted on these captures too: they show what the maps reproduce, not a
         prediction (the table's errors are the held-out ones)."""
         from dualscale.fit.api import fit_dataset
-        from dualscale.fit.observations import load_observations
-        from dualscale.fit.residuals import light_views, residual_map
+        from dualscale.fit.residuals import light_views, residual_by_bands, residual_map, views_by_bands
         from dualscale.formats.atomic import write_json
         from dualscale.formats.exr import write_exr
 
-        from dualscale.fit.observations import DatasetOrigin, fit_layout, read_tile
-        from dualscale.fit.residuals import residual_by_bands, views_by_bands
-        from dualscale.fit.stream import band_boxes
-
-        root, camera, shape, images = fit_layout(self.dataset)
-        bands = band_boxes(shape, images, self.opts.memory)
         # over the budget: the fit reads the dataset band by band (fit.stream) and so does the evidence below
-        origin = DatasetOrigin(root, camera, None, "float32", "")
-        obs = load_observations(self.dataset) if len(bands) == 1 else read_tile(origin, (0, 1, 0, 1))
+        obs, origin, shape, bands = self._micro()
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             res, extra = fit_dataset(self.dataset, work / "maps", self.quality.fit_preset,
@@ -563,20 +570,11 @@ class Digitizer:
                            self._flyouts)
 
     def _flyouts(self, work: Path) -> dict[str, Any]:
-        from dualscale.fit.flyouts import detect_dataset
-        from dualscale.fit.observations import load_observations
-
-        from dualscale.fit.flyouts import confidence_by_bands
-        from dualscale.fit.observations import DatasetOrigin, fit_layout, read_tile
-        from dualscale.fit.stream import band_boxes
+        from dualscale.fit.flyouts import confidence_by_bands, detect_dataset
 
         if not self.quality.flyouts:
             return {"skipped": f"quality {self.quality.name} does not detect fly-outs"}
-        root, camera, shape, images = fit_layout(self.dataset)
-        bands = band_boxes(shape, images, self.opts.memory)
-        origin = DatasetOrigin(root, camera, None, "float32", "")
-        # over the memory budget: one pixel for the lights, the confidence map band by band
-        obs = load_observations(self.dataset) if len(bands) == 1 else read_tile(origin, (0, 1, 0, 1))
+        obs, origin, shape, bands = self._micro()  # over the budget: the confidence map band by band
         if not obs.has_polarisation:
             return {"skipped": "fly-out detection needs captures with the specular passed and blocked "
                                "(polarised LEDs with the P0/P90 analyser); this dataset has none"}

@@ -104,6 +104,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
 def _memory_line(extra: dict) -> str:
     """The fit's memory, as the user reads it: in memory or out of core, against the budget."""
+    from dualscale.fit.stream import memory_text as _size
+
     mem = extra.get("memory") or {}
     budget = "no budget" if mem.get("memory_bytes") is None else f"the {_size(mem['memory_bytes'])} budget"
     need = f"estimated {_size(mem['estimate_bytes'])}" if mem.get("estimate_bytes") else "given in memory"
@@ -116,10 +118,6 @@ def _memory_line(extra: dict) -> str:
     return (f"memory: out of core ({need}, over {budget}): {parts}; peak {m['peak_rss_mib']:.0f} MiB"
             + (" in this process (the driver)" if m["part_kind"] == "tiles" else "")
             + (f"; {m['resumed_parts']} done before" if m["resumed_parts"] else ""))
-
-
-def _size(n: float) -> str:
-    return f"{n / 2 ** 30:.3g} GiB" if n >= 2 ** 30 else f"{n / 2 ** 20:.0f} MiB"
 
 
 def cmd_study_lights(args: argparse.Namespace) -> int:

@@ -116,13 +116,16 @@ def check_memory(memory: int | None, images: int) -> None:
     """Raise :class:`~dualscale.errors.InputError` when ``memory`` (bytes; ``None``: unlimited)
     is below :func:`minimum_memory` for ``images`` LED images (checked before any work)."""
     if memory is not None and memory < minimum_memory(images):
-        raise InputError(f"--memory {_mib(memory)} is below what a fit of {images} images needs: "
-                         f"{_mib(minimum_memory(images))} at least (the process's {_mib(RESERVE)} and a part of "
+        raise InputError(f"--memory {memory_text(memory)} is below what a fit of {images} images needs: "
+                         f"{memory_text(minimum_memory(images))} at least (the process's {memory_text(RESERVE)} and a part of "
                          f"{MIN_PART_PIXELS} pixels at {BYTES_PER_SAMPLE * max(1, images) / 2 ** 10:.0f} KiB each); "
                          "give more, e.g. --memory 2G")
 
 
-def _mib(n: float) -> str:
+def memory_text(n: float) -> str:
+    """``n`` bytes as the messages give a memory size: GiB (3 digits), MiB, KiB or bytes."""
+    if n >= 2 ** 30:
+        return f"{n / 2 ** 30:.3g} GiB"
     return f"{n / 2 ** 20:.0f} MiB" if n >= 2 ** 20 else f"{n / 2 ** 10:.1f} KiB" if n >= 1024 else f"{n:.0f} bytes"
 
 
@@ -561,4 +564,4 @@ def memory_record(memory: int | None, parts: Parts, passes: dict[str, float], sh
 
 __all__ = ["DEFAULT_MEMORY", "BYTES_PER_SAMPLE", "RESERVE", "parse_memory", "band_boxes", "Survey", "survey",
            "gather", "survey_part", "survey_task", "gather_part", "gather_task", "Parts", "fit_parts", "fit_parts_refusal", "write_rows", "result", "reader", "peak_rss_mb", "release_memory", "warn_albedo",
-           "memory_record", "estimate_bytes", "minimum_memory", "check_memory", "MIN_PART_PIXELS"]
+           "memory_record", "memory_text", "estimate_bytes", "minimum_memory", "check_memory", "MIN_PART_PIXELS"]
