@@ -316,6 +316,23 @@ def _quiet_resource_tracker() -> None:
             signal.signal(signal.SIGHUP, hup)
 
 
+#: the environment variable through which Dask's processes read the level of the ``distributed``
+#: logger when they import it (dask's config: ``distributed.logging.distributed``)
+LOG_LEVEL_ENV = "DASK_DISTRIBUTED__LOGGING__DISTRIBUTED"
+
+
+def _quiet_distributed_logs() -> None:
+    """Errors only from Dask's ``distributed`` logger, here and in the worker processes started
+    from here (they read :data:`LOG_LEVEL_ENV` on import), unless the user set that variable.
+    A stop request (SIGTERM to the process group) closes the comms of a cluster being torn down,
+    and ``distributed.batched`` then logged a traceback at INFO ("Batched Comm Closed") from
+    whichever process lost its comm first: ``silence_logs`` only lowers the handlers it finds,
+    for the lifetime of the cluster, and a worker's logger is configured before it applies."""
+    if os.environ.get(LOG_LEVEL_ENV) is None:
+        os.environ[LOG_LEVEL_ENV] = "error"
+    logging.getLogger("distributed").setLevel(getattr(logging, os.environ[LOG_LEVEL_ENV].upper(), logging.ERROR))
+
+
 @contextmanager
 def connect(spec: EngineSpec) -> Iterator[Any]:
     """Open the cluster of ``spec`` and yield a :class:`distributed.Client` on it; closes the
@@ -326,6 +343,7 @@ def connect(spec: EngineSpec) -> Iterator[Any]:
     import dask
     from distributed import Client, LocalCluster
 
+    _quiet_distributed_logs()
     cluster = None
     local_env = {} if _USER_MALLOC_TRIM is not None else {f"distributed.nanny.pre-spawn-environ.{MALLOC_TRIM}": None}
     with dask.config.set({"distributed.worker.daemon": False,  # a stage may start its own processes
