@@ -110,3 +110,74 @@ def test_malformed_files_are_refused(tmp_path):
     write_pixels(p, a, spec)
     with pytest.raises(FormatError, match="determined values are negative or not finite"):
         load_uncertainty(tmp_path)
+
+
+# --------------------------------------------------------------------------- UncertaintyWriter (by rows)
+
+def _bytes(folder):
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir())}
+
+
+def test_the_writer_by_strips_writes_the_bytes_of_save_uncertainty(tmp_path):
+    from dualscale.formats.maps import UncertaintyWriter
+
+    sigma, und = _set(11, 5, seed=3)
+    save_uncertainty(tmp_path / "whole", sigma, und, meta={"noise": "x"})
+    with UncertaintyWriter(tmp_path / "rows", list(sigma), 11, 5, meta={"noise": "x"}) as out:
+        for y0, y1 in ((0, 4), (4, 5), (5, 11)):
+            out.write(y0, {k: v[y0:y1] for k, v in sigma.items()}, {k: v[y0:y1] for k, v in und.items()})
+    assert _bytes(tmp_path / "rows" / "uncertainty") == _bytes(tmp_path / "whole" / "uncertainty")
+    s2, u2, _ = load_uncertainty(tmp_path / "rows")
+    for k in sigma:
+        assert np.array_equal(u2[k], und[k]) and np.isnan(s2[k][und[k]]).all(), k
+
+
+@pytest.mark.parametrize("how", ["interrupt", "error", "short"])
+def test_an_interrupted_write_leaves_no_new_file(tmp_path, how):
+    from dualscale.formats.maps import UncertaintyWriter
+
+    sigma, und = _set()
+    save_uncertainty(tmp_path, {"albedo": sigma["albedo"]}, {"albedo": und["albedo"]})
+    folder = tmp_path / "uncertainty"
+    before = _bytes(folder)
+    exc = {"interrupt": KeyboardInterrupt, "error": RuntimeError, "short": ValueError}[how]
+    with pytest.raises(exc):
+        with UncertaintyWriter(tmp_path, list(sigma), 9, 7) as out:
+            out.write(0, {k: v[:4] for k, v in sigma.items()}, {k: v[:4] for k, v in und.items()})
+            if how == "interrupt":
+                raise KeyboardInterrupt
+            if how == "error":
+                raise RuntimeError("the fit failed")
+    after = _bytes(folder)
+    # the earlier record is gone (a half-written set never looks complete), nothing new appeared
+    assert "uncertainty.json" not in after
+    assert after == {k: v for k, v in before.items() if k != "uncertainty.json"}
+    with pytest.raises(FileNotFoundError):
+        load_uncertainty(tmp_path)
+
+
+def test_the_writer_refuses_rows_out_of_order_and_bad_strips(tmp_path):
+    from dualscale.formats.maps import UncertaintyWriter
+
+    sigma, und = _set()
+    strip = lambda d, a, b: {k: v[a:b] for k, v in d.items()}  # noqa: E731
+    with pytest.raises(ValueError, match="in order"):
+        with UncertaintyWriter(tmp_path, list(sigma), 9, 7) as out:
+            out.write(0, strip(sigma, 0, 3), strip(und, 0, 3))
+            out.write(5, strip(sigma, 5, 9), strip(und, 5, 9))
+    bad = {k: v.copy() for k, v in sigma.items()}
+    bad["roughness"][6, 2, 0], und["roughness"][6, 2, 0] = -0.5, False
+    with pytest.raises(ValueError, match=r"'roughness'.*rows 3\.\.8"):
+        with UncertaintyWriter(tmp_path, list(sigma), 9, 7) as out:
+            out.write(0, strip(sigma, 0, 3), strip(und, 0, 3))
+            out.write(3, strip(bad, 3, 9), strip(und, 3, 9))
+    with pytest.raises(ValueError, match="'albedo'"):
+        with UncertaintyWriter(tmp_path, list(sigma), 9, 7) as out:
+            out.write(0, {**strip(sigma, 0, 3), "albedo": sigma["albedo"][:3, :, :1]}, strip(und, 0, 3))
+    with pytest.raises(ValueError, match="expected"):
+        with UncertaintyWriter(tmp_path, list(sigma), 9, 7) as out:
+            out.write(0, {"albedo": sigma["albedo"]}, {"albedo": und["albedo"]})
+    with pytest.raises(ValueError, match="unknown"):
+        UncertaintyWriter(tmp_path, ["sheen"], 9, 7)
+    assert not (tmp_path / "uncertainty" / "uncertainty.json").exists()
+    assert sorted(p.name for p in (tmp_path / "uncertainty").iterdir()) == []

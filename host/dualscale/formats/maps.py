@@ -14,9 +14,10 @@ and propagation); version-1 files (no size) are still read, with ``texel_mm`` nu
 conventions (:data:`CONVENTIONS`) are the single source of truth for every map on disk; the
 canonical in-memory maps are :class:`dualscale.bsdf.MaterialMaps` (seed Sec. 5).
 
-``MAPS/uncertainty/`` (issue 26; :func:`save_uncertainty`, :func:`load_uncertainty`): the
-1-sigma uncertainty of each map in its own units (:data:`SIGMA_UNITS`), half float, NaN where
-undetermined, with ``undetermined.exr`` and ``uncertainty.json`` (version 1).
+``MAPS/uncertainty/`` (issue 26; :func:`save_uncertainty`, :class:`UncertaintyWriter` by rows,
+:func:`load_uncertainty`): the 1-sigma uncertainty of each map in its own units
+(:data:`SIGMA_UNITS`), half float, NaN where undetermined, with ``undetermined.exr`` and
+``uncertainty.json`` (version 1).
 
 Loading refuses (``FormatError``/``GeometryError``) names it does not know, sizes that disagree
 with ``material.json``, non-finite values and normal maps whose vectors are not unit length
@@ -337,7 +338,7 @@ UNCERTAINTY_FORMAT = "dualscale-uncertainty"
 UNCERTAINTY_VERSION = 1
 UNCERTAINTY_DIR = "uncertainty"
 #: channels of each map's 1-sigma uncertainty (the normal and the tangent as one angle)
-SIGMA_CHANNELS = {"albedo": 3, "transmittance": 3, "specular_tint": 3, "opacity": 1, "roughness": 1,
+SIGMA_CHANNELS = {"albedo": 3, "transmittance": 3, "specular_tint": 1, "opacity": 1, "roughness": 1,
                   "anisotropy": 1, "ior": 1, "normal": 1, "tangent": 1}
 #: each map's uncertainty unit
 SIGMA_UNITS = {"albedo": "reflectance (the map's linear value)", "transmittance": "the map's linear value",
@@ -354,67 +355,188 @@ def _sigma_names(name: str) -> tuple[str, ...]:
 def save_uncertainty(root: str | Path, sigma: dict[str, np.ndarray], undetermined: dict[str, np.ndarray],
                      meta: dict | None = None) -> Path:
     """Write the 1-sigma uncertainty of the maps under ``root`` into ``root/uncertainty/``:
-    ``<name>.exr`` per map (half float, zip; :data:`SIGMA_CHANNELS` channels; NaN where the value
-    is undetermined), ``undetermined.exr`` (one half-float channel per map and sigma channel,
-    named ``<name>.<channel>``, 1 = undetermined) and ``uncertainty.json`` (written last,
-    atomically: ``{"format", "version", "maps", "height", "width", "units", "meta"}``; an
-    earlier one is removed first).  ``sigma``: ``{name: (H, W, C)}``, finite and >= 0 where
-    determined; ``undetermined``: ``{name: (H, W, C)}`` bool.  Half float keeps the folder at
-    half the maps' own size (a sigma needs 3 significant digits, half float has 3.3).  Returns
-    the path of ``uncertainty.json``.  ``ValueError`` for an unknown map, a shape that is not
-    the others', or a sigma that is negative or not finite where determined."""
-    import OpenImageIO as oiio
-
-    from .exr import write_pixels
-
-    folder = Path(root) / UNCERTAINTY_DIR
+    ``<name>.exr`` per map (half float, zip; :data:`SIGMA_CHANNELS` channels, in
+    :data:`SIGMA_UNITS`; NaN where the value is undetermined), ``undetermined.exr`` (one
+    half-float channel per map and sigma channel, named ``<name>.<channel>``, 1 = undetermined)
+    and ``uncertainty.json`` (written last, atomically: ``{"format", "version", "maps",
+    "height", "width", "units", "meta"}``; an earlier one is removed first).  ``sigma``:
+    ``{name: (H, W, C)}`` (or ``(H, W)`` for one channel), finite and >= 0 where determined;
+    ``undetermined``: ``{name: (H, W, C)}`` bool.  Half float keeps the folder at half the
+    maps' own size (a sigma needs 3 significant digits, half float has 3.3).  The whole maps as
+    one strip of :class:`UncertaintyWriter` (the same bytes as a write by rows).  Returns the
+    path of ``uncertainty.json``.  ``ValueError`` for an unknown map, a shape that is not the
+    others', or a sigma that is negative or not finite where determined (nothing is written or
+    removed then).  Source: issue 26; the maps' units, seed Sec. 5."""
     if set(sigma) != set(undetermined) or not sigma:
         raise ValueError(f"sigma maps {sorted(sigma)} and undetermined masks {sorted(undetermined)} must name "
                          "the same maps")
-    shape = None
-    arrays, masks = {}, []
-    for name in sigma:
-        if name not in SIGMA_CHANNELS:
-            raise ValueError(f"unknown map {name!r}; expected one of {list(SIGMA_CHANNELS)}")
-        s = np.asarray(sigma[name], np.float64)
-        u = np.asarray(undetermined[name], bool)
-        s = s[..., None] if s.ndim == 2 else s
-        u = u[..., None] if u.ndim == 2 else u
-        if s.ndim != 3 or s.shape[2] != SIGMA_CHANNELS[name] or u.shape != s.shape:
-            raise ValueError(f"sigma of {name!r} is {s.shape}, its mask {u.shape}; expected (H, W, "
-                             f"{SIGMA_CHANNELS[name]}) both")
-        if shape is not None and s.shape[:2] != shape:
-            raise ValueError(f"sigma of {name!r} is {s.shape[:2]}, the others {shape}")
-        shape = s.shape[:2]
-        bad = ~u & ~(np.isfinite(s) & (s >= 0))
-        if bad.any():
-            raise ValueError(f"sigma of {name!r}: {int(bad.sum())} determined values are negative or not finite")
-        arrays[name] = np.where(u, np.nan, s).astype(np.float16)
-        masks.append((name, u))
-    remove_file(folder / "uncertainty.json")
-    folder.mkdir(parents=True, exist_ok=True)
-    for name, a in arrays.items():
-        spec = oiio.ImageSpec(shape[1], shape[0], a.shape[2], "half")
-        spec.channelnames = _sigma_names(name)
+    first = np.asarray(next(iter(sigma.values())))
+    if first.ndim not in (2, 3):
+        raise ValueError(f"sigma of {next(iter(sigma))!r} is {first.shape}; expected (H, W, C)")
+    writer = UncertaintyWriter(root, list(sigma), first.shape[0], first.shape[1], meta)
+    strip = writer.check(0, sigma, undetermined)  # before anything is removed or written
+    with writer:
+        writer.put(0, strip)
+    return writer.path
+
+
+class UncertaintyWriter:
+    """The uncertainty writer by rows: the files of :func:`save_uncertainty` (the same bytes),
+    written a strip of rows at a time, so that the fit out of core (``dualscale.fit``), which
+    never holds a whole map, writes the uncertainty as it computes it (issue 26).
+
+    Use it as a context manager::
+
+        with UncertaintyWriter(root, ["albedo", "normal"], H, W, meta) as out:
+            out.write(0, {"albedo": s0, "normal": n0}, {"albedo": u0, "normal": m0})  # rows 0 .. n0 - 1
+            out.write(n0, {...}, {...})                                               # the next rows
+
+    ``sigma`` strips are ``{name: (n, W, C)}`` float (``(n, W)`` for one channel; ``C`` =
+    :data:`SIGMA_CHANNELS`), in :data:`SIGMA_UNITS`, finite and >= 0 where determined;
+    ``undetermined`` strips ``{name: (n, W, C)}`` bool (1 = undetermined: its sigma is stored
+    as NaN, whatever was given).  Entering removes an earlier ``uncertainty.json``.  Every
+    ``root/uncertainty/<name>.exr`` and ``undetermined.exr`` (half float, zip, OpenImageIO
+    ``write_scanlines``) goes to a temporary file (:func:`dualscale.formats.atomic.atomic_path`);
+    a clean exit after all ``height`` rows closes them, checks each whole
+    (:func:`dualscale.formats.exr.verify_image`; a full disk shows here,
+    :class:`~dualscale.errors.OutputError` naming the file), renames them into place, removes
+    the maps of an earlier set that this one lacks and writes ``uncertainty.json`` last.  An
+    exit on an error or an interrupt (``KeyboardInterrupt``) closes and deletes the temporary
+    files: no new file appears under a final name.  ``ValueError`` for an unknown or missing
+    map, rows out of order or beyond ``height``, a strip whose shape is not ``(n, W, C)`` for
+    every map alike, or a sigma that is negative or not finite where determined (naming the map
+    and the rows).  One thread writes (not thread-safe).  Source: issue 26; seed Sec. 5.
+    """
+
+    def __init__(self, root: str | Path, names: list[str], height: int, width: int,
+                 meta: dict | None = None) -> None:
+        self.folder = Path(root) / UNCERTAINTY_DIR
+        self.path = self.folder / "uncertainty.json"
+        bad = [n for n in names if n not in SIGMA_CHANNELS]
+        if bad or not names:
+            raise ValueError(f"unknown map(s) {bad or names!r}; expected a non-empty subset of {list(SIGMA_CHANNELS)}")
+        if len(set(names)) != len(names):
+            raise ValueError(f"maps named twice: {names}")
+        self.names, self.height, self.width, self.meta = list(names), int(height), int(width), meta
+        if self.height < 1 or self.width < 1:
+            raise ValueError(f"the maps must have at least one row and column, got {self.height} x {self.width}")
+        self.rows = 0  # rows written so far
+        self._stack: contextlib.ExitStack | None = None
+        self._outs: list[tuple[Path, Any]] = []  # (final path, OpenImageIO ImageOutput): maps, then the mask
+
+    def _spec(self, channels: list[str] | tuple[str, ...]):
+        import OpenImageIO as oiio
+
+        spec = oiio.ImageSpec(self.width, self.height, len(channels), "half")
+        spec.channelnames = tuple(channels)
         spec.attribute("compression", "zip")
-        spec.attribute("DateTime", "")
-        spec.attribute("dualscale:sigma_of", name)
-        spec.attribute("dualscale:unit", SIGMA_UNITS[name])
-        write_pixels(folder / f"{name}.exr", a, spec)
-    names = [f"{n}.{c}" for n, u in masks for c in _sigma_names(n)]
-    mask = np.concatenate([u for _, u in masks], -1).astype(np.float16)
-    spec = oiio.ImageSpec(shape[1], shape[0], mask.shape[2], "half")
-    spec.channelnames = names
-    spec.attribute("compression", "zip")
-    spec.attribute("DateTime", "")
-    write_pixels(folder / "undetermined.exr", np.ascontiguousarray(mask), spec)
-    for stale in folder.glob("*.exr"):  # the maps of an earlier set that this one lacks
-        if stale.stem not in arrays and stale.stem != "undetermined":
-            remove_file(stale)
-    doc = {"format": UNCERTAINTY_FORMAT, "version": UNCERTAINTY_VERSION, "maps": list(arrays),
-           "height": int(shape[0]), "width": int(shape[1]), "units": {n: SIGMA_UNITS[n] for n in arrays},
-           "meta": meta or {}}
-    return write_json(folder / "uncertainty.json", doc)
+        spec.attribute("DateTime", "")  # the same pixels give the same bytes
+        return spec
+
+    def __enter__(self) -> "UncertaintyWriter":
+        self._stack = contextlib.ExitStack()
+        try:
+            remove_file(self.path)
+            self.folder.mkdir(parents=True, exist_ok=True)
+            for name in self.names:
+                spec = self._spec(_sigma_names(name))
+                spec.attribute("dualscale:sigma_of", name)
+                spec.attribute("dualscale:unit", SIGMA_UNITS[name])
+                self._open(self.folder / f"{name}.exr", spec)
+            self._open(self.folder / "undetermined.exr",
+                       self._spec([f"{n}.{c}" for n in self.names for c in _sigma_names(n)]))
+        except BaseException:
+            self._stack.__exit__(*sys.exc_info())
+            self._stack = None
+            raise
+        return self
+
+    def _open(self, final: Path, spec) -> None:
+        import OpenImageIO as oiio
+
+        tmp = self._stack.enter_context(atomic_path(final, verify=lambda t: verify_image(t, spec, final)))
+        out = oiio.ImageOutput.create(str(tmp))
+        if out is None or not out.open(str(tmp), spec):
+            raise OSError(f"cannot write {final}: {oiio.geterror()}")
+        self._stack.callback(_close_quietly, out)  # before the temporary file is deleted (an error) or renamed
+        self._outs.append((final, out))
+
+    def check(self, y0: int, sigma: dict[str, np.ndarray],
+              undetermined: dict[str, np.ndarray]) -> tuple[int, list[np.ndarray]]:
+        """Validate a strip (see the class docstring) without writing it: ``(y0, [half-float
+        (n, W, C) per map in order, NaN where undetermined] + [the (n, W, sum C) mask])``."""
+        if y0 != self.rows:
+            raise ValueError(f"{self.folder}: rows must come in order: got row {y0}, expected {self.rows}")
+        if set(sigma) != set(self.names) or set(undetermined) != set(self.names):
+            raise ValueError(f"{self.folder}: sigma for maps {sorted(sigma)} and masks for {sorted(undetermined)}, "
+                             f"expected {sorted(self.names)} both")
+        n = None
+        arrays, masks = [], []
+        for name in self.names:
+            s = np.asarray(sigma[name], np.float64)
+            u = np.asarray(undetermined[name], bool)
+            s = s[..., None] if s.ndim == 2 else s
+            u = u[..., None] if u.ndim == 2 else u
+            c = SIGMA_CHANNELS[name]
+            if s.ndim != 3 or s.shape[1:] != (self.width, c) or u.shape != s.shape or \
+                    (n is not None and s.shape[0] != n):
+                raise ValueError(f"sigma of {name!r} (rows from {y0}) is {s.shape}, its mask {u.shape}; expected "
+                                 f"({n or 'n'}, {self.width}, {c}) both")
+            n = s.shape[0]
+            bad = ~u & ~(np.isfinite(s) & (s >= 0))
+            if bad.any():
+                raise ValueError(f"sigma of {name!r}: {int(bad.sum())} determined values are negative or not finite "
+                                 f"(rows {y0}..{y0 + n - 1})")
+            arrays.append(np.ascontiguousarray(np.where(u, np.nan, s).astype(np.float16)))
+            masks.append(u)
+        if n == 0 or y0 + n > self.height:
+            raise ValueError(f"{self.folder}: rows {y0}..{y0 + n - 1} (n = {n}) empty or beyond the height "
+                             f"{self.height}")
+        arrays.append(np.ascontiguousarray(np.concatenate(masks, -1).astype(np.float16)))
+        return y0, arrays
+
+    def put(self, y0: int, strip: tuple[int, list[np.ndarray]]) -> None:
+        """Write a strip that :meth:`check` returned (for rows ``y0``)."""
+        if self._stack is None:
+            raise RuntimeError("UncertaintyWriter.write outside its with-block")
+        if strip[0] != y0 or y0 != self.rows:
+            raise ValueError(f"{self.folder}: rows must come in order: got row {y0}, expected {self.rows}")
+        arrays = strip[1]
+        n = arrays[0].shape[0]
+        for (final, out), a in zip(self._outs, arrays):
+            if not out.write_scanlines(y0, y0 + n, 0, a):
+                raise OSError(f"cannot write {final}: {out.geterror()}")
+        self.rows = y0 + n
+
+    def write(self, y0: int, sigma: dict[str, np.ndarray], undetermined: dict[str, np.ndarray]) -> None:
+        """Write rows ``y0 .. y0 + n - 1`` of every map: ``sigma`` ``{name: (n, W, C)}``,
+        ``undetermined`` ``{name: (n, W, C) bool}`` (see the class docstring)."""
+        if self._stack is None:
+            raise RuntimeError("UncertaintyWriter.write outside its with-block")
+        self.put(y0, self.check(y0, sigma, undetermined))
+
+    def __exit__(self, kind, value, tb) -> None:
+        stack, self._stack = self._stack, None
+        if kind is not None:
+            stack.__exit__(kind, value, tb)  # closes and deletes every temporary file
+            return
+        try:
+            if self.rows != self.height:
+                raise ValueError(f"{self.folder}: {self.rows} of {self.height} rows written")
+            for final, out in self._outs:  # the last buffered bytes go out here: a full disk can show only now
+                if not out.close():
+                    raise OSError(f"cannot write {final}: {out.geterror() or 'closing the file failed'}")
+        except BaseException:
+            stack.__exit__(*sys.exc_info())
+            raise
+        stack.close()  # renames every file into place
+        for stale in self.folder.glob("*.exr"):  # the maps of an earlier set that this one lacks
+            if stale.stem not in self.names and stale.stem != "undetermined":
+                remove_file(stale)
+        doc = {"format": UNCERTAINTY_FORMAT, "version": UNCERTAINTY_VERSION, "maps": list(self.names),
+               "height": self.height, "width": self.width, "units": {n: SIGMA_UNITS[n] for n in self.names},
+               "meta": self.meta or {}}
+        write_json(self.path, doc)
 
 
 def load_uncertainty(root: str | Path) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], dict[str, Any]]:
