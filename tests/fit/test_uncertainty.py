@@ -121,3 +121,32 @@ def test_calibration_smoke(datasets):
               f"median sigma {float(sig[name][~und[name]].median()):.4g}")
         assert z.numel() >= 0.8 * n * n * getattr(gt, name).shape[-1]
         assert 0.6 <= sd <= 1.6
+
+
+def test_back_lit_rows_weighted_twice_match_the_kernels_pass(datasets):
+    """``B = J^T C^2 J`` of a translucent material (the back-lit rows weigh ``back_weight`` in
+    ``A``, its square in ``B``): the analytic back-lit share (:meth:`.fused.Problem.back_normal`)
+    added to ``A`` equals the fused kernel's own pass with the row multipliers ``C keep``."""
+    from dualscale.bsdf import Components
+    from dualscale.fit import lm
+    from dualscale.fit.loop import free_names
+    from dualscale.fit.params import pack
+
+    root = datasets("sheer")
+    obs = load_observations(root).crop(0, 4, 0, 4)
+    gt, meta = load_maps(root / "maps")
+    comps = Components(opaque=False, isotropic=True, tinted=False)
+    params = {k: v[0:4, 0:4].double().contiguous() for k, v in params_from_maps(gt, comps).items()}
+    preset = PRESETS["standard"]
+    m = normal_matrices(params, comps, obs, preset)
+    names = free_names("joint", params)
+    assert "transmittance" in names and "opacity" in names
+    d = step_data(obs, "joint", "fused")
+    prob = lm._problem(lm._block(d, 0, 4), comps)
+    x = pack(params, names)
+    fixed = {k: v for k, v in params.items() if k not in names}
+    r = prob.residuals(x, names, fixed)
+    c = torch.from_numpy(prob.row_weights(preset.back_weight)).to(m["keep"].dtype)
+    b_ref, _ = prob.normal_equations(x, names, fixed, r, c * m["keep"])
+    assert not torch.allclose(m["A"], m["B"])  # the back-lit rows count
+    torch.testing.assert_close(m["B"], b_ref, rtol=1e-9, atol=1e-9 * float(b_ref.abs().max()))

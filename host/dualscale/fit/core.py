@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import torch
@@ -20,6 +20,7 @@ from .observations import Observations
 from .optimize import run_adam
 from .params import to_maps
 from .presets import Preset
+from .uncertainty import Uncertainty, pixel_uncertainty
 from .pyramid import coarse_preset, downsample, fine_preset, start_from_coarse
 
 
@@ -35,6 +36,8 @@ class FitResult:
     losses: dict[str, float]
     history: list = field(default_factory=list)
     resumed_from: int = 0
+    #: the maps' per-pixel uncertainty (:class:`.uncertainty.Uncertainty`); ``None`` when not computed
+    uncertainty: Uncertainty | None = None
 
 
 def split_holdout(obs: Observations, every: int = 8, offset: int = 3) -> tuple[Observations, Observations | None]:
@@ -82,9 +85,12 @@ def _fingerprint(obs: Observations, preset: Preset, comps: Components, seed: int
 def fit_observations(obs: Observations, preset: Preset, comps: Components, *, held_out: Observations | None = None,
                      checkpoint: str | Path | None = None, checkpoint_every: int = 50, progress: bool = False,
                      stop_after: int | None = None, seed: int = 0,
-                     init: dict[str, Tensor] | None = None) -> FitResult:
+                     init: dict[str, Tensor] | None = None, uncertainty: bool = False) -> FitResult:
     """Fit ``comps`` to ``obs`` with ``preset``; resumes from ``checkpoint`` when it exists.
     A preset with a coarse level starts from its upsampled coarse fit unless ``init`` is given.
+    ``uncertainty``: also compute the maps' per-pixel uncertainty at the solution
+    (:func:`.uncertainty.pixel_uncertainty`, ``FitResult.uncertainty``; issue 26; off by
+    default until every fit path writes it).
 
     ``stop_after`` (testing/interruption) stops after that many global iterations, with the
     checkpoint saved, by raising :class:`~dualscale.fit.checkpoint.FitInterrupted`.
@@ -115,16 +121,22 @@ def fit_observations(obs: Observations, preset: Preset, comps: Components, *, he
         loop.close()
         raise
     loop.close()
-    maps = to_maps({k: v.detach() for k, v in params.items()})
+    final = {k: v.detach() for k, v in params.items()}
+    maps = to_maps(final)
+    unc = None
+    if uncertainty:
+        with torch.no_grad():  # obs is strided already
+            unc = pixel_uncertainty(final, comps, obs, replace(preset, led_stride=1))
     return FitResult(maps, comps, preset, preset.total, time.perf_counter() - t0, fit_losses(maps, comps, obs, held_out),
-                     loop.history, done0)
+                     loop.history, done0, unc)
 
 
 def coarse_start(obs: Observations, preset: Preset, comps: Components, seed: int = 0) -> dict[str, Tensor]:
     """The full-resolution start of a preset with a coarse level (``coarse_factor`` > 1): the
     coarse fit of the box-downsampled ``obs`` (already strided to the preset's LEDs), upsampled
     (:mod:`.pyramid`)."""
-    coarse = fit_observations(downsample(obs, preset.coarse_factor), coarse_preset(preset), comps, seed=seed)
+    coarse = fit_observations(downsample(obs, preset.coarse_factor), coarse_preset(preset), comps, seed=seed,
+                              uncertainty=False)
     return start_from_coarse(coarse.maps, obs, preset, comps)
 
 

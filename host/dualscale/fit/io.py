@@ -39,7 +39,25 @@ def save_fit(root: str | Path, res: FitResult, selection: dict | None = None, ex
     report, meta = _report(res, selection, extra)
     remove_file(root / "fit.json")
     save_maps(root, res.maps, meta, previews, texel_mm=texel_mm, attributes=fit_attributes(res, selection))
+    _save_uncertainty(root, res, report)
     return write_json(root / "fit.json", report)
+
+
+def _save_uncertainty(root: Path, res: FitResult, report: dict[str, Any]) -> None:
+    """The uncertainty of ``res`` into ``root/uncertainty/`` and its summary into ``report``
+    (``fit.json``'s ``"uncertainty"``, :func:`.uncertainty.summary`); a fit without one
+    removes an earlier fit's record, so no stale uncertainty sits beside new maps."""
+    from dualscale.formats.maps import UNCERTAINTY_DIR, save_uncertainty
+
+    from .uncertainty import summary
+
+    u = res.uncertainty
+    if u is None:
+        remove_file(root / UNCERTAINTY_DIR / "uncertainty.json")
+        return
+    sigma, und = u.arrays()
+    save_uncertainty(root, sigma, und, {"noise": u.noise, "preset": res.preset.name})
+    report["uncertainty"] = summary(sigma, und, u.noise, u.seconds)
 
 
 def save_fit_rows(root: str | Path, res: FitResult, shape: tuple[int, int], names: list[str], rows: Iterable,

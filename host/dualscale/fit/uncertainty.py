@@ -1,5 +1,8 @@
-"""Per-pixel uncertainty of an LM fit (issue 26, first part): a library function, not yet wired
-into any fit, file or command.
+"""Per-pixel uncertainty of a fit (issue 26, in progress): :func:`.core.fit_observations`
+computes it at its solution when asked (``uncertainty=True``, any preset: the covariance goes
+through the fused kernel's Jacobian also for Adam), :func:`.io.save_fit` then writes it
+(:func:`dualscale.formats.maps.save_uncertainty`) with :func:`summary` in ``fit.json``.  Not yet
+wired: ``fit_dataset`` and the commands, the tiled and out-of-core fits, a sensor noise model.
 
 At the fitted parameters ``x`` of a pixel, with the joint step's free parameters, the fused
 kernel builds (one more pass, :meth:`.fused.Problem.normal_equations`) the two matrices
@@ -48,6 +51,8 @@ and the others' covariance is that of the determined sub-block, i.e. conditional
 from __future__ import annotations
 
 import math
+import time
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
@@ -56,7 +61,6 @@ from dualscale.bsdf import Components, normal_from_square
 from dualscale.bsdf.maps import IOR_MAX, IOR_MIN
 
 from . import lm
-from .core import stride_leds
 from .loop import free_names, step_data
 from .observations import Observations
 from .params import PARAM_CHANNELS, pack
@@ -91,30 +95,32 @@ def normal_matrices(params: dict[str, Tensor], comps: Components, obs: Observati
     kept rows, ``keep`` ``(H, W, K)``, ``residuals`` ``(H, W, K)``, ``sigma`` ``(H, W)`` (1.4826
     median |r| over the kept rows) and ``prior_info`` ``(H, W, P)`` (1 / sd^2 on a prior's
     channel).  ``obs``: as given to ``fit_observations`` (the preset's LED stride is applied)."""
+    from .core import stride_leds  # (core calls this module)
+
     loss = lm.preset_loss(preset)
     names = free_names("joint", params)
     fixed = {k: v for k, v in params.items() if k not in names}
     d = step_data(stride_leds(obs, preset.led_stride), "joint", "fused")
     x = pack(params, names)
-    a_l, b_l, keep_l, r_l = [], [], [], []
+    a_l, b_l, keep_l, r_l, med_l = [], [], [], [], []
+    c_back = float(loss.back_weight)
     for y0, y1 in lm._chunks(*x.shape[:2]):
         xb = x[y0:y1]
         fx = {k: v[y0:y1] for k, v in fixed.items()}
         prob = lm._problem(lm._block(d, y0, y1), comps)
         r = prob.residuals(xb, names, fx)
-        keep = prob.irls(r, loss)[0].double()  # kept rows: valid and not in a cast shadow
-        c = torch.from_numpy(prob.row_weights(loss.back_weight)).double()
+        keep = prob.irls(r, loss)[0]  # kept rows: valid and not in a cast shadow
+        c = torch.from_numpy(prob.row_weights(c_back)).to(keep.dtype)
         a, _ = prob.normal_equations(xb, names, fx, r, (c * keep).sqrt())
-        if bool((c != 1.0).any()) and bool((keep[..., c != 1.0] > 0).any()):
-            b, _ = prob.normal_equations(xb, names, fx, r, c * keep)
-        else:
-            b = a
+        # B = J^T C^2 J differs from A = J^T C J on the back-lit rows only (c = 1 elsewhere)
+        b = a + (c_back ** 2 - c_back) * prob.back_normal(xb, names, fx, keep.sqrt()) if c_back != 1.0 else a
         a_l.append(a)
         b_l.append(b)
         keep_l.append(keep)
-        r_l.append(r.double())
+        r_l.append(r)
+        med_l.append(torch.where(keep > 0, r.abs(), torch.full_like(r, float("nan"))).nanmedian(-1).values)
     a, b, keep, r = (torch.cat(t, 0) for t in (a_l, b_l, keep_l, r_l))
-    med = torch.nan_to_num(r.abs().masked_fill(keep <= 0, float("nan")).nanmedian(-1).values, nan=0.0)
+    med = torch.nan_to_num(torch.cat(med_l, 0).double(), nan=0.0)
     one = torch.ones(x.shape[:2], dtype=torch.float64)
     _, _, curv = loss.prior_terms(x.double(), names, one)  # k = 1: the curvature is 1 / sd^2
     return {"names": names, "x": x.double(), "A": a, "B": b, "keep": keep, "residuals": r, "sigma": 1.4826 * med,
@@ -233,3 +239,78 @@ def map_sigmas(params: dict[str, Tensor], cov: Tensor, names: tuple[str, ...], d
     for n in sig:
         sig[n] = torch.where(und[n], torch.full_like(sig[n], float("nan")), sig[n].double())
     return sig, und
+
+
+#: pixels per block of :func:`pixel_uncertainty`: its ``(P, P)`` float64 matrices (a few per
+#: pixel, P <= 16) then stay within ~50 MB whatever the map's size
+BLOCK_PIXELS = 4096
+#: how the noise scale was obtained (``Uncertainty.noise``; module doc)
+NOISE_RESIDUAL = "robust residual scale (1.4826 MAD of each pixel's kept residuals)"
+
+
+@dataclass
+class Uncertainty:
+    """The uncertainty of a fit's maps: ``sigma`` ``{map: (H, W, C) float32}`` (1 sigma in the
+    map's units, :data:`dualscale.formats.maps.SIGMA_UNITS`; NaN where undetermined),
+    ``undetermined`` ``{map: (H, W, C) bool}``, ``noise`` (which noise scale), ``seconds``."""
+
+    sigma: dict[str, Tensor]
+    undetermined: dict[str, Tensor]
+    noise: str
+    seconds: float
+
+    def crop(self, y0: int, y1: int, x0: int, x1: int) -> "Uncertainty":
+        return Uncertainty({k: v[y0:y1, x0:x1] for k, v in self.sigma.items()},
+                           {k: v[y0:y1, x0:x1] for k, v in self.undetermined.items()}, self.noise, self.seconds)
+
+    def arrays(self) -> tuple[dict, dict]:
+        """``(sigma, undetermined)`` as numpy arrays, for :func:`~dualscale.formats.maps.save_uncertainty`."""
+        return ({k: v.numpy() for k, v in self.sigma.items()}, {k: v.numpy() for k, v in self.undetermined.items()})
+
+
+def pixel_uncertainty(params: dict[str, Tensor], comps: Components, obs: Observations, preset: Preset,
+                      block_pixels: int = BLOCK_PIXELS) -> Uncertainty:
+    """The :class:`Uncertainty` of the fitted ``params`` (normalised, ``(H, W, C)`` each, as the
+    optimisers leave them) on ``obs`` (as given to the fit: the preset's LED stride is applied
+    here), for any preset: :func:`pixel_covariance` then :func:`map_sigmas`, by blocks of rows of
+    at most ``block_pixels`` pixels (pixels are independent, so blocks change nothing)."""
+    t0 = time.perf_counter()
+    h, w = next(iter(params.values())).shape[:2]
+    rows = max(1, block_pixels // max(1, w))
+    sig_l: dict[str, list[Tensor]] = {}
+    und_l: dict[str, list[Tensor]] = {}
+    for y0 in range(0, h, rows):
+        y1 = min(h, y0 + rows)
+        pb = {k: v[y0:y1].detach() for k, v in params.items()}
+        cov, names, det = pixel_covariance(pb, comps, obs.crop(y0, y1, 0, w), preset)
+        sig, und = map_sigmas(pb, cov, names, det, comps)
+        for n in sig:
+            sig_l.setdefault(n, []).append(sig[n].float())
+            und_l.setdefault(n, []).append(und[n])
+    return Uncertainty({n: torch.cat(v, 0) for n, v in sig_l.items()}, {n: torch.cat(v, 0) for n, v in und_l.items()},
+                       NOISE_RESIDUAL, time.perf_counter() - t0)
+
+
+def summary(sigma: dict[str, "Tensor | object"], undetermined: dict[str, "Tensor | object"], noise: str,
+            seconds: float) -> dict:
+    """``fit.json``'s ``"uncertainty"`` record: ``{"noise", "seconds", "files": "uncertainty/",
+    "maps": {map: {"units", "channels", "median", "p90", "undetermined_fraction"}}}``, per
+    channel over the determined pixels (``None`` where none is); ``sigma``/``undetermined`` as
+    in :class:`Uncertainty` (tensors or numpy arrays)."""
+    import numpy as np
+
+    from dualscale.formats.maps import SIGMA_CHANNELS, SIGMA_UNITS
+
+    maps = {}
+    for n, s in sigma.items():
+        s = np.asarray(s, np.float64)
+        u = np.asarray(undetermined[n], bool)
+        med, p90, frac = [], [], []
+        for c in range(s.shape[-1]):
+            v = s[..., c][~u[..., c]]
+            med.append(float(np.median(v)) if v.size else None)
+            p90.append(float(np.percentile(v, 90)) if v.size else None)
+            frac.append(float(u[..., c].mean()))
+        maps[n] = {"units": SIGMA_UNITS[n], "channels": ["Y"] if SIGMA_CHANNELS[n] == 1 else ["R", "G", "B"], "median": med, "p90": p90,
+                   "undetermined_fraction": frac}
+    return {"noise": noise, "seconds": round(float(seconds), 3), "files": "uncertainty/", "maps": maps}
