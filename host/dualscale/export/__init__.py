@@ -40,6 +40,11 @@ class ExportContext:
     ``swatch_mm``: ``(width, height)`` in mm of the swatch geometry (glTF); by default the
     repeat itself, or a 2 x 2 repeat of a tile.
     ``meta``: provenance written into the formats' free-form fields (generator, version, source).
+    ``uncertainty``: the maps' 1-sigma uncertainty, ``(sigma, undetermined, doc)`` of
+    :func:`dualscale.formats.maps.load_uncertainty` (issue 26), or ``None``; only the exchange
+    EXR set carries it (:mod:`.exr`; docs/EXPORT.md "Uncertainty").  ``uncertainty_note``: why
+    an uncertainty beside the maps is not carried (e.g. a tiled export), recorded in
+    ``exchange.json``; ``None`` otherwise.
     """
 
     name: str
@@ -47,6 +52,8 @@ class ExportContext:
     tiled: bool = False
     swatch_mm: tuple[float, float] | None = None
     meta: dict[str, Any] = field(default_factory=dict)
+    uncertainty: tuple[dict, dict, dict] | None = None
+    uncertainty_note: str | None = None
 
     def swatch(self) -> tuple[float, float]:
         """The swatch size in mm (see the class docstring)."""

@@ -5,7 +5,8 @@ Layout of an export folder ``OUT``::
     OUT/export.json          manifest (written last: a folder with it is complete)
     OUT/maps/                the exported maps in our own conventions (dualscale-maps); with
                              ``tile``, the seamless tile, its record in ``meta.tile``
-    OUT/exr/                 exchange EXR set (+ exchange.json)
+    OUT/exr/                 exchange EXR set (+ exchange.json; + the 1-sigma maps when the
+                             maps folder has uncertainty/, issue 26)
     OUT/mtlx/<name>.mtlx     + textures
     OUT/gltf/<name>.gltf     + <name>.bin + textures
     OUT/glb/<name>.glb
@@ -13,13 +14,15 @@ Layout of an export folder ``OUT``::
 
 Each format folder is written in a temporary folder and renamed (:func:`atomic_dir`), so a
 rerun after an interruption redoes only what is missing; a format whose folder is complete
-and whose source is unchanged (same ``material.json`` digest and options) is skipped.
+and whose source is unchanged (same ``material.json`` digest and options; for ``exr`` also the
+same ``uncertainty/`` digest) is skipped.
 
 ``export.json`` (version 1)::
 
     {"format": "dualscale-export", "version": 1, "name": ..., "source": "<maps dir>",
      "source_sha256": ..., "formats": {"glb": ["glb/<name>.glb"], ...},
-     "repeat_mm": [w, h] | null, "tiled": bool, "tile": {...} | null, "options": {...}}
+     "repeat_mm": [w, h] | null, "tiled": bool, "tile": {...} | null, "options": {...},
+     "uncertainty_sha256": ... | null}
 """
 
 from __future__ import annotations
@@ -32,7 +35,7 @@ from typing import Any, Callable, Sequence
 
 from dualscale.errors import FormatError, InputError
 from dualscale.formats.atomic import atomic_dir, write_json
-from dualscale.formats.maps import load_maps, save_maps
+from dualscale.formats.maps import UNCERTAINTY_DIR, load_maps, load_uncertainty, save_maps
 from dualscale.formats.versioned import read_versioned_json
 
 from . import NAME_RE, ExportContext, _registry
@@ -50,6 +53,21 @@ def formats_available() -> dict[str, Callable]:
 
 def _digest(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _uncertainty_digest(maps_dir: Path) -> str | None:
+    """SHA-256 over ``uncertainty/``'s record and EXR files (names and bytes, read in chunks), or
+    ``None`` when the maps folder has no uncertainty (no ``uncertainty.json``)."""
+    folder = maps_dir / UNCERTAINTY_DIR
+    if not (folder / "uncertainty.json").is_file():
+        return None
+    h = hashlib.sha256()
+    for path in [folder / "uncertainty.json", *sorted(folder.glob("*.exr"))]:
+        h.update(path.name.encode() + b"\0")
+        with open(path, "rb") as f:
+            while chunk := f.read(1 << 20):
+                h.update(chunk)
+    return h.hexdigest()
 
 
 def read_export(out: str | Path) -> dict[str, Any]:
@@ -83,6 +101,12 @@ def export_material(maps_dir: str | Path, out: str | Path, formats: Sequence[str
     keeps the formats of an earlier export of the same source and options (``reused``); after an
     export of another source or options, the format folders it does not rewrite are removed, so
     nothing stale is left beside the manifest.
+
+    The maps' 1-sigma uncertainty (``maps_dir/uncertainty/``, issue 26) goes into the ``exr``
+    set (:mod:`.exr`; absent: nothing changes); a tiled export leaves it out (the tile is
+    resampled, its sigma is not) and says so in ``exchange.json``.  A changed uncertainty redoes
+    ``exr`` only.  ``FormatError`` for an uncertainty folder that does not read or whose size is
+    not the maps'.
     """
     from dualscale.errors import UnitsError
 
@@ -111,9 +135,22 @@ def export_material(maps_dir: str | Path, out: str | Path, formats: Sequence[str
         formats.remove("u3m")
         skipped["u3m"] = why
     source_sha = _digest(maps_dir / "material.json")
+    uncertainty_sha = _uncertainty_digest(maps_dir)
+    uncertainty, uncertainty_note = None, None
+    if uncertainty_sha is not None and "exr" in formats:
+        if tile:
+            uncertainty_note = ("a tiled export: the tile is a resampled, feathered cut of the maps "
+                                "(dualscale.tile) and the uncertainty is not cut with it")
+        else:
+            uncertainty = load_uncertainty(maps_dir)
+            udoc = uncertainty[2]
+            if (udoc.get("height"), udoc.get("width")) != tuple(maps.shape):
+                raise FormatError(f"{maps_dir / UNCERTAINTY_DIR / 'uncertainty.json'}: the uncertainty is "
+                                  f"{udoc.get('height')} x {udoc.get('width')}, the maps {maps.shape[0]} x "
+                                  f"{maps.shape[1]}")
     options = {"tile": bool(tile), "swatch_mm": list(swatch_mm) if swatch_mm else None,
                "tile_options": tile_options or {}}
-    previous, stale = _previous(out, source_sha, options)
+    previous, stale = _previous(out, source_sha, options, uncertainty_sha)
     tile_info, repeat = None, None
     if tile:
         from dualscale.tile import make_tile
@@ -127,7 +164,8 @@ def export_material(maps_dir: str | Path, out: str | Path, formats: Sequence[str
     ctx = ExportContext(name=name, repeat_mm=repeat, tiled=bool(tile), swatch_mm=swatch_mm,
                         meta={"generator": _generator(), "source": str(maps_dir),
                               **({"radiometry": mmeta["radiometry"]} if mmeta.get("radiometry") else {}),
-                              **(meta or {})})
+                              **(meta or {})},
+                        uncertainty=uncertainty, uncertainty_note=uncertainty_note)
     out.mkdir(parents=True, exist_ok=True)
     done: dict[str, list[str]] = {}
     reused: list[str] = []
@@ -154,7 +192,7 @@ def export_material(maps_dir: str | Path, out: str | Path, formats: Sequence[str
     doc = {"format": FORMAT, "version": VERSION, "name": name, "source": str(maps_dir),
            "source_sha256": source_sha, "formats": done, "repeat_mm": list(repeat) if repeat else None,
            "texel_mm": texel, "tiled": bool(tile), "tile": tile_info, "options": options,
-           "skipped": skipped, "generator": ctx.meta["generator"]}
+           "skipped": skipped, "generator": ctx.meta["generator"], "uncertainty_sha256": uncertainty_sha}
     write_json(out / "export.json", doc)
     return {**doc, "reused": reused}
 
@@ -176,9 +214,11 @@ def check_name(name: str) -> str:
     return name
 
 
-def _previous(out: Path, source_sha: str, options: dict) -> tuple[dict[str, list[str]], list[str]]:
+def _previous(out: Path, source_sha: str, options: dict,
+              uncertainty_sha: str | None = None) -> tuple[dict[str, list[str]], list[str]]:
     """``(formats, stale)``: the complete formats of an earlier export of the same source with the
-    same options, or, when the earlier export was of something else, its format folders."""
+    same options, or, when the earlier export was of something else, its format folders; an
+    earlier ``exr`` of another uncertainty (``uncertainty_sha256``; none: ``None``) is stale."""
     try:
         doc = read_export(out)
     except (FileNotFoundError, FormatError):
@@ -186,7 +226,11 @@ def _previous(out: Path, source_sha: str, options: dict) -> tuple[dict[str, list
     if doc.get("source_sha256") != source_sha or doc.get("options") != options:
         return {}, list(doc["formats"])
     done = dict(doc["formats"])
-    return {f: files for f, files in done.items() if all((out / p).is_file() for p in files)}, []
+    stale = []
+    if doc.get("uncertainty_sha256") != uncertainty_sha and "exr" in done:
+        done.pop("exr")
+        stale.append("exr")
+    return {f: files for f, files in done.items() if all((out / p).is_file() for p in files)}, stale
 
 
 def _generator() -> str:
