@@ -169,3 +169,54 @@ def make_run(root: Path, *, flyouts: bool = True, guidance: bool = True, seed: i
                   "exr": ["exr/material.json", "exr/albedo.exr", "exr/normal.exr"]}}}},
            params={"formats": ["gltf", "exr"], "tile": False, "name": name or "twill_042"})
     return root
+
+
+def add_uncertainty(run: Path, *, ground_truth: bool = False, record: bool = True, seed: int = 1) -> dict:
+    """Write ``RUN/fit/maps/uncertainty/`` (synthetic sigma of every fitted map, the top-left
+    4 x 4 texels undetermined, the tangent's left half too) and, when ``record``, fit.json's
+    ``"uncertainty"``; ``ground_truth``: a ground-truth maps folder ``RUN/gt`` = the fit plus a
+    Gaussian error of 1 sigma per texel, named in fit.json's ``"ground_truth"``.  Returns the
+    sigma arrays."""
+    import torch
+
+    from dualscale.formats.maps import SIGMA_CHANNELS, load_maps, save_maps, save_uncertainty
+
+    rng = np.random.default_rng(seed)
+    maps_dir = run / "fit" / "maps"
+    maps, meta = load_maps(maps_dir)
+    scale = {"normal": 2.0, "tangent": 5.0, "ior": 0.05}
+    sigma, und = {}, {}
+    for name, _ in maps.items():
+        if name not in SIGMA_CHANNELS:
+            continue
+        c = SIGMA_CHANNELS[name]
+        s = scale.get(name, 0.01) * (0.5 + rng.random((H, W, c)))
+        u = np.zeros((H, W, c), bool)
+        u[:4, :4] = True
+        if name == "tangent":
+            u[:, : W // 2] = True
+        sigma[name], und[name] = s, u
+    save_uncertainty(maps_dir, sigma, und, {"noise": "residual", "preset": "standard"})
+    doc = json.loads((maps_dir / "fit.json").read_text())
+    if record:
+        doc["uncertainty"] = {"noise": "the fit's residual (median |r|)", "seconds": 1.25, "maps": {}}
+    if ground_truth:
+        t = {}
+        for name in sigma:
+            a = np.asarray(getattr(maps, name), np.float64)
+            if name == "normal":
+                a = a + np.radians(sigma[name]) / np.sqrt(2) * rng.standard_normal(a.shape)
+                a /= np.linalg.norm(a, axis=-1, keepdims=True)
+            elif name == "tangent":
+                a = (a + sigma[name] / 180.0 * rng.standard_normal(a.shape)) % 1.0
+            elif name == "ior":
+                a = a + sigma[name] / 2.0 * rng.standard_normal(a.shape)
+            else:
+                a = a + sigma[name] * rng.standard_normal(a.shape)
+            t[name] = torch.from_numpy(a.astype(np.float32))
+        gt = type(maps)(**{k: t.get(k, getattr(maps, k)) for k in ("albedo", "roughness", "normal", "anisotropy",
+                                                                 "tangent", "ior", "specular_tint")})
+        save_maps(run / "gt", gt, meta={"texel_mm": TEXEL_MM})
+        doc["ground_truth"] = {"dir": str(run / "gt"), "errors": {}}
+    (maps_dir / "fit.json").write_text(json.dumps(doc))
+    return sigma

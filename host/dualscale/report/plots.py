@@ -548,6 +548,144 @@ def guidance_figure(guidance, box=None, *, texel_mm: float | None = None):
     return fig, cap
 
 
+
+# ---------------------------------------------------------------------------------------------
+# per-pixel uncertainty (issue 26): sigma maps, shared with the viewer (dualscale.view)
+
+#: the colour map of a sigma image (perceptual, 0 = dark) and the flat colour of undetermined texels
+SIGMA_CMAP = "viridis"
+UNDETERMINED_RGB = (1.0, 0.0, 1.0)
+UNDETERMINED_NAME = "magenta"
+UNDETERMINED_HEX = "#ff00ff"
+#: the short unit of each map's sigma on axes (the full one is ``SIGMA_UNITS`` of dualscale.formats.maps)
+SIGMA_SHORT_UNITS = {"normal": "°", "tangent": "°", "ior": "η"}
+Z95 = 1.96  # |error| <= 1.96 sigma: the share expected of a Gaussian error is 95 %
+
+
+def sigma_unit(name: str) -> str:
+    """The axis unit of a map's sigma: degrees, eta, or the map's own (unitless) value."""
+    return SIGMA_SHORT_UNITS.get(name, "map value")
+
+
+def sigma_display(sigma, undetermined) -> tuple[np.ndarray, np.ndarray]:
+    """One value per texel of a sigma ``(H, W, C)``: the largest of its channels, and the texels
+    where any channel is undetermined (``(H, W)`` float, bool)."""
+    s = np.asarray(sigma, dtype=np.float64)
+    u = np.asarray(undetermined, bool)
+    s = s[..., None] if s.ndim == 2 else s
+    u = u[..., None] if u.ndim == 2 else u
+    und = u.any(-1) | ~np.isfinite(s).all(-1)
+    with np.errstate(invalid="ignore"):
+        top = np.where(und, np.nan, np.nanmax(np.where(np.isfinite(s), s, -np.inf), axis=-1))
+    return top, und
+
+
+def sigma_range(values) -> Range:
+    """The colour scale of a sigma image: 0 to the 99.5th percentile of the determined values."""
+    return robust_range(values, None, ROBUST_PCT, vmin=0.0)
+
+
+def sigma_colours(values, undetermined, vmax: float) -> np.ndarray:
+    """``(H, W, 3)`` display RGB in [0, 1] (already display-encoded: no transfer curve) of a
+    sigma image on 0..``vmax`` in :data:`SIGMA_CMAP`, undetermined texels in
+    :data:`UNDETERMINED_RGB`.  The report's figures and the viewer's PNG use this one mapping."""
+    import matplotlib
+
+    cmap = matplotlib.colormaps[SIGMA_CMAP]
+    a = np.asarray(values, dtype=np.float64)
+    t = np.clip(np.nan_to_num(a / vmax if vmax > 0 else a * 0.0), 0.0, 1.0)
+    rgb = cmap(t)[..., :3]
+    rgb[np.asarray(undetermined, bool)] = UNDETERMINED_RGB
+    return rgb
+
+
+def sigma_figure(name: str, sigma, undetermined, *, units: str = "", error=None, texel_mm: float | None = None):
+    """The sigma of one map: its image (largest channel per texel, :data:`SIGMA_CMAP` from 0,
+    undetermined texels in :data:`UNDETERMINED_NAME`, colour bar in the map's sigma unit), the
+    absolute error against ground truth on the same scale when ``error`` ``(H, W, C)`` is given,
+    and a histogram of sigma over the determined texels per channel with the medians marked.
+    Returns ``(fig, caption)``."""
+    from matplotlib.patches import Patch
+
+    s = np.asarray(sigma, dtype=np.float64)
+    s = s[..., None] if s.ndim == 2 else s
+    u = np.asarray(undetermined, bool)
+    u = u[..., None] if u.ndim == 2 else u
+    top, und = sigma_display(s, u)
+    r = sigma_range(top)
+    unit = sigma_unit(name)
+    label = f"1σ [{unit}]"
+    panels = 3 if error is not None else 2
+    fig = figure(3.9 * panels + 0.4, 3.4)
+    axes = list(fig.subplots(1, panels, width_ratios=[1.15] * (panels - 1) + [1.0]))
+    h, w = top.shape
+    title = MAP_TITLES.get(name, name)
+    ax = axes[0]
+    ext = _frame(ax, h, w, texel_mm)
+    ax.imshow(display_copy(sigma_colours(top, und, r.vmax)), extent=ext)
+    sm = _plt().cm.ScalarMappable(cmap=SIGMA_CMAP, norm=_plt().Normalize(r.vmin, r.vmax))
+    _colorbar(fig, sm, ax, label, r.extend)
+    ax.set_title(f"σ of {title}")
+    if und.any():
+        ax.legend(handles=[Patch(facecolor=UNDETERMINED_RGB, edgecolor="0.3", label="undetermined")],
+                  loc="upper right", fontsize=7, framealpha=0.85)
+    cap = (f"1σ of the {title} in {units or unit}"
+           + (" (the largest of its channels per texel)" if s.shape[2] > 1 else "")
+           + f"; colour scale 0 to {fmt.quantity(r.vmax, '' if unit == 'map value' else unit)}, "
+           f"undetermined texels in {UNDETERMINED_NAME} ({fmt.percent(float(und.mean()), 2)} of texels).")
+    note = clip_note(r, "" if unit == "map value" else unit)
+    if note:
+        cap += " " + note
+    if error is not None:
+        e = np.asarray(error, dtype=np.float64)
+        e = e[..., None] if e.ndim == 2 else e
+        etop = np.nanmax(np.where(np.isfinite(e), e, -np.inf), axis=-1)
+        etop = np.where(np.isfinite(etop), etop, np.nan)
+        ax = axes[1]
+        ext = _frame(ax, h, w, texel_mm)
+        ax.imshow(display_copy(sigma_colours(etop, ~np.isfinite(etop), r.vmax)), extent=ext)
+        er = robust_range(etop, None, 100.0, vmin=r.vmin, vmax=r.vmax)
+        _colorbar(fig, sm, ax, f"|error| [{unit}]", er.extend)
+        ax.set_title(f"|fit − truth|, {title}")
+        ax.set_ylabel("")
+        cap += (" Middle: |fitted − ground truth| on the same colour scale"
+                + (", the largest channel" if e.shape[2] > 1 else "") + ".")
+    ax = axes[-1]
+    colours = ("#d62728", "#2ca02c", "#1f77b4") if s.shape[2] == 3 else ("#4c78a8",)
+    names = ("R", "G", "B") if s.shape[2] == 3 else ("",)
+    medians = []
+    hi = r.vmax if r.vmax > 0 else 1.0
+    bins = np.linspace(0.0, hi, 41)
+    for c in range(s.shape[2]):
+        v = s[..., c][~u[..., c] & np.isfinite(s[..., c])]
+        if not v.size:
+            medians.append(None)
+            continue
+        med = float(np.median(v))
+        medians.append(med)
+        ax.hist(np.clip(v, 0, hi), bins=bins, histtype="step", color=colours[c], lw=1.2,
+                label=f"{names[c]} median {fmt.number(med)}".strip())
+        ax.axvline(med, color=colours[c], ls="--", lw=1.0)
+    ax.set_xlabel(label)
+    ax.set_ylabel("texels")
+    ax.set_title("σ over the determined texels")
+    ax.spines[["top", "right"]].set_visible(False)
+    if any(m is not None for m in medians):
+        ax.legend(loc="upper right", fontsize=7, framealpha=0.85)
+        cap += (" Right: histogram of σ over the determined texels"
+                + (" per channel" if s.shape[2] > 1 else "") + ", dashed lines at the median"
+                + (f" (values above {fmt.number(hi)} counted in the last bin)" if r.above > 0 else "") + ".")
+    else:
+        ax.text(0.5, 0.5, "every texel undetermined", ha="center", va="center", transform=ax.transAxes)
+    return fig, cap
+
+
+def sigma_colorbar(width: int = 256, height: int = 12) -> np.ndarray:
+    """The colour bar of :data:`SIGMA_CMAP`, 0 on the left, ``(height, width, 3)`` in [0, 1]."""
+    row = sigma_colours(np.linspace(0.0, 1.0, width)[None, :], np.zeros((1, width), bool), 1.0)
+    return np.repeat(row, height, 0)
+
+
 def settle(fig) -> None:
     """Draw twice: constrained layout moves labels once more after the ticks (and a ×10ⁿ
     offset) are known, and the saved image must be the settled one."""
@@ -614,4 +752,6 @@ def overlapping_texts(fig, tol_px: float = 1.0) -> list[tuple[str, str]]:
 __all__ = ["Range", "robust_range", "clip_note", "srgb_encode", "luminance", "display_copy", "figure",
            "scalar_image", "rgb_image", "normal_image", "map_figure", "residual_figure", "heldout_figure",
            "hemisphere", "hemisphere_norm", "hemisphere_figure", "time_bars", "flyout_figure", "max_pool", "block_mean",
-           "guidance_figure", "overlapping_texts", "MAP_TITLES", "UNIT_RANGE_MAPS"]
+           "guidance_figure", "overlapping_texts", "MAP_TITLES", "UNIT_RANGE_MAPS", "SIGMA_CMAP", "UNDETERMINED_RGB",
+           "UNDETERMINED_NAME", "UNDETERMINED_HEX", "Z95", "sigma_unit", "sigma_display", "sigma_range", "sigma_colours",
+           "sigma_figure", "sigma_colorbar"]

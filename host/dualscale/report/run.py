@@ -374,6 +374,7 @@ def write_run_report(run_dir: str | Path, out: str | Path | None = None) -> Path
 
     heldout = _heldout(run, _json(run, "fit/heldout/heldout.json", required=True, writer="fit stage"), assets,
                        texel_fit)
+    uncertainty = _uncertainty(run, fit_json or {}, maps, assets, texel_fit, note)
 
     # -- fly-outs
     fly: dict[str, Any] = {"note": "", "fig": None, "rows": [], "resolution": None}
@@ -483,7 +484,8 @@ def write_run_report(run_dir: str | Path, out: str | Path | None = None) -> Path
         ("warnings", fmt.number(len(all_warnings))),
     ]
     sections = [("checks", "Checks"), ("warnings", "Warnings"), ("inputs", "Inputs and calibration"), ("selection", "Components"),
-                ("maps", "Maps"), ("residual", "Fit residual"), ("heldout", "Held-out error"),
+                ("maps", "Maps")] + ([("uncertainty", "Uncertainty")] if uncertainty else []) + [
+                ("residual", "Fit residual"), ("heldout", "Held-out error"),
                 ("flyouts", "Fly-outs"), ("propagation", "Propagation"), ("export", "Export"),
                 ("time", "Time"), ("records", "Stage records")]
     stage_warn = {name: s.warnings for name, s in stages.items()}
@@ -497,7 +499,7 @@ def write_run_report(run_dir: str | Path, out: str | Path | None = None) -> Path
         subtitle=f"{run.resolve()} · {len(order)} stages · report written {now}",
         toc=sections, footer=f"dualscale {__version__} · written {now} · this folder is self-contained and opens offline",
         headline=headline, checks=check_table, checks_failed=bool(failed), warnings=all_warnings, stage_warn=stage_warn, inputs=inputs, selection=selection,
-        fit_rows=fit_rows, maps=map_figs, residual=res_fig, heldout=heldout, flyouts=fly, propagation=prop,
+        fit_rows=fit_rows, maps=map_figs, uncertainty=uncertainty, residual=res_fig, heldout=heldout, flyouts=fly, propagation=prop,
         export=exp, timing=timing, records=[_stage_rows(stages[n]) for n in order],
         timing_table=Table(["stage", "time"], [[s.name, fmt.duration(s.seconds)] for s in timed], {1}),
     )
@@ -592,6 +594,112 @@ def _heldout(run: Path, doc: dict[str, Any], assets: Assets, texel_mm: float | N
                                           render_title="re-render of the final fit")
         out["figs"].append(Fig(assets.figure(f, f"rerender_led{lid}"), cap, title, title))
     return out
+
+
+# ---------------------------------------------------------------------------------------------
+# per-pixel uncertainty (issue 26)
+
+def _gt_error(name: str, fit: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """|fitted - ground truth| of one map in its sigma's unit (``SIGMA_UNITS``): the angle
+    between the normals in degrees, the axial azimuth difference of the tangents in degrees,
+    eta for the IOR (eta = 1 + 2 v), the map's own value otherwise."""
+    f, g = np.asarray(fit, np.float64), np.asarray(gt, np.float64)
+    if name == "normal":
+        fn = f / np.maximum(np.linalg.norm(f, axis=-1, keepdims=True), 1e-12)
+        gn = g / np.maximum(np.linalg.norm(g, axis=-1, keepdims=True), 1e-12)
+        return np.degrees(np.arccos(np.clip((fn * gn).sum(-1, keepdims=True), -1.0, 1.0)))
+    if name == "tangent":
+        d = np.mod(180.0 * (f[..., :1] - g[..., :1]), 180.0)
+        return np.minimum(d, 180.0 - d)
+    if name == "ior":
+        return 2.0 * np.abs(f[..., :1] - g[..., :1])
+    return np.abs(f - g)
+
+
+def _channel_stats(s: np.ndarray, u: np.ndarray, pct: float) -> list[float | None]:
+    out = []
+    for c in range(s.shape[2]):
+        v = s[..., c][~u[..., c] & np.isfinite(s[..., c])]
+        out.append(float(np.percentile(v, pct)) if v.size else None)
+    return out
+
+
+def _channels_text(values, names, unit: str, pct: bool = False) -> str:
+    if not values:
+        return fmt.DASH
+    one = [fmt.percent(v) if pct else fmt.quantity(v, unit) if v is not None else "undetermined" for v in values]
+    if len(one) == 1:
+        return one[0]
+    return ", ".join(f"{n} {v}" for n, v in zip(names, one))
+
+
+def _uncertainty(run: Path, fit_json: dict[str, Any], maps: dict[str, np.ndarray], assets: Assets,
+                 texel_mm: float | None, note) -> dict[str, Any] | None:
+    """The uncertainty section (``fit/maps/uncertainty/``, ``fit.json``'s ``"uncertainty"``):
+    ``None`` when the fit wrote no uncertainty (a fit of an earlier dualscale).  Per map: the
+    sigma image and histogram, beside the absolute error against the ground truth when the fit
+    was scored against one (``fit.json``'s ``"ground_truth"``, its ``dir`` still readable), with
+    the share of texels whose |error| <= 1.96 sigma."""
+    from dualscale.formats.maps import SIGMA_UNITS, UNCERTAINTY_DIR, load_maps, load_uncertainty
+
+    root = run / "fit" / "maps"
+    if not (root / UNCERTAINTY_DIR / "uncertainty.json").is_file():
+        return None
+    try:
+        sigma, und, doc = load_uncertainty(root)
+    except (OSError, ValueError) as e:  # FormatError is a ValueError
+        note(f"fit/maps/{UNCERTAINTY_DIR} is not readable ({e}); the uncertainty is not shown")
+        return None
+    rec = fit_json.get("uncertainty") if isinstance(fit_json.get("uncertainty"), dict) else {}
+    gt_maps, gt_note = None, ""
+    gt = fit_json.get("ground_truth")
+    if isinstance(gt, dict) and gt.get("dir"):
+        try:
+            loaded, _ = load_maps(gt["dir"])
+            gt_maps = {n: t.detach().cpu().numpy() for n, t in loaded.items()}
+        except (OSError, ValueError, InputError) as e:
+            gt_note = f"The ground truth the fit was scored against ({gt['dir']}) is not readable here ({e}): no error maps."
+    units = doc.get("units") or {}
+    names = [n for n in MAP_ORDER if n in sigma] + [n for n in sigma if n not in MAP_ORDER]
+    figs, rows = [], []
+    for n in names:
+        s, u = sigma[n], und[n]
+        unit = plots.sigma_unit(n)
+        qunit = "" if unit == "map value" else unit
+        chans = ("R", "G", "B") if s.shape[2] == 3 else ("",)
+        err = None
+        if gt_maps is not None and n in gt_maps and n in maps and gt_maps[n].shape[:2] == s.shape[:2]:
+            err = _gt_error(n, maps[n], gt_maps[n])
+        f, cap = plots.sigma_figure(n, s, u, units=str(units.get(n, SIGMA_UNITS.get(n, ""))), error=err,
+                                    texel_mm=texel_mm)
+        coverage = None
+        if err is not None:
+            ok = ~u & np.isfinite(s) & np.isfinite(err)
+            if ok.any():
+                coverage = float((err[ok] <= plots.Z95 * s[ok]).mean())
+                cap += (f" Coverage: {fmt.percent(coverage)} of the determined texel channels have |error| ≤ "
+                        f"{plots.Z95:g}σ (95 % if σ is right and the error Gaussian).")
+        title = f"σ of {plots.MAP_TITLES.get(n, n)}"
+        figs.append(Fig(assets.figure(f, f"sigma_{n}"), cap, title, title))
+        undet = [float(u[..., c].mean()) for c in range(u.shape[2])]
+        row = [plots.MAP_TITLES.get(n, n), str(units.get(n, SIGMA_UNITS.get(n, ""))),
+               _channels_text(_channel_stats(s, u, 50), chans, qunit),
+               _channels_text(_channel_stats(s, u, 90), chans, qunit),
+               _channels_text(undet, chans, "", pct=True)]
+        if gt_maps is not None:
+            row.append(fmt.percent(coverage) if coverage is not None else "not measured")
+        rows.append(row)
+    header = ["map", "unit of σ", "median σ", "90th percentile", "undetermined"]
+    if gt_maps is not None:
+        header.append(f"|error| ≤ {plots.Z95:g}σ (ground truth)")
+    noise = rec.get("noise")
+    info = [("noise scale", fmt.value(noise) if noise else "not recorded"),
+            ("time", fmt.duration(rec.get("seconds")) if isinstance(rec.get("seconds"), (int, float)) else "not recorded"),
+            ("undetermined texels shown in", f"{plots.UNDETERMINED_NAME} (a flat colour outside the colour map)")]
+    if gt_maps is not None:
+        info.append(("ground truth", str(gt.get("dir"))))
+    return {"info": info, "table": Table(header, rows, set(range(2, len(header)))), "figs": figs,
+            "gt": gt_maps is not None, "gt_note": gt_note}
 
 
 def _material_name(run: Path, run_doc: dict[str, Any], stages: dict[str, Stage]) -> str:
