@@ -76,3 +76,20 @@ def write_export_json(out: Path, formats: dict) -> None:
     (out / "export.json").write_text(json.dumps({"format": "dualscale-export", "version": 1, "name": "x",
                                                  "formats": formats, "repeat_mm": None, "tiled": False,
                                                  "source": "maps"}))
+
+
+def add_uncertainty(maps_dir: Path, maps=("albedo", "roughness", "normal")) -> dict:
+    """A synthetic ``uncertainty/`` beside ``maps_dir`` (:func:`dualscale.formats.maps.save_uncertainty`):
+    sigma rising left to right, the top quarter of the rows undetermined.  Returns the sigma."""
+    from dualscale.formats.maps import SIGMA_CHANNELS, save_uncertainty
+
+    xx = np.linspace(0.01, 0.1, SIZE)[None, :, None]
+    sigma, und = {}, {}
+    for name in maps:
+        c = SIGMA_CHANNELS[name]
+        sigma[name] = np.broadcast_to(xx * (20.0 if name == "normal" else 1.0), (SIZE, SIZE, c)).copy()
+        u = np.zeros((SIZE, SIZE, c), bool)
+        u[: SIZE // 4] = True
+        und[name] = u
+    save_uncertainty(maps_dir, sigma, und, {"noise": "synthetic"})
+    return sigma

@@ -46,10 +46,34 @@ class ExportView:
     gltf: str
     repeat_mm: tuple[float, float] | None
     tiled: bool
+    #: the maps folder whose ``uncertainty/`` (issue 26) belongs to this export's maps, or ``None``
+    sigma: Path | None = None
 
     def to_json(self) -> dict[str, Any]:
         return {"key": self.key, "name": self.name, "url": f"files/{self.key}/{self.gltf}",
-                "repeat_mm": None if self.repeat_mm is None else list(self.repeat_mm), "tiled": self.tiled}
+                "repeat_mm": None if self.repeat_mm is None else list(self.repeat_mm), "tiled": self.tiled,
+                "sigma": f"api/sigma/{self.key}.json" if self.sigma is not None else None}
+
+
+def _has_uncertainty(maps: Path) -> bool:
+    from dualscale.formats.maps import UNCERTAINTY_DIR
+
+    return (maps / UNCERTAINTY_DIR / "uncertainty.json").is_file()
+
+
+def _sigma_source(root: Path, source: Any) -> Path | None:
+    """The maps folder an export was written from (``export.json``'s ``source``, absolute or
+    relative to the export folder) when it holds an uncertainty folder; an untiled export only
+    (a tiled one's texels are not the maps')."""
+    if not source:
+        return None
+    for p in (Path(str(source)), root / str(source)):
+        try:
+            if p.is_dir() and _has_uncertainty(p):
+                return p
+        except OSError:
+            continue
+    return None
 
 
 @dataclass
@@ -107,7 +131,9 @@ def read_export(root: Path, key: str) -> ExportView | None:
                                                                        for v in rep)):
                     raise FormatError(f"{path}: repeat_mm must be [width, height] in mm (> 0) or null, got {rep!r}")
                 rep = (float(rep[0]), float(rep[1]))
-            return ExportView(key, root, str(doc.get("name") or p.stem), p.as_posix(), rep, bool(doc.get("tiled")))
+            tiled = bool(doc.get("tiled"))
+            return ExportView(key, root, str(doc.get("name") or p.stem), p.as_posix(), rep, tiled,
+                              None if tiled else _sigma_source(root, doc.get("source")))
     return None
 
 
@@ -176,6 +202,9 @@ def locate(path: str | Path) -> Scene:
                          "or digitize with the glb export")
     scene = Scene(root, "run", exports)
     maps = root / "fit" / "maps"
+    for ex in exports:  # the micro export is of the fitted maps: their uncertainty is its
+        if ex.key == "micro" and ex.sigma is None and not ex.tiled and _has_uncertainty(maps):
+            ex.sigma = maps
     dataset = _run_dataset(root)
     if not (maps / "material.json").is_file():
         scene.no_capture = f"the run has no fitted maps ({maps}/material.json)"

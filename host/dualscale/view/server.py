@@ -11,7 +11,12 @@ Routes (all ``GET``; docs/VIEWER.md):
 * ``/api/led/<id>/captured.png`` and ``/api/led/<id>/rendered.png``: the captured image and our
   renderer's image of the fitted maps under that LED (:class:`dualscale.view.scene.LedImages`),
   both at one exposure, sRGB-encoded 8-bit PNG, computed on first request and cached in a
-  temporary folder removed by :meth:`ViewerServer.close`.
+  temporary folder removed by :meth:`ViewerServer.close`;
+* ``/api/sigma/<key>.json``: the per-pixel uncertainty (issue 26) of export ``key``'s maps
+  (:meth:`ViewerServer.sigma_info`; 404 when it has none), and ``/api/sigma/<key>/<map>.png``:
+  that map's 1-sigma as a false-colour PNG (largest channel per texel, 0 to the 99.5th
+  percentile in the report's colour map, undetermined texels in its flat colour:
+  :func:`dualscale.report.plots.sigma_colours`), cached like the LED images.
 
 Unknown paths answer 404, a bad LED id 400 (JSON ``{"error": ...}``), anything that escapes a
 served folder 404.
@@ -40,6 +45,7 @@ TYPES = {".html": "text/html; charset=utf-8", ".js": "text/javascript; charset=u
          ".bin": "application/octet-stream", ".png": "image/png", ".jpg": "image/jpeg", ".jpeg": "image/jpeg",
          ".ktx2": "image/ktx2", ".webp": "image/webp", ".exr": "image/x-exr"}
 _LED = re.compile(r"^/api/led/(\d+)(\.json|/captured\.png|/rendered\.png)$")
+_SIGMA = re.compile(r"^/api/sigma/([^/]+?)(\.json|/([a-z_]+)\.png)$")
 
 
 def vendor_missing() -> list[str]:
@@ -104,9 +110,17 @@ class _Handler(http.server.BaseHTTPRequestHandler):
             m = _LED.match(path)
             if m:
                 return self._led(int(m.group(1)), m.group(2))
+            m = _SIGMA.match(path)
+            if m:
+                key = urllib.parse.unquote(m.group(1))
+                if m.group(2) == ".json":
+                    return self._json(200, view.sigma_info(key))
+                return self._file(view.sigma_png(key, m.group(3)))
             return self._file(_inside(STATIC, urllib.parse.unquote(path.lstrip("/"))))
         except InputError as e:
             return self._json(400, {"error": str(e)})
+        except KeyError as e:
+            return self._json(404, {"error": f"not found: {self.path} ({e.args[0] if e.args else e})"})
         except (BrokenPipeError, ConnectionResetError):
             return None
 
@@ -137,6 +151,7 @@ class ViewerServer:
         self._http.view = self
         self._cache = Path(tempfile.mkdtemp(prefix="dualscale-view-"))
         self._png_lock = threading.Lock()
+        self._sigma_cache: dict[str, tuple] = {}
         self._thread: threading.Thread | None = None
 
     @property
@@ -175,6 +190,61 @@ class ViewerServer:
                 "rel_error": p.rel_error, "display_scale": display_scale(p),
                 "size": [int(p.captured.shape[1]), int(p.captured.shape[0])],
                 "captured": f"api/led/{led}/captured.png", "rendered": f"api/led/{led}/rendered.png"}
+
+    def _sigma(self, key: str):
+        """``(sigma, undetermined, doc)`` of export ``key``'s maps (read once); ``KeyError``
+        when the export is unknown or has no uncertainty."""
+        from dualscale.formats.maps import load_uncertainty
+
+        ex = self.scene.export(key)
+        if ex.sigma is None:
+            raise KeyError(f"the export {key!r} has no uncertainty folder beside its maps")
+        with self._png_lock:
+            cached = self._sigma_cache.get(key)
+            if cached is None:
+                cached = self._sigma_cache[key] = load_uncertainty(ex.sigma)
+        return cached
+
+    def sigma_info(self, key: str) -> dict:
+        """The JSON of ``/api/sigma/<key>.json``: per map its label, unit (full and short), the
+        colour scale's top, the median sigma per channel, the share undetermined and the PNG's
+        URL; the colour bar (its colours left to right) and the undetermined texels' colour."""
+        import numpy as np
+
+        from dualscale.formats.maps import SIGMA_UNITS
+        from dualscale.report import plots
+
+        sigma, und, doc = self._sigma(key)
+        order = [n for n in plots.MAP_TITLES if n in sigma] + [n for n in sigma if n not in plots.MAP_TITLES]
+        maps = []
+        for n in order:
+            s, u = sigma[n], und[n]
+            top, any_und = plots.sigma_display(s, u)
+            r = plots.sigma_range(top)
+            med = [float(np.median(s[..., c][~u[..., c]])) if (~u[..., c]).any() else None for c in range(s.shape[2])]
+            maps.append({"name": n, "label": f"σ {plots.MAP_TITLES.get(n, n)}", "units": (doc.get("units") or {}).get(
+                n, SIGMA_UNITS.get(n, "")), "unit": plots.sigma_unit(n), "vmax": r.vmax, "clipped": r.above,
+                "median": med, "undetermined_fraction": float(any_und.mean()), "channels": int(s.shape[2]),
+                "url": f"api/sigma/{urllib.parse.quote(key)}/{n}.png"})
+        bar = (plots.sigma_colorbar(64, 1)[0] * 255).round().astype(int).tolist()
+        return {"export": key, "maps": maps, "colormap": plots.SIGMA_CMAP, "colorbar": bar,
+                "undetermined": {"colour": plots.UNDETERMINED_HEX, "name": plots.UNDETERMINED_NAME}}
+
+    def sigma_png(self, key: str, name: str) -> Path:
+        """The cached false-colour PNG of map ``name``'s sigma (module doc)."""
+        from dualscale.export.textures import write_png
+        from dualscale.report import plots
+
+        sigma, und, _ = self._sigma(key)
+        if name not in sigma:
+            raise KeyError(f"no uncertainty of the map {name!r} (it has {', '.join(sigma)})")
+        safe = "".join(c if c.isalnum() else "_" for c in key)
+        out = self._cache / f"sigma_{safe}_{name}.png"
+        with self._png_lock:
+            if not out.is_file():
+                top, any_und = plots.sigma_display(sigma[name], und[name])
+                write_png(out, plots.sigma_colours(top, any_und, plots.sigma_range(top).vmax), srgb=False)
+        return out
 
     def led_png(self, led: int, which: str) -> Path:
         """The cached PNG (``which`` = ``captured`` or ``rendered``) of LED ``led``."""

@@ -25,6 +25,9 @@ const state = {
   repeat: null,       // physical size of one texture repeat [w, h] in metres, and whether it is known
   objects: {},        // swatch, cloth, sphere
   shown: 'swatch',
+  sigma: null,        // api/sigma/<key>.json of the export shown (null: no uncertainty)
+  showing: 'material', // 'material' or the map whose sigma covers the objects
+  originals: new Map(), // mesh -> its own material while a sigma is shown
 };
 
 // ---------------------------------------------------------------------------------------------
@@ -414,6 +417,107 @@ function fillMaps() {
 $('map-select').addEventListener('change', (e) => showMap(+e.target.value));
 
 // ---------------------------------------------------------------------------------------------
+// per-texel uncertainty (issue 26): the sigma of one map as a false-colour texture on the objects,
+// the PNG made by the server with the report's colour map (dualscale.report.plots.sigma_colours)
+
+function meshes() {
+  const out = [];
+  for (const o of Object.values(state.objects)) o.traverse((c) => { if (c.isMesh) out.push(c); });
+  return out;
+}
+
+function restoreMaterials() {
+  for (const [mesh, mat] of state.originals) mesh.material = mat;
+  state.originals.clear();
+}
+
+/** A MeshBasicMaterial with the sigma texture placed as the mesh's own base-colour texture is. */
+function sigmaMaterial(orig, tex) {
+  const t = tex.clone();
+  const src = orig.map;
+  if (src) {
+    t.wrapS = src.wrapS; t.wrapT = src.wrapT; t.repeat.copy(src.repeat); t.offset.copy(src.offset);
+    t.rotation = src.rotation; t.center.copy(src.center); t.channel = src.channel;
+  } else {
+    t.wrapS = t.wrapT = THREE.RepeatWrapping;
+  }
+  t.needsUpdate = true;
+  return new THREE.MeshBasicMaterial({ map: t, toneMapped: false, side: orig.side });
+}
+
+const sigmaTextures = new Map();
+async function sigmaTexture(url) {
+  if (!sigmaTextures.has(url)) {
+    const tex = await new THREE.TextureLoader().loadAsync(url);
+    tex.flipY = false; // glTF's UVs: v runs down the image, as in the glTF's own textures
+    tex.colorSpace = THREE.SRGBColorSpace; // the PNG holds display colours
+    tex.magFilter = THREE.NearestFilter;
+    sigmaTextures.set(url, tex);
+  }
+  return sigmaTextures.get(url);
+}
+
+async function showSigma(name) {
+  const legend = $('sigma-legend');
+  const entry = name === 'material' || !state.sigma ? null : state.sigma.maps.find((m) => m.name === name);
+  restoreMaterials();
+  if (!entry) {
+    state.showing = 'material';
+    $('show-select').value = 'material';
+    legend.hidden = true;
+    requestRender();
+    return;
+  }
+  const tex = await sigmaTexture(entry.url);
+  for (const mesh of meshes()) {
+    state.originals.set(mesh, mesh.material);
+    mesh.material = sigmaMaterial(mesh.material, tex);
+  }
+  state.showing = name;
+  $('show-select').value = name;
+  const bar = $('sigma-bar'), bctx = bar.getContext('2d'), cols = state.sigma.colorbar;
+  for (let x = 0; x < bar.width; x++) {
+    const c = cols[Math.min(cols.length - 1, Math.floor(x * cols.length / bar.width))];
+    bctx.fillStyle = `rgb(${c[0]},${c[1]},${c[2]})`;
+    bctx.fillRect(x, 0, 1, bar.height);
+  }
+  const fmt = (v) => (v === null ? 'undetermined' : Math.abs(v) >= 10 ? v.toFixed(0) : v.toPrecision(3));
+  const unit = entry.unit === 'map value' ? '' : ` ${entry.unit}`;
+  $('sigma-range').innerHTML = '';
+  $('sigma-range').append(...[`0${unit}`, `${fmt(entry.vmax)}${unit}${entry.clipped > 0 ? ' and above' : ''}`]
+    .map((t) => Object.assign(document.createElement('span'), { textContent: t })));
+  const und = state.sigma.undetermined;
+  $('sigma-und-swatch').style.background = und.colour;
+  const med = entry.median.length === 1 ? fmt(entry.median[0]) :
+    entry.median.map((v, i) => `${'RGB'[i]} ${fmt(v)}`).join(', ');
+  $('sigma-text').textContent = `undetermined (${(100 * entry.undetermined_fraction).toFixed(1)} % of texels) in ` +
+    `${und.name}. ${entry.label}: 1σ in ${entry.units}` + (entry.channels > 1 ? ' (largest channel per texel)' : '') +
+    `, colour map ${state.sigma.colormap} from 0; median ${med}.`;
+  legend.hidden = false;
+  requestRender();
+}
+
+/** The show: select of an export: its sigma maps, or absent and disabled without uncertainty. */
+async function setupSigma(exp) {
+  const sel = $('show-select');
+  state.sigma = null;
+  state.showing = 'material';
+  state.originals.clear(); // the objects were rebuilt with the export's own materials
+  $('sigma-legend').hidden = true;
+  sel.replaceChildren(new Option('material', 'material'));
+  if (!exp.sigma) {
+    sel.disabled = true;
+    $('show-label').hidden = true;
+    return;
+  }
+  state.sigma = await fetchJSON(exp.sigma);
+  sel.append(...state.sigma.maps.map((m) => new Option(m.label, m.name)));
+  sel.disabled = false;
+  $('show-label').hidden = false;
+}
+$('show-select').addEventListener('change', (e) => showSigma(e.target.value).catch(fail));
+
+// ---------------------------------------------------------------------------------------------
 // captured vs. our renderer
 
 async function fetchJSON(url) {
@@ -503,6 +607,7 @@ async function loadExport(exp) {
   buildObjects();
   applyAnisotropyFrame();
   fillMaps();
+  await setupSigma(exp);
   $('status').textContent = `${exp.name} (${exp.key})`;
 }
 
@@ -652,9 +757,13 @@ window.dualscaleViewer = {
     objects: Object.keys(state.objects),
     led: state.led || null,
     url_errors: urlErrors.slice(),
+    sigma: state.sigma ? state.sigma.maps.map((m) => m.name) : [],
+    showing: state.showing,
   }),
   show: (name) => { $('object-select').value = name; showObject(name); },
   showMap: (i) => { $('map-select').value = String(i); showMap(i); },
+  /** Show map `name`'s sigma on the objects ('material': the material again); resolves when shown. */
+  showSigma: (name) => showSigma(name).then(() => state.showing),
   render: () => renderer.render(world, camera),
   /** Anisotropy frame: true = orthogonal to the normal-mapped normal (ours), false = three.js's. */
   setShadingFrame: (on) => { $('aniso-frame').checked = !!on; applyAnisotropyFrame(); },
