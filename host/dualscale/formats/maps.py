@@ -136,6 +136,28 @@ def _close_quietly(out) -> None:
         out.close()
 
 
+
+def _commit(writer, kind, value, tb, where: Path) -> bool:
+    """The end of a writer's with-block (:class:`MapsWriter`, :class:`UncertaintyWriter`):
+    on an error (``kind``) close and delete every temporary file and return False; else check
+    that all rows came, close each file (a full disk shows here) and rename them into place,
+    deleting them all if any fails; True when the files are in place."""
+    stack, writer._stack = writer._stack, None
+    if kind is not None:
+        stack.__exit__(kind, value, tb)  # closes and deletes every temporary file
+        return False
+    try:
+        if writer.rows != writer.height:
+            raise ValueError(f"{where}: {writer.rows} of {writer.height} rows written")
+        for final, out in writer._outs:  # the last buffered bytes go out here: a full disk can show only now
+            if not out.close():
+                raise OSError(f"cannot write {final}: {out.geterror() or 'closing the file failed'}")
+    except BaseException:
+        stack.__exit__(*sys.exc_info())
+        raise
+    stack.close()  # renames every file into place
+    return True
+
 class MapsWriter:
     """The maps writer by rows: the files of :func:`save_maps` (same EXR header, previews, stale
     maps removed, ``material.json`` last), written a strip of rows at a time, so that a tiled
@@ -247,20 +269,8 @@ class MapsWriter:
             raise OSError(f"cannot write {final}: {out.geterror()}")
 
     def __exit__(self, kind, value, tb) -> None:
-        stack, self._stack = self._stack, None
-        if kind is not None:
-            stack.__exit__(kind, value, tb)  # closes and deletes every temporary file
+        if not _commit(self, kind, value, tb, self.root):
             return
-        try:
-            if self.rows != self.height:
-                raise ValueError(f"{self.root}: {self.rows} of {self.height} rows written")
-            for final, out in self._outs:  # the last buffered bytes go out here: a full disk can show only now
-                if not out.close():
-                    raise OSError(f"cannot write {final}: {out.geterror() or 'closing the file failed'}")
-        except BaseException:
-            stack.__exit__(*sys.exc_info())
-            raise
-        stack.close()  # renames every file into place
         _finish(self.root, self.names, self.height, self.width, self.texel_mm, self.meta, self.previews)
 
 
@@ -516,20 +526,8 @@ class UncertaintyWriter:
         self.put(y0, self.check(y0, sigma, undetermined))
 
     def __exit__(self, kind, value, tb) -> None:
-        stack, self._stack = self._stack, None
-        if kind is not None:
-            stack.__exit__(kind, value, tb)  # closes and deletes every temporary file
+        if not _commit(self, kind, value, tb, self.folder):
             return
-        try:
-            if self.rows != self.height:
-                raise ValueError(f"{self.folder}: {self.rows} of {self.height} rows written")
-            for final, out in self._outs:  # the last buffered bytes go out here: a full disk can show only now
-                if not out.close():
-                    raise OSError(f"cannot write {final}: {out.geterror() or 'closing the file failed'}")
-        except BaseException:
-            stack.__exit__(*sys.exc_info())
-            raise
-        stack.close()  # renames every file into place
         for stale in self.folder.glob("*.exr"):  # the maps of an earlier set that this one lacks
             if stale.stem not in self.names and stale.stem != "undetermined":
                 remove_file(stale)
