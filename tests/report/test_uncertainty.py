@@ -63,6 +63,7 @@ def test_uncertainty_section_with_ground_truth(gt_report):
     assert 'href="#uncertainty"' in page.read_text(encoding="utf-8")  # in the table of contents
 
 
+@pytest.mark.slow  # a whole report page (21 s on 2 cores): the case with ground truth covers the section
 def test_uncertainty_section_without_ground_truth_or_record(tmp_path):
     from dualscale.report import write_run_report
 
