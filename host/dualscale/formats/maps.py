@@ -137,6 +137,21 @@ def _close_quietly(out) -> None:
 
 
 
+def _open_output(writer, final: Path, spec) -> None:
+    """Open ``final`` for a writer by rows (:class:`MapsWriter`, :class:`UncertaintyWriter`): a
+    temporary file in ``writer._stack``, checked whole before it takes its name (OpenImageIO
+    reports success for a PNG a full disk truncated), its ImageOutput closed before the file is
+    deleted (an error) or renamed, and kept in ``writer._outs``."""
+    import OpenImageIO as oiio
+
+    tmp = writer._stack.enter_context(atomic_path(final, verify=lambda t: verify_image(t, spec, final)))
+    out = oiio.ImageOutput.create(str(tmp))
+    if out is None or not out.open(str(tmp), spec):
+        raise OSError(f"cannot write {final}: {oiio.geterror()}")
+    writer._stack.callback(_close_quietly, out)
+    writer._outs.append((final, out))
+
+
 def _commit(writer, kind, value, tb, where: Path) -> bool:
     """The end of a writer's with-block (:class:`MapsWriter`, :class:`UncertaintyWriter`):
     on an error (``kind``) close and delete every temporary file and return False; else check
@@ -221,15 +236,7 @@ class MapsWriter:
         return self
 
     def _open(self, final: Path, spec) -> None:
-        import OpenImageIO as oiio
-
-        # checked whole before it takes its name (OpenImageIO reports success for a PNG a full disk truncated)
-        tmp = self._stack.enter_context(atomic_path(final, verify=lambda t: verify_image(t, spec, final)))
-        out = oiio.ImageOutput.create(str(tmp))
-        if out is None or not out.open(str(tmp), spec):
-            raise OSError(f"cannot write {final}: {oiio.geterror()}")
-        self._stack.callback(_close_quietly, out)  # before the temporary file is deleted (an error) or renamed
-        self._outs.append((final, out))
+        _open_output(self, final, spec)
 
     def write(self, y0: int, rows: dict[str, np.ndarray]) -> None:
         """Write rows ``y0 .. y0 + n - 1`` of every map: ``{name: (n, W, C) float}``."""
@@ -462,14 +469,7 @@ class UncertaintyWriter:
         return self
 
     def _open(self, final: Path, spec) -> None:
-        import OpenImageIO as oiio
-
-        tmp = self._stack.enter_context(atomic_path(final, verify=lambda t: verify_image(t, spec, final)))
-        out = oiio.ImageOutput.create(str(tmp))
-        if out is None or not out.open(str(tmp), spec):
-            raise OSError(f"cannot write {final}: {oiio.geterror()}")
-        self._stack.callback(_close_quietly, out)  # before the temporary file is deleted (an error) or renamed
-        self._outs.append((final, out))
+        _open_output(self, final, spec)
 
     def check(self, y0: int, sigma: dict[str, np.ndarray],
               undetermined: dict[str, np.ndarray]) -> tuple[int, list[np.ndarray]]:
