@@ -299,7 +299,7 @@ def summary(sigma: dict[str, "Tensor | object"], undetermined: dict[str, "Tensor
     in :class:`Uncertainty` (tensors or numpy arrays)."""
     import numpy as np
 
-    from dualscale.formats.maps import SIGMA_CHANNELS, SIGMA_UNITS
+    from dualscale.formats.maps import SIGMA_UNITS, _sigma_names
 
     maps = {}
     for n, s in sigma.items():
@@ -311,6 +311,6 @@ def summary(sigma: dict[str, "Tensor | object"], undetermined: dict[str, "Tensor
             med.append(float(np.median(v)) if v.size else None)
             p90.append(float(np.percentile(v, 90)) if v.size else None)
             frac.append(float(u[..., c].mean()))
-        maps[n] = {"units": SIGMA_UNITS[n], "channels": ["Y"] if SIGMA_CHANNELS[n] == 1 else ["R", "G", "B"], "median": med, "p90": p90,
+        maps[n] = {"units": SIGMA_UNITS[n], "channels": list(_sigma_names(n)), "median": med, "p90": p90,
                    "undetermined_fraction": frac}
     return {"noise": noise, "seconds": round(float(seconds), 3), "files": "uncertainty/", "maps": maps}
