@@ -81,7 +81,7 @@ test: deps gen-check
 	$(MAKE) -C firmware all
 	$(MAKE) -C firmware test
 	$(MAKE) -C firmware fuzz FUZZ_SECONDS=$(FUZZ_SECONDS)
-	$(PY) -m pytest -m "not slow" -q
+	$(PY) -m pytest -m "not slow" -q --durations=40
 
 test-slow: deps
 	$(MAKE) -C firmware all

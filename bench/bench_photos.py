@@ -310,7 +310,7 @@ def ablation(name: str, row: dict, data: Path, lights: Path, out: Path, args) ->
     """The ablation (docs/PHOTOS.md, "Why the fit failed") under ``row``'s decoding: what each
     fix is worth."""
     from dualscale.calib.photo_import import import_photos
-    from dualscale.fit import core
+    from dualscale.fit import observations
     from dualscale.fit.holdout import leave_one_light_out
     from dualscale.fit.observations import load_observations
     from dualscale.fit.params import fit_components
@@ -335,13 +335,13 @@ def ablation(name: str, row: dict, data: Path, lights: Path, out: Path, args) ->
                            ("draft preset, specular forced", obs, draft_as_was, spec)):
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", message=".*Lambertian albedo >= 1", category=RuntimeWarning)
-            saved = core.MIN_STRIDED_LEDS
+            saved = observations.MIN_STRIDED_LEDS
             if p.name.startswith("draft"):
-                core.MIN_STRIDED_LEDS = 1  # the stride as it was
+                observations.MIN_STRIDED_LEDS = 1  # the stride as it was
             try:
                 ab[label] = leave_one_light_out(o, p, c, pixels=args.ablation_pixels, seed=args.seed).summary()
             finally:
-                core.MIN_STRIDED_LEDS = saved
+                observations.MIN_STRIDED_LEDS = saved
     return ab
 
 

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from dualscale.calib.photo_import import import_photos
-from dualscale.fit.core import stride_leds
+from dualscale.fit.observations import stride_leds
 from dualscale.fit.holdout import fit_sample, leave_one_light_out, relative_l1, sample_pixels
 from dualscale.fit.lambertian import fit_lambertian, render_lambertian
 from dualscale.fit.observations import load_observations

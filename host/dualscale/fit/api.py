@@ -17,11 +17,11 @@ from dualscale.engine import EngineSpec, connect
 from dualscale.threads import effective_threads
 
 from .checkpoint import fingerprint
-from .core import FitResult, fit_observations, stride_leds
+from .core import FitResult, fit_observations
 from .holdout import CV_PIXELS, HoldoutReport, cross_validate, cross_validate_pixels, parse_folds, sample_pixels_of
 from .io import save_fit, save_fit_rows
 from .metrics import map_errors
-from .observations import DatasetOrigin, Observations, fit_layout, load_observations
+from .observations import DatasetOrigin, Observations, fit_layout, load_observations, stride_leds
 from .presets import Preset, get_preset
 from .select import PIXELS as SELECT_PIXELS
 from .select import choose_components, preset_for, select_components, selection_pixels

@@ -16,7 +16,7 @@ from .init import initial_params
 from .lm import run_lm
 from .loop import Loop
 from .metrics import image_losses, rerender_ssim
-from .observations import Observations
+from .observations import Observations, stride_leds
 from .optimize import run_adam
 from .params import to_maps
 from .presets import Preset
@@ -54,21 +54,6 @@ def split_holdout(obs: Observations, every: int = 8, offset: int = 3) -> tuple[O
     if not held or len(held) == len(ids):
         return obs, None
     return obs.select_leds(held, keep=False), obs.select_leds(held, keep=True)
-
-
-#: a preset's ``led_stride`` never leaves fewer distinct LEDs than this (the draft preset's
-#: stride 2 was made for the dome's 127; on 12 photographs it would fit 6, docs/PHOTOS.md)
-MIN_STRIDED_LEDS = 32
-
-
-def stride_leds(obs: Observations, stride: int) -> Observations:
-    """Every ``stride``-th distinct LED (all its analyser images); the stride is lowered so
-    that at least :data:`MIN_STRIDED_LEDS` LEDs remain (1 below twice that many)."""
-    ids = sorted(set(obs.led_ids.tolist()))
-    stride = min(stride, max(1, len(ids) // MIN_STRIDED_LEDS))
-    if stride <= 1:
-        return obs
-    return obs.select_leds({i for k, i in enumerate(ids) if k % stride == 0})
 
 
 def _fingerprint(obs: Observations, preset: Preset, comps: Components, seed: int) -> str:

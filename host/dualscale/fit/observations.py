@@ -209,6 +209,21 @@ class Observations:
                        w_p=self.w_p.to(dtype), w_d=self.w_d.to(dtype), backlight=back, view=self.view.to(dtype))
 
 
+#: a preset's ``led_stride`` never leaves fewer distinct LEDs than this (the draft preset's
+#: stride 2 was made for the dome's 127; on 12 photographs it would fit 6, docs/PHOTOS.md)
+MIN_STRIDED_LEDS = 32
+
+
+def stride_leds(obs: Observations, stride: int) -> Observations:
+    """Every ``stride``-th distinct LED (all its analyser images); the stride is lowered so
+    that at least :data:`MIN_STRIDED_LEDS` LEDs remain (1 below twice that many)."""
+    ids = sorted(set(obs.led_ids.tolist()))
+    stride = min(stride, max(1, len(ids) // MIN_STRIDED_LEDS))
+    if stride <= 1:
+        return obs
+    return obs.select_leds({i for k, i in enumerate(ids) if k % stride == 0})
+
+
 def analyzer_weights(analyzer_deg: float | None, relative: bool, direction: np.ndarray,
                      polarizer: str = "s") -> tuple[float, float, float]:
     """``(w_s, w_p, w_d)`` of an LED image (see the module docstring)."""

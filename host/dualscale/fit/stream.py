@@ -58,10 +58,10 @@ from dualscale.formats.torchfile import load_torch, save_torch
 from dualscale.progress import Progress, tracker
 
 from .checkpoint import fingerprint
-from .core import FitResult, fit_observations, stride_leds
+from .core import FitResult, fit_observations
 from .init import start_params, warn_bright
 from .metrics import image_loss_sums, losses_from_sums
-from .observations import DatasetOrigin, Observations, WholeMap, read_tile
+from .observations import DatasetOrigin, Observations, WholeMap, read_tile, stride_leds
 from .presets import Preset
 from .select import TRANS_LEVEL, transmission_from
 from .tiled import INFLIGHT_PER_WORKER, _tile_path

@@ -77,9 +77,9 @@ from dualscale.formats.torchfile import load_torch, save_torch
 from dualscale.progress import Progress, tracker
 
 from .checkpoint import fingerprint
-from .core import FitResult, coarse_start, fit_losses, fit_observations, stride_leds
+from .core import FitResult, coarse_start, fit_losses, fit_observations
 from .init import check_albedo_range, photometric_stereo, start_params
-from .observations import DatasetOrigin, Observations, WholeMap, read_tile
+from .observations import DatasetOrigin, Observations, WholeMap, read_tile, stride_leds
 from .presets import Preset
 
 #: default tile side in pixels: Dask's round trip and the fit's fixed cost are ~5 % of a 64 px tile

@@ -62,7 +62,7 @@ from dualscale.bsdf.maps import IOR_MAX, IOR_MIN
 
 from . import lm
 from .loop import free_names, step_data
-from .observations import Observations
+from .observations import Observations, stride_leds
 from .params import PARAM_CHANNELS, pack
 from .presets import Preset
 
@@ -95,8 +95,6 @@ def normal_matrices(params: dict[str, Tensor], comps: Components, obs: Observati
     kept rows, ``keep`` ``(H, W, K)``, ``residuals`` ``(H, W, K)``, ``sigma`` ``(H, W)`` (1.4826
     median |r| over the kept rows) and ``prior_info`` ``(H, W, P)`` (1 / sd^2 on a prior's
     channel).  ``obs``: as given to ``fit_observations`` (the preset's LED stride is applied)."""
-    from .core import stride_leds  # (core calls this module)
-
     loss = lm.preset_loss(preset)
     names = free_names("joint", params)
     fixed = {k: v for k, v in params.items() if k not in names}
