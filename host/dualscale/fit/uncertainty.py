@@ -1,37 +1,44 @@
-"""Per-pixel uncertainty of a fit (issue 26, in progress): :func:`.core.fit_observations`
+"""Per-pixel uncertainty of a fit (issue 26): :func:`.core.fit_observations`
 computes it at its solution when asked (``uncertainty=True``, any preset: the covariance goes
 through the fused kernel's Jacobian also for Adam), :func:`.io.save_fit` then writes it
-(:func:`dualscale.formats.maps.save_uncertainty`) with :func:`summary` in ``fit.json``.  Not yet
-wired: ``fit_dataset`` and the commands, the tiled and out-of-core fits, a sensor noise model.
+(:func:`dualscale.formats.maps.save_uncertainty`) with :func:`summary` in ``fit.json``;
+:func:`calibration` scores it against a ground truth.
 
 At the fitted parameters ``x`` of a pixel, with the joint step's free parameters, the fused
-kernel builds (one more pass, :meth:`.fused.Problem.normal_equations`) the two matrices
+kernel builds (two more passes, :meth:`.fused.Problem.normal_equations`) the matrices
 
-* ``A = J^T C J`` and ``B = J^T C^2 J``
+* ``A = J^T C J``, ``B = J^T C^2 J`` and the noise-weighted ``N`` (below)
 
 over the *kept* rows only (invalid samples and the rows :meth:`.lm.Loss.keep` sets aside as cast
 shadows have zero weight), ``C`` the row weights of :class:`.lm.Loss` (1 per LED row,
 ``back_weight`` per back-lit row).  The fit minimises ``sum c rho(r)``; its asymptotic
-(sandwich) covariance, for residuals of a common density ``f`` and scale ``sigma``, is
+(sandwich) covariance, for residuals of density ``f`` and scale ``sigma``, is
 
-* ``loss='l2'`` (``rho = r^2``): ``Sigma = sigma^2 A^-1 B A^-1``;
+* ``loss='l2'`` (``rho = r^2``): ``Sigma = sigma^2 A^-1 B A^-1`` for one scale;
 * ``loss='l1'`` (``rho = |r|``, the presets' default): the least-absolute-deviations
-  covariance ``Sigma = 1 / (4 f(0)^2) A^-1 B A^-1``.  The IRLS matrix ``J^T W J``,
+  covariance ``Sigma = 1 / (4 f(0)^2) A^-1 B A^-1`` for one density.  The IRLS matrix ``J^T W J``,
   ``W = 1/|r|``, that the optimiser solves with is *not* used: ``E[1/|r|]`` diverges, so it
   says nothing about the spread of the estimate.
 
-With 0/1 weights (no back-lit rows, or ``back_weight`` 1) ``B = A`` and this is the familiar
-``s^2 A^-1`` (one build; otherwise two).  **Noise-scale assumption**: the residuals at the
-solution are Gaussian of one scale per pixel, ``sigma = 1.4826 median|r|`` over the pixel's
-kept rows (the MAD about zero: at an L1 fit the residuals' median is zero by construction), so
-``1 / (4 f(0)^2) = (pi / 2) sigma^2``.  No sensor noise model is used yet: where the noise is
-heteroscedastic (shot noise), the MAD follows the many dark rows and understates the noise of
-the highlights.
+**Noise model** (:func:`row_noise`): each row's residual is Gaussian with the per-pixel
+variance ``s_i^2 = a + b mu_i`` (read noise plus shot noise; ``mu_i`` the render), ``a`` and
+``b`` fitted to the pixel's own kept residuals at the solution.  No dataset or calibration of
+this product records a sensor noise model yet (the camera's gain in electrons per DN, its read
+noise, an HDR merge's variance), so the residual model is the only source; ``Uncertainty.noise``
+says so per run.  Then, with ``f_i(0) = 1 / (sqrt(2 pi) s_i)``:
+
+* ``loss='l1'``: ``Sigma = (pi / 2) N^-1 B N^-1``, ``N = J^T C S^-1 J``, ``B = J^T C^2 J``;
+* ``loss='l2'``: ``Sigma = A^-1 N A^-1``, ``N = J^T C^2 S^2 J``.
+
+Homoscedastic rows (``s_i = s``) give back ``(pi / 2) s^2 A^-1 B A^-1`` and ``s^2 A^-1 B
+A^-1``.  Under shot noise a single scale per pixel follows the many dark rows and understates
+the highlights' noise, which carry the roughness and the normal: on a twill crop with the
+virtual sensor's shot and read noise the z-scores' spread was 1.4-1.7 with it and 0.9-1.05 with
+the model (``tests/fit/test_uncertainty.py``).
 
 A prior (:attr:`.lm.Loss.priors`, the presets' IOR prior) is added in information units: the
-data give the information ``Sigma_data^-1 = A B^-1 A / kappa`` (``kappa`` = ``sigma^2`` or
-``pi sigma^2 / 2``), the Gaussian prior ``1 / sd^2`` on its channel (:meth:`.lm.Loss.prior_terms`'
-curvature divided by its likelihood scale ``k``: the LM cost is the negative log posterior
+data give the information ``Sigma_data^-1`` (``(2 / pi) N B^-1 N`` or ``A N^-1 A``), the
+Gaussian prior ``1 / sd^2`` on its channel (:meth:`.lm.Loss.prior_terms`' curvature divided by its likelihood scale ``k``: the LM cost is the negative log posterior
 times ``k``), and ``Sigma = (Sigma_data^-1 + diag(1 / sd^2))^-1``, a Laplace approximation of
 the posterior.
 
@@ -54,6 +61,7 @@ import math
 import time
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -88,19 +96,65 @@ def _offsets(names: tuple[str, ...]) -> dict[str, slice]:
     return out
 
 
+#: iterations of the per-pixel noise-model fit (:func:`row_noise`)
+NOISE_ITERATIONS = 4
+#: rows whose residual exceeds this many of their model sigmas are left out of the next
+#: iteration of the noise-model fit (cast-shadow edges, misfit, hot pixels)
+NOISE_CLIP = 3.0
+#: ``E[r^2 | |r| <= z sigma] / sigma^2`` for a Gaussian ``r``, ``z`` = :data:`NOISE_CLIP`: the
+#: rejection's bias, divided out
+_TRUNCATED_VARIANCE = 1.0 - 2.0 * NOISE_CLIP * math.exp(-0.5 * NOISE_CLIP ** 2) / math.sqrt(2.0 * math.pi) / math.erf(
+    NOISE_CLIP / math.sqrt(2.0))
+
+
+def row_noise(r: Tensor, mu: Tensor, keep: Tensor) -> Tensor:
+    """``(H, W, K)`` float64: each row's noise sigma under the per-pixel model ``var = a + b mu``
+    (read noise plus shot noise, ``mu`` the rendered value, clamped at 0), fitted to the pixel's
+    kept residuals ``r`` (``keep`` > 0) by iteratively reweighted least squares on ``r^2`` (weights
+    ``1 / var^2``, since ``Var(r^2) = 2 var^2`` for a Gaussian ``r``; a row beyond
+    :data:`NOISE_CLIP` sigmas of the previous iterate is left out, and the truncation's bias
+    divided out), with ``a > 0`` and ``b >= 0``.  Starts from the homoscedastic mean square."""
+    r, mu = r.double(), mu.double().clamp(min=0.0)
+    k = (keep > 0).double()
+    n = k.sum(-1).clamp(min=1.0)
+    r2 = r * r * k
+    # start: the mean square of the kept rows (a), no shot term
+    a = (r2.sum(-1) / n).clamp(min=1e-30)
+    b = torch.zeros_like(a)
+    tiny = 1e-12 * a.clamp(min=1e-30)
+    for _ in range(NOISE_ITERATIONS):
+        v = (a.unsqueeze(-1) + b.unsqueeze(-1) * mu).clamp(min=1e-30)
+        y = r2 / _TRUNCATED_VARIANCE
+        w = k * (r2 <= NOISE_CLIP ** 2 * v) / (v * v)
+        s0, s1, s2 = w.sum(-1), (w * mu).sum(-1), (w * mu * mu).sum(-1)
+        t0, t1 = (w * y).sum(-1), (w * mu * y).sum(-1)
+        det = s0 * s2 - s1 * s1
+        a_new = torch.where(det > 0, (s2 * t0 - s1 * t1) / det.clamp(min=1e-300), t0 / s0.clamp(min=1e-300))
+        b_new = torch.where(det > 0, (s0 * t1 - s1 * t0) / det.clamp(min=1e-300), torch.zeros_like(a))
+        neg_b = b_new < 0  # no shot term: a alone
+        a_new = torch.where(neg_b, t0 / s0.clamp(min=1e-300), a_new)
+        b_new = b_new.clamp(min=0.0)
+        neg_a = a_new <= tiny  # no read term: b alone
+        b_new = torch.where(neg_a, t1 / s2.clamp(min=1e-300), b_new)
+        a, b = torch.where(neg_a, tiny, a_new), b_new.clamp(min=0.0)
+    return (a.unsqueeze(-1) + b.unsqueeze(-1) * mu).clamp(min=1e-30).sqrt()
+
+
 def normal_matrices(params: dict[str, Tensor], comps: Components, obs: Observations, preset: Preset
                     ) -> dict[str, Tensor | tuple[str, ...]]:
     """The pieces of :func:`pixel_covariance` at ``params``: ``names`` (joint free parameters),
     ``x`` ``(H, W, P)``, ``A = J^T C J`` and ``B = J^T C^2 J`` ``(H, W, P, P)`` float64 over the
-    kept rows, ``keep`` ``(H, W, K)``, ``residuals`` ``(H, W, K)``, ``sigma`` ``(H, W)`` (1.4826
-    median |r| over the kept rows) and ``prior_info`` ``(H, W, P)`` (1 / sd^2 on a prior's
-    channel).  ``obs``: as given to ``fit_observations`` (the preset's LED stride is applied)."""
+    kept rows, the noise-weighted ``N`` (``J^T C S^-1 J`` for ``loss='l1'``, ``J^T C^2 S^2 J`` for
+    ``'l2'``; ``S`` the rows' noise sigmas, :func:`row_noise`), ``keep`` ``(H, W, K)``,
+    ``residuals`` ``(H, W, K)``, ``noise`` ``(H, W, K)`` (the rows' sigmas) and ``prior_info``
+    ``(H, W, P)`` (1 / sd^2 on a prior's channel).  ``obs``: as given to ``fit_observations``
+    (the preset's LED stride is applied)."""
     loss = lm.preset_loss(preset)
     names = free_names("joint", params)
     fixed = {k: v for k, v in params.items() if k not in names}
     d = step_data(stride_leds(obs, preset.led_stride), "joint", "fused")
     x = pack(params, names)
-    a_l, b_l, keep_l, r_l, med_l = [], [], [], [], []
+    a_l, b_l, n_l, keep_l, r_l, s_l = [], [], [], [], [], []
     c_back = float(loss.back_weight)
     for y0, y1 in lm._chunks(*x.shape[:2]):
         xb = x[y0:y1]
@@ -109,19 +163,24 @@ def normal_matrices(params: dict[str, Tensor], comps: Components, obs: Observati
         r = prob.residuals(xb, names, fx)
         keep = prob.irls(r, loss)[0]  # kept rows: valid and not in a cast shadow
         c = torch.from_numpy(prob.row_weights(c_back)).to(keep.dtype)
+        rows = prob.rows if prob.back.shape[0] != prob.rows.shape[0] else np.concatenate([prob.rows, prob.back], 1)
+        mu = r.double() + torch.from_numpy(rows).reshape(r.shape).double()  # the render
+        sd = row_noise(r, mu, keep)
         a, _ = prob.normal_equations(xb, names, fx, r, (c * keep).sqrt())
         # B = J^T C^2 J differs from A = J^T C J on the back-lit rows only (c = 1 elsewhere)
         b = a + (c_back ** 2 - c_back) * prob.back_normal(xb, names, fx, keep.sqrt()) if c_back != 1.0 else a
+        w = c * keep / sd if loss.kind == "l1" else c * c * keep * sd * sd
+        nm, _ = prob.normal_equations(xb, names, fx, r, w.sqrt())
         a_l.append(a)
         b_l.append(b)
+        n_l.append(nm)
         keep_l.append(keep)
         r_l.append(r)
-        med_l.append(torch.where(keep > 0, r.abs(), torch.full_like(r, float("nan"))).nanmedian(-1).values)
-    a, b, keep, r = (torch.cat(t, 0) for t in (a_l, b_l, keep_l, r_l))
-    med = torch.nan_to_num(torch.cat(med_l, 0).double(), nan=0.0)
+        s_l.append(sd)
+    a, b, nm, keep, r, sd = (torch.cat(t, 0) for t in (a_l, b_l, n_l, keep_l, r_l, s_l))
     one = torch.ones(x.shape[:2], dtype=torch.float64)
     _, _, curv = loss.prior_terms(x.double(), names, one)  # k = 1: the curvature is 1 / sd^2
-    return {"names": names, "x": x.double(), "A": a, "B": b, "keep": keep, "residuals": r, "sigma": 1.4826 * med,
+    return {"names": names, "x": x.double(), "A": a, "B": b, "N": nm, "keep": keep, "residuals": r, "noise": sd,
             "prior_info": curv, "kind": loss.kind}
 
 
@@ -164,12 +223,13 @@ def pixel_covariance(params: dict[str, Tensor], comps: Components, obs: Observat
         share = torch.where(det, vec[..., :, 0].abs(), torch.full_like(ev, -1.0))
         drop = torch.nn.functional.one_hot(share.argmax(-1), p).bool() & bad.unsqueeze(-1)
         det &= ~drop
-    sigma = m["sigma"]
-    kappa = sigma ** 2 * (math.pi / 2 if m["kind"] == "l1" else 1.0)  # 1 / (4 f(0)^2) or sigma^2
-    det &= (kappa > 0).unsqueeze(-1)
-    am, bm = _masked(a, det, 1.0), _masked(b, det, 1.0)
-    y, info_b = torch.linalg.solve_ex(bm, am)  # B^-1 A
-    info = am @ y / kappa.clamp(min=1e-300)[..., None, None]  # data information A B^-1 A / kappa
+    am, bm, nm = _masked(a, det, 1.0), _masked(b, det, 1.0), _masked(m["N"], det, 1.0)
+    if m["kind"] == "l1":  # Sigma = (pi/2) N^-1 B N^-1: the information (2/pi) N B^-1 N
+        y, info_b = torch.linalg.solve_ex(bm, nm)
+        info = (2.0 / math.pi) * (nm @ y)
+    else:  # Sigma = A^-1 N A^-1: the information A N^-1 A
+        y, info_b = torch.linalg.solve_ex(nm, am)
+        info = am @ y
     info = info + torch.diag_embed(m["prior_info"] * det)
     cov, info_i = torch.linalg.inv_ex(_masked(info, det, 1.0))
     good = (info_b == 0) & (info_i == 0) & torch.isfinite(cov).all((-2, -1))
@@ -243,7 +303,8 @@ def map_sigmas(params: dict[str, Tensor], cov: Tensor, names: tuple[str, ...], d
 #: pixel, P <= 16) then stay within ~50 MB whatever the map's size
 BLOCK_PIXELS = 4096
 #: how the noise scale was obtained (``Uncertainty.noise``; module doc)
-NOISE_RESIDUAL = "robust residual scale (1.4826 MAD of each pixel's kept residuals)"
+NOISE_RESIDUAL = ("residual noise model: per pixel var = a + b * render (read + shot noise), fitted to its "
+                  "kept residuals")
 
 
 @dataclass
@@ -312,3 +373,66 @@ def summary(sigma: dict[str, "Tensor | object"], undetermined: dict[str, "Tensor
         maps[n] = {"units": SIGMA_UNITS[n], "channels": list(_sigma_names(n)), "median": med, "p90": p90,
                    "undetermined_fraction": frac}
     return {"noise": noise, "seconds": round(float(seconds), 3), "files": "uncertainty/", "maps": maps}
+
+
+#: the radius, in units of the normal's RMS angle sigma, that holds 95 % of a 2-D isotropic
+#: Gaussian error (``sqrt(-ln 0.05)``: the squared angle over ``sigma^2 / 2`` is chi-square 2)
+Z95_NORMAL = math.sqrt(-math.log(0.05))
+#: ``|z| <= 1.96``: 95 % of a 1-D Gaussian error
+Z95 = 1.959963984540054
+
+
+def map_error(name: str, fit, truth):
+    """The signed error ``fit - truth`` of one map ``(H, W, C)`` (numpy or tensors) in its
+    sigma's units (:data:`dualscale.formats.maps.SIGMA_UNITS`), as a float64 numpy array: the
+    angle between the normals in degrees (``(H, W, 1)``, unsigned: a 2-D error), the tangents'
+    axial azimuth difference in degrees, wrapped to ``[-90, 90)``, eta for the IOR (``eta = 1 +
+    2 v``), the map's own value otherwise."""
+    import numpy as np
+
+    f, g = (np.asarray(t.detach().cpu().numpy() if isinstance(t, Tensor) else t, np.float64) for t in (fit, truth))
+    if name == "normal":
+        fn = f / np.maximum(np.linalg.norm(f, axis=-1, keepdims=True), 1e-12)
+        gn = g / np.maximum(np.linalg.norm(g, axis=-1, keepdims=True), 1e-12)
+        return np.degrees(np.arccos(np.clip((fn * gn).sum(-1, keepdims=True), -1.0, 1.0)))
+    if name == "tangent":
+        return np.mod(180.0 * (f[..., :1] - g[..., :1]) + 90.0, 180.0) - 90.0
+    if name == "ior":
+        return (IOR_MAX - IOR_MIN) * (f[..., :1] - g[..., :1])
+    return f - g
+
+
+def calibration(maps, sigma: dict, undetermined: dict, truth) -> dict[str, dict]:
+    """How well ``sigma`` predicts the error of ``maps`` against ``truth`` (both
+    :class:`~dualscale.bsdf.maps.MaterialMaps` or ``{name: (H, W, C)}``), per map of ``sigma``
+    present in both, over the determined texel channels: ``{"determined"`` (share),
+    ``"z_sd"``, ``"z_mean"``, ``"coverage_95"``, ``"median_sigma"``, ``"n"}``.  ``z = (fit -
+    truth) / sigma``; for the normal (a 2-D error whose sigma is the RMS angle) ``z_sd`` is
+    ``sqrt(mean((angle / sigma)^2))``, ``z_mean`` is ``None`` and the 95 % radius is
+    :data:`Z95_NORMAL` sigma; otherwise ``|z| <= 1.96``.  A calibrated sigma gives ``z_sd``
+    near 1 and ``coverage_95`` near 0.95 (issue 26 asks 0.8-1.25 and 0.90-0.98)."""
+    import numpy as np
+
+    def get(m, n):
+        return getattr(m, n, None) if not isinstance(m, dict) else m.get(n)
+
+    out = {}
+    for n, s in sigma.items():
+        f, g = get(maps, n), get(truth, n)
+        if f is None or g is None:
+            continue
+        s = np.asarray(s.numpy() if isinstance(s, Tensor) else s, np.float64)
+        u = np.asarray(undetermined[n].numpy() if isinstance(undetermined[n], Tensor) else undetermined[n], bool)
+        e = map_error(n, f, g)
+        ok = ~u & np.isfinite(s) & (s > 0) & np.isfinite(e)
+        rec: dict = {"determined": float(ok.mean()), "n": int(ok.sum())}
+        if ok.any():
+            z = e[ok] / s[ok]
+            if n == "normal":
+                rec.update(z_sd=float(np.sqrt(np.mean(z ** 2))), z_mean=None,
+                           coverage_95=float(np.mean(z <= Z95_NORMAL)))
+            else:
+                rec.update(z_sd=float(np.std(z)), z_mean=float(np.mean(z)), coverage_95=float(np.mean(np.abs(z) <= Z95)))
+            rec["median_sigma"] = float(np.median(s[ok]))
+        out[n] = rec
+    return out

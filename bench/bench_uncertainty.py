@@ -1,0 +1,146 @@
+"""Calibration and cost of the per-pixel uncertainty (issue 26; docs/FITTING.md, "Per-pixel
+uncertainty").
+
+    PYTHONPATH=host python bench/bench_uncertainty.py [--size 32] [--materials twill,leather,satin,denim]
+        [--seeds 0,1,2] [--plans full,MOD3,ROW2+4] [--preset standard] [--json out.json]
+
+Each material and seed is captured by the virtual rig *with its realistic sensor* (``synth
+--realistic``: metered exposures, LED gains, dark signal, shot and read noise, 12 bit), made
+radiance by the product's own calibration (``synth-targets`` -> ``calibrate`` ->
+:func:`dualscale.calib.apply.to_radiance`, one calibration for every sample, as one rig has),
+then fitted on each light plan with the preset, ``uncertainty`` on, with the ground truth's
+components.  Per map: the share of determined texel channels, the z-scores' spread and the 95 %
+coverage (:func:`dualscale.fit.uncertainty.calibration`), pooled over the seeds; the
+misspecified case fits the anisotropic twill with an isotropic lobe.  The cost is the
+uncertainty's own time over the same fit's time without it, the median over the fits.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import tempfile
+import time
+from dataclasses import replace
+from datetime import date
+from pathlib import Path
+
+import numpy as np
+
+from dualscale.calib.apply import to_radiance
+from dualscale.cli import main as cli_main
+from dualscale.fit.core import fit_observations
+from dualscale.fit.observations import load_observations
+from dualscale.fit.presets import PRESETS
+from dualscale.fit.study import builtin_subsets
+from dualscale.fit.uncertainty import calibration
+from dualscale.formats.maps import load_maps
+from dualscale.threads import set_threads
+
+
+def _cli(*args: str) -> None:
+    rc = cli_main([*args, "--threads", "1", "--no-progress"])
+    if rc:
+        raise SystemExit(f"dualscale {' '.join(args)} failed ({rc})")
+
+
+def _dataset(work: Path, cal: Path, material: str, seed: int, size: int) -> tuple[Path, Path]:
+    raw = work / f"{material}-{seed}"
+    _cli("synth", material, "--size", str(size), "--texel-um", "9", "--seed", str(seed), "--dataset", "--realistic",
+         "--no-previews", "-o", str(raw))
+    rad = work / f"{material}-{seed}-radiance"
+    to_radiance(raw, rad, cal)
+    return rad, raw / "maps"
+
+
+def _pool(recs: list[dict]) -> dict:
+    """Pooled over fits: n-weighted means of z_sd^2 (as variance), z_mean and coverage."""
+    out = {}
+    for n in sorted({k for r in recs for k in r}):
+        rs = [r[n] for r in recs if n in r and r[n].get("n")]
+        if not rs:
+            continue
+        w = np.array([r["n"] for r in rs], float)
+        det = float(np.mean([r["determined"] for r in rs]))
+        zsd = float(np.sqrt(np.average([r["z_sd"] ** 2 for r in rs], weights=w)))
+        cov = float(np.average([r["coverage_95"] for r in rs], weights=w))
+        med = float(np.median([r["median_sigma"] for r in rs]))
+        out[n] = {"determined": det, "z_sd": zsd, "coverage_95": cov, "median_sigma": med, "n": int(w.sum())}
+    return out
+
+
+def main(argv: list[str] | None = None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--size", type=int, default=32)
+    ap.add_argument("--materials", default="twill,leather,satin,denim")
+    ap.add_argument("--seeds", default="0,1,2")
+    ap.add_argument("--plans", default="full,MOD3,ROW2+4")
+    ap.add_argument("--preset", default="standard")
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--work", default=None, help="keep the datasets here (default: a temporary folder)")
+    ap.add_argument("--json", default=None)
+    a = ap.parse_args(argv)
+    set_threads(a.threads)
+    preset = PRESETS[a.preset]
+    wanted = [p for p in a.plans.split(",") if p != "full"]
+    subsets = builtin_subsets(names=wanted) if wanted else {}
+    work = Path(a.work or tempfile.mkdtemp(prefix="bench-unc-"))
+    work.mkdir(parents=True, exist_ok=True)
+    cal = work / "rig.calib.json"
+    if not cal.is_file():
+        _cli("synth-targets", "-o", str(work / "targets"), "--led-step", "1")
+        _cli("calibrate", str(work / "targets"), "-o", str(cal))
+    cases: dict[tuple[str, str], list[dict]] = {}
+    costs: list[float] = []
+    noise = None
+    for material in a.materials.split(","):
+        for seed in (int(s) for s in a.seeds.split(",")):
+            rad, gt_dir = _dataset(work, cal, material, seed, a.size)
+            gt, _ = load_maps(gt_dir)
+            obs = load_observations(rad)
+            comps = gt.components()
+            plans = {"full": None, **subsets}
+            if material == "twill":
+                plans["full, isotropic lobe (misspecified)"] = None
+            for plan, ids in plans.items():
+                o = obs if ids is None else obs.select_leds(ids & set(obs.led_ids.tolist()))
+                c = replace(comps, isotropic=True) if "misspecified" in plan else comps
+                t0 = time.perf_counter()
+                res = fit_observations(o, preset, c, seed=seed, uncertainty=True)
+                total = time.perf_counter() - t0
+                u = res.uncertainty
+                noise = u.noise
+                if "misspecified" not in plan:
+                    costs.append(u.seconds / max(1e-9, total - u.seconds))
+                cases.setdefault((material if "misspecified" not in plan else "twill (isotropic fit)",
+                                  plan.split(",")[0]), []).append(calibration(res.maps, u.sigma, u.undetermined, gt))
+                print(f"{material} seed {seed} {plan}: {total:.1f} s, uncertainty {u.seconds:.2f} s", flush=True)
+    by_plan: dict[str, list[dict]] = {}
+    for (m, plan), recs in cases.items():
+        if "isotropic" not in m:
+            by_plan.setdefault(plan, []).extend(recs)
+    rep = {"date": date.today().isoformat(), "machine": f"{platform.machine()}, {os.cpu_count()} cores",
+           "load": os.getloadavg()[0], "threads": a.threads, "size": a.size, "preset": a.preset, "noise": noise,
+           "cost_median": statistics.median(costs) if costs else None,
+           "per_plan": {p: _pool(r) for p, r in by_plan.items()},
+           "per_case": {f"{m} / {p}": _pool(r) for (m, p), r in cases.items()}}
+    print(f"\n{rep['date']}, {rep['machine']}, load {rep['load']:.2f}, {a.threads} thread(s); "
+          f"{a.size}^2 synth --realistic, calibrated; preset {a.preset}; noise scale: {noise}")
+    print(f"uncertainty cost: median {100 * rep['cost_median']:.1f} % of the fit without it\n")
+    print("| plan / case | map | determined | z sd | 95 % coverage | median σ |\n|---|---|---|---|---|---|")
+    for title, group in (("all materials", rep["per_plan"]), ("", rep["per_case"])):
+        for plan, maps in group.items():
+            for k, (n, r) in enumerate(maps.items()):
+                print(f"| {(plan + (' (' + title + ')' if title else '')) if k == 0 else ''} | {n} | "
+                      f"{100 * r['determined']:.0f} % | {r['z_sd']:.2f} | {100 * r['coverage_95']:.1f} % | "
+                      f"{r['median_sigma']:.3g} |")
+    if a.json:
+        Path(a.json).write_text(json.dumps(rep, indent=1))
+    return rep
+
+
+if __name__ == "__main__":
+    main()
