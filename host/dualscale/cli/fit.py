@@ -74,7 +74,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
                                  progress=want_progress(args), checkpoint_every=args.checkpoint_every,
                                  restart=args.restart, stop_after=args.stop_after, seed=args.seed,
                                  previews=not args.no_previews, gt=args.gt, engine=engine, tile_px=args.tile_px,
-                                 memory=memory)
+                                 memory=memory, uncertainty=not args.no_uncertainty)
     c = res.comps
     where = (f"tiled on {extra['tiled']['engine']}" if "tiled" in extra else
              f"{extra['threads']} thread{'' if extra['threads'] == 1 else 's'}")
@@ -185,6 +185,11 @@ def register(subparsers) -> None:
                    help="ground-truth maps folder to score the fit against (evaluation only)")
     f.add_argument("--seed", type=int, default=0, help="seed of the component choice's and the cross-validation's pixel samples (default: 0)")
     f.add_argument("--no-previews", action="store_true", help="write the EXR maps without PNG previews (default: previews)")
+    f.add_argument("--no-uncertainty", action="store_true",
+                   help="do not compute the maps' per-pixel uncertainty (default: computed, written to "
+                        "OUT/uncertainty/ as a 1-sigma EXR per map and undetermined.exr, summarised in fit.json; "
+                        "without it the viewer, report and export have no sigma to show; saves its one extra pass "
+                        "at the solution, ~10 %% of a short fit; docs/FITTING.md)")
     f.add_argument("--memory", default=DEFAULT_MEMORY, metavar="SIZE",
                    help="memory budget of the fit, e.g. 2G, 800M, or 'unlimited' (the whole map in memory): a "
                         "dataset whose fit needs more is fitted out of core, band by band from disk, with the same "

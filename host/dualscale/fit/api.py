@@ -1,4 +1,5 @@
-"""``fit_dataset``: the whole micro fit of a dataset directory, as run by ``dualscale fit``."""
+"""``fit_dataset``: the whole micro fit of a dataset directory, as run by ``dualscale fit``,
+maps and (by default) their per-pixel uncertainty, on every path: in memory, tiled, out of core."""
 
 from __future__ import annotations
 
@@ -26,7 +27,7 @@ from .presets import Preset, get_preset
 from .select import PIXELS as SELECT_PIXELS
 from .select import choose_components, preset_for, select_components, selection_pixels
 from .stream import (DEFAULT_MEMORY, band_boxes, estimate_bytes, fit_parts, fit_parts_refusal, gather, memory_record,
-                     reader, result, survey, warn_albedo, write_rows)
+                     reader, result, survey, uncertainty_rows, warn_albedo, write_rows)
 from .tiled import TILE, check_tile, check_tileable, clear_state, fit_tiled
 
 
@@ -48,7 +49,8 @@ def fit_dataset(dataset: str | Path, out: str | Path, preset: str | Preset = "st
                 checkpoint_every: int = 50, restart: bool = False, stop_after: int | None = None,
                 seed: int = 0, previews: bool = True, comps: Components | None = None,
                 gt: str | Path | None = None, obs=None, engine: EngineSpec | None = None,
-                tile_px: int = TILE, memory: int | None = DEFAULT_MEMORY) -> tuple[FitResult, dict]:
+                tile_px: int = TILE, memory: int | None = DEFAULT_MEMORY,
+                uncertainty: bool = True) -> tuple[FitResult, dict]:
     """Fit a photometric dataset on **every** light and write the maps to ``out``.
 
     The held-out figure comes from a separate cross-validation pass over the lights
@@ -86,6 +88,12 @@ def fit_dataset(dataset: str | Path, out: str | Path, preset: str | Preset = "st
     fit completes, so an interrupted tiled fit resumes.  ``fit.json`` then records the engine,
     the tiling and the workers.  With a dataset (``obs`` not given) the driver holds no map
     either: the workers read their tiles and the driver its survey bands (:mod:`.stream`).
+
+    ``uncertainty`` (default on): the maps' per-pixel uncertainty (:mod:`.uncertainty`, issue
+    26) is computed on every path (in memory, tiled, out of core) and written to
+    ``out/uncertainty/`` with its summary in ``fit.json``'s ``"uncertainty"``; off, an earlier
+    fit's is removed.
+
     Raises ``ValueError`` for a bad ``cv_folds`` or ``cv_pixels``, and
     :class:`~dualscale.errors.InputError` for a budget too small or a preset the fit out of
     core cannot run, before any work.
@@ -119,18 +127,18 @@ def fit_dataset(dataset: str | Path, out: str | Path, preset: str | Preset = "st
         clear_state(state)
     if ooc is None:
         return _fit(dataset, out, p, obs, None, overrides, cv_pixels, folds, progress, checkpoint_every, stop_after,
-                    seed, previews, comps, gt, engine, tile_px, memory_note)
+                    seed, previews, comps, gt, engine, tile_px, memory_note, uncertainty)
     try:
         ooc.open(p, progress, engine)
         return _fit(dataset, out, p, obs, ooc, overrides, cv_pixels, folds, progress, checkpoint_every, stop_after,
-                    seed, previews, comps, gt, engine, tile_px, memory_note)
+                    seed, previews, comps, gt, engine, tile_px, memory_note, uncertainty)
     finally:
         ooc.close()
 
 
 def _fit(dataset, out: Path, p: Preset, obs, ooc, overrides, cv_pixels: int, folds, progress, checkpoint_every: int,
          stop_after, seed: int, previews: bool, comps, gt, engine, tile_px: int,
-         memory_note: dict[str, Any]) -> tuple[FitResult, dict]:
+         memory_note: dict[str, Any], uncertainty: bool = True) -> tuple[FitResult, dict]:
     """The body of :func:`fit_dataset` after its checks, on ``obs`` in memory or out of core
     (``ooc``, opened)."""
     ck, state, cv_path, sel_path = out / "checkpoint.pt", out / "tiles", out / "crossval.json", out / "selection.json"
@@ -161,14 +169,14 @@ def _fit(dataset, out: Path, p: Preset, obs, ooc, overrides, cv_pixels: int, fol
         cv = _cross_validation(head, key, run, p, comps, cv_pixels, folds, seed, cv_path)
     tiled: dict[str, Any] = {}
     if ooc is not None:
-        res, tiled = ooc.fit(p, comps, seed, state, tile_px, progress)
+        res, tiled = ooc.fit(p, comps, seed, state, tile_px, progress, uncertainty)
     elif engine is None:
         res = fit_observations(obs, p, comps, checkpoint=ck, checkpoint_every=checkpoint_every,
-                               progress=progress, stop_after=stop_after, seed=seed)
+                               progress=progress, stop_after=stop_after, seed=seed, uncertainty=uncertainty)
     else:
         with connect(engine) as client:
-            res, tiled = fit_tiled(obs, p, comps, client, tile=tile_px,
-                                   threads=engine.threads_per_worker, seed=seed, state=state, progress=progress)
+            res, tiled = fit_tiled(obs, p, comps, client, tile=tile_px, threads=engine.threads_per_worker, seed=seed,
+                                   state=state, progress=progress, uncertainty=uncertainty)
         tiled["engine"] = engine.describe
     fitted = stride_leds(head, p.led_stride)
     extra: dict[str, Any] = {"dataset": str(dataset),
@@ -191,7 +199,8 @@ def _fit(dataset, out: Path, p: Preset, obs, ooc, overrides, cv_pixels: int, fol
     else:
         extra["out_of_core"] = ooc.record()
         names, rows = write_rows(ooc.parts)
-        save_fit_rows(out, res, ooc.shape, names, rows, sel, extra, previews, texel_mm=head.pixel_mm)
+        save_fit_rows(out, res, ooc.shape, names, rows, sel, extra, previews, texel_mm=head.pixel_mm,
+                      uncertainty=uncertainty_rows(ooc.parts) if uncertainty else None)
         if gt is not None:  # scored on the maps read back whole (module doc of .stream)
             from dualscale.formats.maps import load_maps
 
@@ -266,10 +275,11 @@ class _OutOfCore:
         self._stack.close()
 
     def fit(self, preset: Preset, comps: Components, seed: int, state: Path, tile_px: int,
-            progress) -> tuple[FitResult, dict[str, Any]]:
+            progress, uncertainty: bool = True) -> tuple[FitResult, dict[str, Any]]:
         tiled: dict[str, Any] = {}
         self.parts = fit_parts(self.read, self.origin, self.survey, preset, comps, memory=self.memory, state=state,
-                               seed=seed, client=self.client, tile=tile_px, threads=self.threads, progress=progress)
+                               seed=seed, client=self.client, tile=tile_px, threads=self.threads, progress=progress,
+                               uncertainty=uncertainty)
         if self.engine is not None:
             tiled = {"tile_px": tile_px, "tiles": len(self.parts.boxes), "resumed_tiles": self.parts.resumed,
                      "workers": self.parts.workers, "engine": self.engine.describe,

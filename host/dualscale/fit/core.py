@@ -74,8 +74,10 @@ def fit_observations(obs: Observations, preset: Preset, comps: Components, *, he
     """Fit ``comps`` to ``obs`` with ``preset``; resumes from ``checkpoint`` when it exists.
     A preset with a coarse level starts from its upsampled coarse fit unless ``init`` is given.
     ``uncertainty``: also compute the maps' per-pixel uncertainty at the solution
-    (:func:`.uncertainty.pixel_uncertainty`, ``FitResult.uncertainty``; issue 26; off by
-    default until every fit path writes it).
+    (:func:`.uncertainty.pixel_uncertainty`, ``FitResult.uncertainty``; issue 26).  Off by
+    default here: the coarse level, the component selection, the study and the
+    cross-validation fit many times and need no uncertainty; :func:`.api.fit_dataset` (every
+    ``dualscale fit``) turns it on.
 
     ``stop_after`` (testing/interruption) stops after that many global iterations, with the
     checkpoint saved, by raising :class:`~dualscale.fit.checkpoint.FitInterrupted`.

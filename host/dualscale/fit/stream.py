@@ -22,7 +22,9 @@ that its worker reads, so the driver reads no pixel):
   resumes from them), its loss sums (:func:`.metrics.image_loss_sums`) add up to the report's
   losses and its start's bright-albedo counts (:func:`.init.start_params`, the photometric
   stereo the fit starts from) to the whole map's albedo check, warned about once after the
-  fit; then the maps are written by rows (:func:`write_rows`).
+  fit; then the maps are written by rows (:func:`write_rows`), and so is their per-pixel
+  uncertainty when the fit computes it (issue 26: each part's, saved with it,
+  :func:`uncertainty_rows`).
 
 **Same result.**  The maps equal the whole-map fit's bit for bit, and so do the component
 decision, the cross-validation and the albedo check (the same pixels, the same counts).  The
@@ -64,7 +66,7 @@ from .metrics import image_loss_sums, losses_from_sums
 from .observations import DatasetOrigin, Observations, WholeMap, read_tile, stride_leds
 from .presets import Preset
 from .select import TRANS_LEVEL, transmission_from
-from .tiled import INFLIGHT_PER_WORKER, _tile_path
+from .tiled import INFLIGHT_PER_WORKER, _tile_path, uncertainty_record
 
 #: the default memory budget of a fit (``dualscale fit --memory``): a 512^2 map of 254 images
 #: fits in four bands under it (docs/SCALE.md)
@@ -353,11 +355,12 @@ def _join(pieces: list[tuple[Tensor, Observations]]) -> Observations:
                    back_valid=cat("back_valid", 1), view=view)
 
 
-def _done(state: Path, key: str, boxes: list[tuple[int, int, int, int]]) -> dict[tuple, dict]:
-    """The parts an earlier run of the same fit saved, without their maps (those stay on disk)."""
+def _done(state: Path, key: str, boxes: list[tuple[int, int, int, int]], uncertainty: bool) -> dict[tuple, dict]:
+    """The parts an earlier run of the same fit saved, without their maps (those stay on disk);
+    with ``uncertainty``, only those that carry it."""
     from .tiled import _load_done
 
-    return _load_done(state, key, boxes, RECORD)
+    return _load_done(state, key, boxes, RECORD, need="uncertainty" if uncertainty else None)
 
 
 @dataclass
@@ -400,13 +403,15 @@ def fit_parts_refusal(preset: Preset) -> None:
 
 def fit_parts(read: Reader, origin: DatasetOrigin, sv: Survey, preset: Preset, comps: Components, *,
               memory: int | None, state: Path, seed: int = 0, client=None, tile: int = 64, threads: int = 1,
-              progress: Progress = None) -> Parts:
+              progress: Progress = None, uncertainty: bool = False) -> Parts:
     """Fit the map part by part (module doc): in this process, the bands of
     :func:`band_boxes` within ``memory`` (each read by ``read``), or on the Dask ``client``,
     ``tile x tile`` tiles each read by its worker from ``origin``
     (:func:`.tiled.fit_tile_read`).  Each finished part is saved in ``state`` (the maps, its
     loss history, pixels and loss sums, with the fit's fingerprint); parts already there from
-    an earlier run of the same fit are not fitted again.  Raises
+    an earlier run of the same fit are not fitted again.  ``uncertainty``: each part computes
+    its pixels' uncertainty too, saved with it (:func:`.tiled.uncertainty_record`; written by
+    rows, :func:`uncertainty_rows`); a part saved without one is then fitted again.  Raises
     :class:`~dualscale.errors.InputError` for a preset with a coarse level (module doc) and
     :class:`~dualscale.errors.FormatError` for a saved part of another fit."""
     from .tiled import check_tileable, tiles
@@ -425,7 +430,7 @@ def fit_parts(read: Reader, origin: DatasetOrigin, sv: Survey, preset: Preset, c
         kind = {"kind": "tiles", "tile": tile}
     key = fingerprint(part="fit part", preset=repr(preset), comps=repr(comps), seed=seed, data=sv.key, **kind)
     state.mkdir(parents=True, exist_ok=True)
-    records = _done(state, key, boxes)
+    records = _done(state, key, boxes, uncertainty)
     resumed = len(records)
     todo = [b for b in boxes if b not in records]
 
@@ -446,20 +451,21 @@ def fit_parts(read: Reader, origin: DatasetOrigin, sv: Survey, preset: Preset, c
                 # the start of the whole-map fit, and its albedo counts (the map's share is warned about once)
                 fitted = stride_leds(band, preset.led_stride)
                 init, counts = start_params(fitted, comps)
-                res = fit_observations(band, preset, comps, seed=seed, init=init)
+                res = fit_observations(band, preset, comps, seed=seed, init=init, uncertainty=uncertainty)
                 finish(box, {"maps": dict(res.maps.items()), "history": list(res.history),
+                             "uncertainty": uncertainty_record(res.uncertainty),
                              "pixels": band.shape[0] * band.shape[1], "albedo": counts,
                              "sums": image_loss_sums(res.maps, comps, fitted)})
                 del band, res, fitted, init
                 release_memory()
                 bar.update(1, f"rows {box[0]}..{box[1] - 1}")
         else:
-            workers = _on_cluster(client, todo, origin, sv, preset, comps, seed, threads, finish, bar)
+            workers = _on_cluster(client, todo, origin, sv, preset, comps, seed, threads, finish, bar, uncertainty)
     return Parts(boxes, records, state, resumed, time.perf_counter() - t0, workers)
 
 
 def _on_cluster(client, todo, origin, sv: Survey, preset: Preset, comps: Components, seed: int, threads: int,
-                finish, bar) -> int:
+                finish, bar, uncertainty: bool = False) -> int:
     """The tiles ``todo`` as Dask tasks, at most :data:`.tiled.INFLIGHT_PER_WORKER` per worker
     in flight, each read by its worker; returns the number of workers."""
     from dualscale.engine import bounded
@@ -474,7 +480,9 @@ def _on_cluster(client, todo, origin, sv: Survey, preset: Preset, comps: Compone
 
     def submit(box):
         return client.submit(fit_tile_read, origin, box, preset.led_stride, whole, tile_preset, comps, None, seed,
-                             threads, True, key=f"dualscale-fit-part-{sv.key[:16]}-{box[0]}-{box[2]}", pure=False)
+                             threads, True, uncertainty,
+                             key=f"dualscale-fit-part-{sv.key[:16]}-{box[0]}-{box[2]}{'-u' if uncertainty else ''}",
+                             pure=False)
 
     for box, rec in bounded(client, todo, submit, INFLIGHT_PER_WORKER):
         finish(box, rec)
@@ -483,25 +491,64 @@ def _on_cluster(client, todo, origin, sv: Survey, preset: Preset, comps: Compone
     return n_workers
 
 
+def _part_rows(parts: Parts, pick: Callable[[dict], Any]):
+    """Yield ``(y0, [pick(record) of each part of that row of parts, left to right])``, each row
+    of parts read back from its files in turn (one row of parts in memory at a time)."""
+    rows: dict[tuple[int, int], list[tuple[int, int, int, int]]] = {}
+    for box in parts.boxes:
+        rows.setdefault((box[0], box[1]), []).append(box)
+    for (y0, _), boxes in sorted(rows.items()):
+        yield y0, [pick(load_torch(_tile_path(parts.state, b), "fit part", "pass --restart", weights_only=False))
+                   for b in sorted(boxes, key=lambda b: b[2])]
+
+
+def _first(parts: Parts) -> dict[str, Any]:
+    return load_torch(_tile_path(parts.state, parts.boxes[0]), "fit part", "pass --restart", weights_only=False)
+
+
 def write_rows(parts: Parts) -> tuple[list[str], Any]:
     """``(names, rows)``: the maps' names and an iterator of ``(y0, {name: (n, W, C) float32})``
     row strips, read back from the parts' files one row of parts at a time (what
     :class:`~dualscale.formats.maps.MapsWriter` writes)."""
-    rows: dict[tuple[int, int], list[tuple[int, int, int, int]]] = {}
-    for box in parts.boxes:
-        rows.setdefault((box[0], box[1]), []).append(box)
-    first = load_torch(_tile_path(parts.state, parts.boxes[0]), "fit part", "pass --restart", weights_only=False)
-    names = list(first["maps"])
-    del first
+    names = list(_first(parts)["maps"])
 
     def strips():
-        for (y0, _), boxes in sorted(rows.items()):
-            maps = [load_torch(_tile_path(parts.state, b), "fit part", "pass --restart", weights_only=False)["maps"]
-                    for b in sorted(boxes, key=lambda b: b[2])]
+        for y0, maps in _part_rows(parts, lambda rec: rec["maps"]):
             yield y0, {n: torch.cat([m[n] for m in maps], dim=1).numpy() for n in names}
-            del maps
 
     return names, strips()
+
+
+@dataclass
+class UncertaintyRows:
+    """The uncertainty of a fit out of core, by rows (:func:`uncertainty_rows`): the maps'
+    ``names``, the ``noise`` scale, the parts' summed ``seconds`` (once ``strips`` are read) and
+    ``strips``, an iterator of
+    ``(y0, sigma {name: (n, W, C) float32}, undetermined {name: (n, W, C) bool})`` (what
+    :class:`~dualscale.formats.maps.UncertaintyWriter` writes)."""
+
+    names: list[str]
+    noise: str
+    seconds: float
+    strips: Any
+
+
+def uncertainty_rows(parts: Parts) -> UncertaintyRows | None:
+    """The parts' saved uncertainty as :class:`UncertaintyRows`, read back one row of parts at a
+    time like :func:`write_rows`; ``None`` when the parts carry none (fitted without it)."""
+    first = _first(parts).get("uncertainty")
+    if first is None:
+        return None
+    out = UncertaintyRows(list(first["sigma"]), first["noise"], 0.0, None)
+
+    def strips():
+        for y0, recs in _part_rows(parts, lambda rec: rec["uncertainty"]):
+            out.seconds += sum(r["seconds"] for r in recs)  # complete once every strip was read
+            yield y0, *({n: torch.cat([r[kind][n] for r in recs], dim=1).numpy() for n in out.names}
+                        for kind in ("sigma", "undetermined"))
+
+    out.strips = strips()
+    return out
 
 
 def release_memory() -> None:
@@ -563,5 +610,5 @@ def memory_record(memory: int | None, parts: Parts, passes: dict[str, float], sh
 
 
 __all__ = ["DEFAULT_MEMORY", "BYTES_PER_SAMPLE", "RESERVE", "parse_memory", "band_boxes", "Survey", "survey",
-           "gather", "survey_part", "survey_task", "gather_part", "gather_task", "Parts", "fit_parts", "fit_parts_refusal", "write_rows", "result", "reader", "peak_rss_mb", "release_memory", "warn_albedo",
+           "gather", "survey_part", "survey_task", "gather_part", "gather_task", "Parts", "fit_parts", "fit_parts_refusal", "write_rows", "uncertainty_rows", "UncertaintyRows", "result", "reader", "peak_rss_mb", "release_memory", "warn_albedo",
            "memory_record", "memory_text", "estimate_bytes", "minimum_memory", "check_memory", "MIN_PART_PIXELS"]

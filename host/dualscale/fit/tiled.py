@@ -53,8 +53,12 @@ for the steps done once (below: components, coarse level, albedo check, the repo
 **Faults.**  A tile's task holds its data or its coordinates (no scattered futures), so when the
 worker running it dies the scheduler reruns it on another worker
 (``distributed.scheduler.allowed-failures``).
+**Uncertainty** (issue 26).  With ``uncertainty`` each tile also computes its pixels'
+uncertainty (:func:`.uncertainty.pixel_uncertainty`, per pixel like the fit), which its record
+and its saved state carry and the driver stitches like the maps (:func:`stitch_uncertainty`).
 **Resuming.**  Each finished tile is saved at once to ``state/<y0>_<x0>.pt`` with the fit's
-fingerprint; a rerun submits only the tiles not yet saved.  **Memory.**  At most ``2 x workers``
+fingerprint; a rerun submits only the tiles not yet saved (and those saved without the
+uncertainty a fit with it needs).  **Memory.**  At most ``2 x workers``
 tiles are in flight; a task carries its tile's coordinates, or its images (``K x tile^2 x 3``
 float32, above), and returns its maps (``tile^2 x ~20`` float32).
 """
@@ -81,6 +85,7 @@ from .core import FitResult, coarse_start, fit_losses, fit_observations
 from .init import check_albedo_range, photometric_stereo, start_params
 from .observations import DatasetOrigin, Observations, WholeMap, read_tile, stride_leds
 from .presets import Preset
+from .uncertainty import Uncertainty
 
 #: default tile side in pixels: Dask's round trip and the fit's fixed cost are ~5 % of a 64 px tile
 #: (34 % at 16 px), and a 128^2 map still makes 4 tiles (docs/SCALE.md)
@@ -114,10 +119,11 @@ def check_tileable(preset: Preset) -> None:
 
 
 def fit_tile(obs: Observations, preset: Preset, comps: Components, init: dict[str, Tensor] | None, seed: int,
-             threads: int, sums: bool = False) -> dict[str, Any]:
+             threads: int, sums: bool = False, uncertainty: bool = False) -> dict[str, Any]:
     """The task: fit one tile's observations (``fit_observations`` with no held-out lights, no
     checkpoint) on ``threads`` threads; returns ``{"maps": {name: (h, w, C) float32},
-    "history": [(iteration, step, mean cost)], "pixels": h * w}``, and with ``sums`` its loss
+    "history": [(iteration, step, mean cost)], "pixels": h * w, "uncertainty": None}``, with
+    ``uncertainty`` the tile's per-pixel uncertainty (:func:`uncertainty_record`), and with ``sums`` its loss
     sums (:func:`.metrics.image_loss_sums`) and its start's albedo counts
     (:func:`.init.start_params`): the fit out of core adds them up (:mod:`.stream`)."""
     from dualscale.engine import in_worker
@@ -128,8 +134,9 @@ def fit_tile(obs: Observations, preset: Preset, comps: Components, init: dict[st
         init, counts = start_params(stride_leds(obs, preset.led_stride), comps)
     with warnings.catch_warnings():  # the driver checks the albedo range on the whole map
         warnings.filterwarnings("ignore", message=r".*Lambertian albedo", category=RuntimeWarning)
-        res = fit_observations(obs, preset, comps, seed=seed, init=init)
-    rec = {"maps": dict(res.maps.items()), "history": list(res.history), "pixels": obs.shape[0] * obs.shape[1]}
+        res = fit_observations(obs, preset, comps, seed=seed, init=init, uncertainty=uncertainty)
+    rec = {"maps": dict(res.maps.items()), "history": list(res.history), "pixels": obs.shape[0] * obs.shape[1],
+           "uncertainty": uncertainty_record(res.uncertainty)}
     if sums:
         from .metrics import image_loss_sums
 
@@ -140,7 +147,7 @@ def fit_tile(obs: Observations, preset: Preset, comps: Components, init: dict[st
 
 def fit_tile_read(origin: DatasetOrigin, box: tuple[int, int, int, int], stride: int, whole: WholeMap | None,
                   preset: Preset, comps: Components, init: dict[str, Tensor] | None, seed: int,
-                  threads: int, sums: bool = False) -> dict[str, Any]:
+                  threads: int, sums: bool = False, uncertainty: bool = False) -> dict[str, Any]:
     """The task when the worker reads its tile itself (module doc, "Data movement"): the
     ``box`` of the observations ``origin`` names (:func:`.observations.read_tile`), the same
     ``stride`` of LEDs the driver took (:func:`.core.stride_leds`) and, for the Adam presets, the
@@ -153,7 +160,7 @@ def fit_tile_read(origin: DatasetOrigin, box: tuple[int, int, int, int], stride:
                                 "it must be on storage the workers share, at the same path; docs/SCALE.md)") from None
     if whole is not None:
         obs = replace(obs, whole=whole)
-    return fit_tile(obs, preset, comps, init, seed, threads, sums)
+    return fit_tile(obs, preset, comps, init, seed, threads, sums, uncertainty)
 
 
 def _fingerprint(obs: Observations, preset: Preset, comps: Components, seed: int, tile: int) -> str:
@@ -169,9 +176,11 @@ def _tile_path(state: Path, box: tuple[int, int, int, int]) -> Path:
 
 
 def _load_done(state: Path | None, key: str, boxes: list[tuple[int, int, int, int]],
-               fields: tuple[str, ...] | None = None) -> dict[tuple, dict]:
+               fields: tuple[str, ...] | None = None, need: str | None = None) -> dict[tuple, dict]:
     """The tiles (or bands) saved by an earlier run of the same fit, whole or only their
-    ``fields``; a part of another fit is refused (:class:`~dualscale.errors.FormatError`)."""
+    ``fields``; a part of another fit is refused (:class:`~dualscale.errors.FormatError`).  A
+    part without a ``need`` field (``"uncertainty"``: saved by a run without it) counts as not
+    done: it is fitted again."""
     done: dict[tuple, dict] = {}
     if state is None or not state.is_dir():
         return done
@@ -183,6 +192,8 @@ def _load_done(state: Path | None, key: str, boxes: list[tuple[int, int, int, in
         if not isinstance(rec, dict) or rec.get("fingerprint") != key or tuple(rec.get("box", ())) != box:
             raise FormatError(f"{p}: a part of a different fit (data, preset, components, tile size or memory "
                               "budget changed); delete the folder or pass --restart")
+        if need is not None and rec.get(need) is None:
+            continue
         done[box] = rec if fields is None else {k: rec[k] for k in fields}
     return done
 
@@ -204,13 +215,39 @@ def _crop_init(init: dict[str, Tensor] | None, box: tuple[int, int, int, int]) -
     return {k: v[y0:y1, x0:x1].clone() for k, v in init.items()}
 
 
-def _stitch(shape: tuple[int, int], parts: dict[tuple, dict]) -> MaterialMaps:
-    first = next(iter(parts.values()))["maps"]
+def _stitch_arrays(shape: tuple[int, int], parts: dict[tuple, dict[str, Tensor]]) -> dict[str, Tensor]:
+    """``{name: (H, W, C)}`` from the parts' ``{name: (h, w, C)}`` at their boxes."""
+    first = next(iter(parts.values()))
     full = {k: torch.empty((*shape, v.shape[-1]), dtype=v.dtype) for k, v in first.items()}
-    for (y0, y1, x0, x1), rec in parts.items():
-        for k, v in rec["maps"].items():
+    for (y0, y1, x0, x1), arrays in parts.items():
+        for k, v in arrays.items():
             full[k][y0:y1, x0:x1] = v
-    return MaterialMaps(**full)
+    return full
+
+
+def _stitch(shape: tuple[int, int], parts: dict[tuple, dict]) -> MaterialMaps:
+    return MaterialMaps(**_stitch_arrays(shape, {b: rec["maps"] for b, rec in parts.items()}))
+
+
+def uncertainty_record(u: Uncertainty | None) -> dict[str, Any] | None:
+    """A part's uncertainty as its record (and its saved state, ``state/*.pt``) carries it:
+    ``{"sigma", "undetermined", "noise", "seconds"}`` (the :class:`.uncertainty.Uncertainty`'s
+    fields, the part's own pixels: the parts do not overlap), ``None`` without one."""
+    if u is None:
+        return None
+    return {"sigma": dict(u.sigma), "undetermined": dict(u.undetermined), "noise": u.noise, "seconds": u.seconds}
+
+
+def stitch_uncertainty(shape: tuple[int, int], parts: dict[tuple, dict]) -> Uncertainty | None:
+    """The whole map's :class:`.uncertainty.Uncertainty` from the parts' records
+    (:func:`uncertainty_record`; pixels are independent, so it is the one-process fit's);
+    ``seconds``: the parts' sum.  ``None`` when a part has none."""
+    recs = [rec.get("uncertainty") for rec in parts.values()]
+    if not recs or any(r is None for r in recs):
+        return None
+    return Uncertainty(_stitch_arrays(shape, {b: rec["uncertainty"]["sigma"] for b, rec in parts.items()}),
+                       _stitch_arrays(shape, {b: rec["uncertainty"]["undetermined"] for b, rec in parts.items()}),
+                       recs[0]["noise"], float(sum(r["seconds"] for r in recs)))
 
 
 def _history(parts: dict[tuple, dict], mean_over_whole: bool) -> list[tuple[int, str, float]]:
@@ -227,11 +264,13 @@ def _history(parts: dict[tuple, dict], mean_over_whole: bool) -> list[tuple[int,
 
 def fit_tiled(obs: Observations, preset: Preset, comps: Components, client, *,
               held_out: Observations | None = None, tile: int = TILE, threads: int = 1, seed: int = 0,
-              state: str | Path | None = None, progress: Progress = None) -> tuple[FitResult, dict[str, Any]]:
+              state: str | Path | None = None, progress: Progress = None,
+              uncertainty: bool = False) -> tuple[FitResult, dict[str, Any]]:
     """:func:`.core.fit_observations` of ``obs`` with ``preset`` and ``comps``, as one Dask task
     per ``tile x tile`` pixel tile on ``client`` (a :class:`distributed.Client`), each worker
     using ``threads`` threads; ``state``: folder of the finished tiles (resuming: module doc);
-    ``progress`` counts tiles.  Returns the :class:`.core.FitResult` of the whole map (its
+    ``progress`` counts tiles; ``uncertainty``: each tile computes its pixels' uncertainty too,
+    stitched into ``FitResult.uncertainty`` (a saved tile without one is fitted again).  Returns the :class:`.core.FitResult` of the whole map (its
     ``seconds`` is the wall time here) and a record for ``fit.json``: ``{"tile_px", "tiles",
     "resumed_tiles", "workers"}``.
 
@@ -250,7 +289,7 @@ def fit_tiled(obs: Observations, preset: Preset, comps: Components, client, *,
         strided = replace(strided, whole=WholeMap.of(strided))
     key = _fingerprint(strided, preset, comps, seed, tile)
     state = None if state is None else Path(state)
-    parts = _load_done(state, key, boxes)
+    parts = _load_done(state, key, boxes, need="uncertainty" if uncertainty else None)
     resumed = len(parts)
     init = coarse_start(strided, preset, comps, seed) if preset.coarse_factor > 1 and len(parts) < len(boxes) else None
     if preset.coarse_factor <= 1:  # else start_from_coarse ran the check already, on the whole map
@@ -267,12 +306,13 @@ def fit_tiled(obs: Observations, preset: Preset, comps: Components, client, *,
 
     def submit(box):
         y0, y1, x0, x1 = box
-        task_key = f"dualscale-fit-tile-{key}-{y0}-{x0}"
+        task_key = f"dualscale-fit-tile-{key}-{y0}-{x0}{'-u' if uncertainty else ''}"
         if origin is not None:
             return client.submit(fit_tile_read, origin, box, preset.led_stride, strided.whole, tile_preset, comps,
-                                 _crop_init(init, box), seed, threads, key=task_key, pure=False)
+                                 _crop_init(init, box), seed, threads, uncertainty=uncertainty, key=task_key,
+                                 pure=False)
         return client.submit(fit_tile, _own(strided.crop(y0, y1, x0, x1)), tile_preset, comps, _crop_init(init, box),
-                             seed, threads, key=task_key, pure=False)
+                             seed, threads, uncertainty=uncertainty, key=task_key, pure=False)
 
     with tracker(progress, len(boxes), f"fit[{preset.name}] tiles", unit="tile") as bar, warnings.catch_warnings():
         # a task carries its tile's images on purpose (module doc: a lost worker's task can rerun)
@@ -285,9 +325,11 @@ def fit_tiled(obs: Observations, preset: Preset, comps: Components, client, *,
                 save_torch(_tile_path(state, box), {**rec, "fingerprint": key})
             parts[box] = rec
             bar.update(1, f"tile {box[0]},{box[2]}")
-    maps = _stitch(obs.shape, {b: parts[b] for b in boxes})
+    ordered = {b: parts[b] for b in boxes}
+    maps = _stitch(obs.shape, ordered)
     res = FitResult(maps, comps, preset, preset.total, time.perf_counter() - t0,
-                    fit_losses(maps, comps, strided, held_out), _history({b: parts[b] for b in boxes}, adam))
+                    fit_losses(maps, comps, strided, held_out), _history(ordered, adam),
+                    uncertainty=stitch_uncertainty(obs.shape, ordered) if uncertainty else None)
     return res, {"tile_px": tile, "tiles": len(boxes), "resumed_tiles": resumed, "workers": n_workers,
                  "tile_data": ("read by the workers from " + origin.root) if origin is not None
                  else "sent with each task (the observations are not the dataset's as read)"}

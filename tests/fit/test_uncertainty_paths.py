@@ -1,0 +1,109 @@
+"""Every fit path writes the maps' per-pixel uncertainty (issue 26), default on: the tiled fit
+on Dask (stitched from its tiles, resumable) and the fit out of core (written by rows) give the
+one-process fit's; ``uncertainty=False`` (``--no-uncertainty``) leaves no uncertainty folder."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from dualscale.fit import api, stream
+from dualscale.fit.core import fit_observations
+from dualscale.fit.observations import fit_layout, load_observations
+from dualscale.fit.params import fit_components
+from dualscale.fit.presets import get_preset
+from dualscale.formats.maps import UNCERTAINTY_DIR, load_uncertainty
+
+P = get_preset("standard").scaled(0.2)
+COMPS = fit_components(opaque=True, isotropic=False, tinted=False)
+
+
+def _same_uncertainty(a, b) -> None:
+    """The same sigma bit for bit (NaN where undetermined) and mask, map by map: pixels are
+    independent, and the fused kernel's Jacobian rounds a pixel alike in any region (fit.tiled)."""
+    assert list(a.sigma) == list(b.sigma) and list(a.undetermined) == list(b.undetermined)
+    for n in a.sigma:
+        assert torch.equal(a.undetermined[n], b.undetermined[n]), n
+        assert torch.equal(a.sigma[n].nan_to_num(-1.0), b.sigma[n].nan_to_num(-1.0)), \
+            (n, (a.sigma[n] - b.sigma[n]).abs().nan_to_num(0.0).max().item())
+
+
+def test_the_tiled_fit_stitches_the_one_process_uncertainty_and_resumes_it(datasets, tmp_path):
+    pytest.importorskip("distributed", reason="the dask extra is not installed")
+    from dualscale.engine import EngineSpec, connect
+    from dualscale.fit.tiled import fit_tiled
+
+    obs = load_observations(datasets("twill")).crop(0, 10, 0, 10)
+    one = fit_observations(obs, P, COMPS, uncertainty=True)
+    state = tmp_path / "tiles"
+    with connect(EngineSpec(workers=2)) as client:
+        off, _ = fit_tiled(obs, P, COMPS, client, tile=5, state=state)  # saved without uncertainty
+        assert off.uncertainty is None and len(list(state.glob("*.pt"))) == 4
+
+        def stop_after_two(done, total, what):
+            if done == 2:
+                raise KeyboardInterrupt
+
+        with pytest.raises(KeyboardInterrupt):  # the tiles saved without it are fitted again
+            fit_tiled(obs, P, COMPS, client, tile=5, state=state, progress=stop_after_two, uncertainty=True)
+        res, info = fit_tiled(obs, P, COMPS, client, tile=5, state=state, uncertainty=True)
+    assert info["resumed_tiles"] == 2 and info["tiles"] == 4  # the two with uncertainty, from the state
+    for (k, v), (_, w) in zip(one.maps.items(), res.maps.items()):
+        assert torch.equal(v, w), k
+    _same_uncertainty(one.uncertainty, res.uncertainty)
+    assert res.uncertainty.noise == one.uncertainty.noise and res.uncertainty.seconds > 0
+
+
+@pytest.fixture
+def small_parts(monkeypatch):
+    monkeypatch.setattr(stream, "MIN_PART_PIXELS", 1)
+
+
+def _budget(root: Path, pixels: int) -> int:
+    return stream.RESERVE + pixels * fit_layout(root)[3] * stream.BYTES_PER_SAMPLE
+
+
+def test_the_fit_out_of_core_writes_the_whole_map_uncertainty_by_rows(datasets, tmp_path, small_parts):
+    root = datasets("twill", 12) / "micro"
+    kw = dict(cv_pixels=0, previews=False, comps=COMPS)
+    whole, _ = api.fit_dataset(root, tmp_path / "whole", P, memory=None, **kw)  # default: on
+    assert whole.uncertainty is not None
+    res, ex = api.fit_dataset(root, tmp_path / "bands", P, memory=_budget(root, 40), **kw)
+    assert res.maps is None and ex["out_of_core"]["parts"] == 4  # 12 rows in bands of 3
+    sa, ua, da = load_uncertainty(tmp_path / "whole")
+    sb, ub, db = load_uncertainty(tmp_path / "bands")
+    assert da == db and list(sa) == list(sb)
+    for n in sa:  # the same half floats
+        assert np.array_equal(ua[n], ub[n]) and np.array_equal(sa[n], sb[n], equal_nan=True), n
+    a = json.loads((tmp_path / "whole" / "fit.json").read_text())["uncertainty"]
+    b = json.loads((tmp_path / "bands" / "fit.json").read_text())["uncertainty"]
+    assert a["noise"] == b["noise"] and a["files"] == b["files"] and list(a["maps"]) == list(b["maps"])
+    for n, ra in a["maps"].items():
+        rb = b["maps"][n]
+        assert ra["undetermined_fraction"] == rb["undetermined_fraction"] and ra["channels"] == rb["channels"]
+        for k in ("median", "p90"):  # the in-memory summary is of float32, the streamed one of the half floats
+            assert [x is None for x in ra[k]] == [x is None for x in rb[k]], (n, k)
+            assert [x for x in rb[k] if x is not None] == \
+                pytest.approx([x for x in ra[k] if x is not None], rel=2e-3), (n, k)
+    # without it, nothing is left of an earlier fit's uncertainty, on either path
+    for name, memory in (("bands", _budget(root, 40)), ("whole", None)):
+        api.fit_dataset(root, tmp_path / name, P, memory=memory, uncertainty=False, **kw)
+        assert not (tmp_path / name / UNCERTAINTY_DIR).exists(), name
+        assert "uncertainty" not in json.loads((tmp_path / name / "fit.json").read_text())
+
+
+def test_the_cli_fit_writes_it_unless_told_not_to(datasets, tmp_path):
+    from dualscale.cli import main
+
+    ds = datasets("twill", 8) / "micro"
+    common = ["--preset", "draft", "--anisotropy", "off", "--tint", "off", "--transmittance", "off",
+              "--cv-pixels", "0", "--no-previews", "--no-progress", "--threads", "1"]
+    assert main(["fit", str(ds), "-o", str(tmp_path / "on"), *common]) == 0
+    assert (tmp_path / "on" / UNCERTAINTY_DIR / "uncertainty.json").is_file()
+    assert "uncertainty" in json.loads((tmp_path / "on" / "fit.json").read_text())
+    assert main(["fit", str(ds), "-o", str(tmp_path / "on"), *common, "--no-uncertainty"]) == 0
+    assert not (tmp_path / "on" / UNCERTAINTY_DIR).exists()
