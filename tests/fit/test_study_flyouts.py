@@ -37,6 +37,18 @@ def test_recommendation_prefers_fewest_lights_within_tolerance():
     assert recommend(rows)["subset"] == "ALL"
 
 
+def test_recommendation_by_the_sigma_a_user_accepts():
+    rows = [{"subset": "ALL", "leds": 127, "heldout_ssim": 0.990, "median_sigma": {"normal": 0.1, "albedo": 0.001}},
+            {"subset": "MOD3", "leds": 43, "heldout_ssim": 0.989, "median_sigma": {"normal": 0.2, "albedo": 0.002}},
+            {"subset": "MINIMAL", "leds": 8, "heldout_ssim": 0.95, "median_sigma": {"normal": None, "albedo": 0.01}}]
+    assert recommend(rows, {"normal": 0.25})["subset"] == "MOD3"
+    assert recommend(rows, {"normal": 0.15, "albedo": 0.01})["subset"] == "ALL"
+    assert recommend(rows, {"albedo": 0.05})["subset"] == "MINIMAL"
+    assert recommend(rows, {"normal": 0.01})["subset"] is None  # none reaches it: said, not guessed
+    with pytest.raises(ValueError, match="roughness"):
+        recommend(rows, {"roughness": 0.1})
+
+
 def test_cli_study_lights(datasets, tmp_path, capsys):
     out = tmp_path / "study"
     rc = main(["study", "lights", str(datasets("leather", 12)), "-o", str(out), "--preset", "draft",
@@ -52,7 +64,13 @@ def test_cli_study_lights(datasets, tmp_path, capsys):
         assert 0 < r["heldout_ssim"] <= 1 and math.isfinite(r["normal_mean_deg"]) and r["seconds"] > 0
     assert rep["material_class"] == "leather" and rep["recommendation"]["subset"] in ("ALL", "MINIMAL", "mine")
     assert (out / "study.png").stat().st_size > 1000
-    assert "| ALL |" in capsys.readouterr().out
+    for r in rep["rows"]:  # the uncertainty each subset bought (issue 26)
+        assert r["median_sigma"]["albedo"] > 0 and r["median_sigma"]["normal"] > 0
+        assert 0 <= r["undetermined"]["normal"] <= 1
+    # fewer lights, less information: the 8 LEDs of MINIMAL leave the normal less sure than ALL's
+    assert rep["rows"][1]["median_sigma"]["normal"] > rep["rows"][0]["median_sigma"]["normal"]
+    printed = capsys.readouterr().out
+    assert "| ALL |" in printed and "median σ normal [°]" in printed
 
 
 def _lines_map(h=96, w=96):

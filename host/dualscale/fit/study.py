@@ -13,6 +13,10 @@ Subsets on our dome (rings ``r = 0..6`` from the zenith, 1/6/12/18/24/30/36 LEDs
 Every 8th LED is held out of every subset and used for the re-render SSIM, so all subsets are
 scored on the same unseen lights.  Components are chosen once (on the ALL training set) and
 shared.  With both analyser modes captured, a subset uses both images of each of its LEDs.
+
+Every subset's fit also gives its per-pixel uncertainty (:mod:`.uncertainty`, issue 26): the
+table has the median sigma of each map, so a subset can be chosen by the uncertainty a user
+accepts on their own sample, without ground truth (``max_sigma``, ``--max-sigma MAP=SIGMA``).
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ from .metrics import map_errors
 from .observations import Observations, load_observations
 from .presets import get_preset
 from .select import select_components
+from .uncertainty import median_sigmas
 
 MATERIAL_CLASSES = {"plain": "woven", "twill": "woven", "satin": "woven", "denim": "woven", "rib_knit": "knit",
                     "leather": "leather", "sheer": "sheer", "brick": "rough surface", "grass": "rough surface",
@@ -78,8 +83,33 @@ def parse_subset(text: str) -> tuple[str, set[int]]:
     return name, ids
 
 
-def recommend(rows: list[dict[str, Any]]) -> dict[str, str]:
-    """Fewest lights whose held-out SSIM is within ``SSIM_TOLERANCE`` of the best subset's."""
+#: the maps whose median sigma the study's table shows, in this order
+SIGMA_MAPS = ("albedo", "normal", "roughness", "anisotropy", "ior")
+
+
+def recommend(rows: list[dict[str, Any]], max_sigma: dict[str, float] | None = None) -> dict[str, str]:
+    """The fewest lights whose held-out SSIM is within ``SSIM_TOLERANCE`` of the best subset's;
+    with ``max_sigma`` (``{map: sigma}`` in the map's sigma units, :data:`dualscale.formats.maps.
+    SIGMA_UNITS`), the fewest lights whose median sigma of every named map is at most its limit
+    (no ground truth needed).  Raises ``ValueError`` for a map no row has a sigma of."""
+    if max_sigma:
+        for n in max_sigma:
+            if not any(n in (r.get("median_sigma") or {}) for r in rows):
+                raise ValueError(f"--max-sigma {n}: no subset has a sigma of {n!r}; "
+                                 f"known: {sorted({k for r in rows for k in (r.get('median_sigma') or {})})}")
+
+        def meets(r):
+            ms = r.get("median_sigma") or {}
+            return all(ms.get(n) is not None and ms[n] <= v for n, v in max_sigma.items())
+
+        ok = [r for r in rows if meets(r)]
+        limits = ", ".join(f"{n} {v:g}" for n, v in max_sigma.items())
+        if not ok:
+            return {"subset": None, "reason": f"no subset reaches the median sigma asked ({limits}); "
+                    "capture more lights or a slower preset"}
+        pick = min(ok, key=lambda r: (r["leds"], -r["heldout_ssim"]))
+        return {"subset": pick["subset"], "reason": f"fewest LEDs ({pick['leds']}) whose median sigma is within "
+                f"{limits}"}
     best = max(r["heldout_ssim"] for r in rows)
     ok = [r for r in rows if r["heldout_ssim"] >= best - SSIM_TOLERANCE]
     pick = min(ok, key=lambda r: (r["leds"], -r["heldout_ssim"]))
@@ -90,11 +120,17 @@ def recommend(rows: list[dict[str, Any]]) -> dict[str, str]:
 def _table(rows: list[dict[str, Any]]) -> str:
     keys = [k for k in ("albedo_rmse", "normal_mean_deg", "roughness_mae", "anisotropy_mae", "ior_mae")
             if k in rows[0]]
-    head = "| subset | LEDs | images | held-out SSIM | " + " | ".join(keys) + " | time [s] |"
-    lines = [head, "|---|---:|---:|---:|" + "---:|" * len(keys) + "---:|"]
+    sig = [n for n in SIGMA_MAPS if any((r.get("median_sigma") or {}).get(n) is not None for r in rows)]
+    units = {n: {"normal": " [°]", "tangent": " [°]", "ior": " [η]"}.get(n, "") for n in sig}
+    head = ("| subset | LEDs | images | held-out SSIM | " + " | ".join(keys + [f"median σ {n}{units[n]}" for n in sig])
+            + " | time [s] |")
+    lines = [head, "|---|---:|---:|---:|" + "---:|" * (len(keys) + len(sig)) + "---:|"]
     for r in rows:
+        ms = r.get("median_sigma") or {}
+        cells = [f"{r[k]:.4f}" for k in keys] + [f"{ms[n]:.3g}" if ms.get(n) is not None else "undetermined"
+                                                 for n in sig]
         lines.append(f"| {r['subset']} | {r['leds']} | {r['images']} | {r['heldout_ssim']:.4f} | "
-                     + " | ".join(f"{r[k]:.4f}" for k in keys) + f" | {r['seconds']:.1f} |")
+                     + " | ".join(cells) + f" | {r['seconds']:.1f} |")
     return "\n".join(lines)
 
 
@@ -133,29 +169,35 @@ def builtin_subsets(custom: dict[str, set[int]] | None = None, names: list[str] 
 
 def study_observations(obs: Observations, subsets: dict[str, set[int]], preset: str = "standard",
                        gt: MaterialMaps | None = None, material: str | None = None, progress: bool = False,
-                       holdout_every: int = 8) -> dict[str, Any]:
-    """Fit and score every subset of ``obs`` (see the module docstring); returns the report."""
+                       holdout_every: int = 8, max_sigma: dict[str, float] | None = None) -> dict[str, Any]:
+    """Fit and score every subset of ``obs`` (see the module docstring); returns the report.
+    Every row has the fit's ``median_sigma`` per map (:func:`.uncertainty.median_sigmas`) and
+    ``undetermined`` share; ``max_sigma``: recommend by them (:func:`recommend`)."""
     p = get_preset(preset)
     train_all, held = split_holdout(obs, holdout_every)
     if held is None:
         raise ValueError("the study needs held-out LEDs; the dataset has too few")
     comps, sel = select_components(train_all)
-    rows = []
+    rows, noise = [], None
     for name, leds in subsets.items():
         sub = train_all.select_leds(leds)
         if sub.n == 0:
             raise ValueError(f"subset {name}: none of its LEDs is in the dataset (outside the held-out set)")
         t0 = time.perf_counter()
-        res = fit_observations(sub, p, comps, held_out=held, progress=progress)
+        res = fit_observations(sub, p, comps, held_out=held, progress=progress, uncertainty=True)
         row: dict[str, Any] = {"subset": name, "leds": len(set(sub.led_ids.tolist())), "images": sub.n,
                                "heldout_ssim": res.losses["heldout_ssim"], "heldout_rmse": res.losses["heldout_rmse"],
-                               "seconds": time.perf_counter() - t0}
+                               "seconds": time.perf_counter() - t0, "median_sigma": median_sigmas(res.uncertainty),
+                               "undetermined": {n: float(u.double().mean()) for n, u in
+                                                res.uncertainty.undetermined.items()}}
+        noise = res.uncertainty.noise
         if gt is not None and gt.shape == res.maps.shape:
             row.update(map_errors(res.maps, gt, comps.ior))
         rows.append(row)
     return {"material": material, "material_class": MATERIAL_CLASSES.get(material or "", "unknown"),
             "preset": preset, "components": sel, "heldout_leds": sorted(set(held.led_ids.tolist())),
-            "subsets": {k: sorted(v) for k, v in subsets.items()}, "rows": rows, "recommendation": recommend(rows),
+            "subsets": {k: sorted(v) for k, v in subsets.items()}, "rows": rows,
+            "recommendation": recommend(rows, max_sigma), "noise": noise,
             "table_markdown": _table(rows)}
 
 
@@ -171,7 +213,7 @@ def write_study(rep: dict[str, Any], out: str | Path) -> None:
 
 def run_study(dataset: str | Path, out: str | Path, preset: str = "standard", custom: dict[str, set[int]] | None = None,
               names: list[str] | None = None, gt_dir: str | Path | None = None, progress: bool = False,
-              holdout_every: int = 8) -> dict[str, Any]:
+              holdout_every: int = 8, max_sigma: dict[str, float] | None = None) -> dict[str, Any]:
     """Load ``dataset`` (and its ground truth when found), run the study, write it to ``out``."""
     subsets = builtin_subsets(custom, names)
     obs = load_observations(dataset)
@@ -182,7 +224,7 @@ def run_study(dataset: str | Path, out: str | Path, preset: str = "standard", cu
 
         gt, meta = load_maps(gdir)
         material = meta.get("material")
-    rep = study_observations(obs, subsets, preset, gt, material, progress, holdout_every)
+    rep = study_observations(obs, subsets, preset, gt, material, progress, holdout_every, max_sigma)
     rep["dataset"] = str(dataset)
     write_study(rep, out)
     return rep

@@ -63,6 +63,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from numba import njit, prange
 from torch import Tensor
 
 from dualscale.bsdf import Components, normal_from_square
@@ -107,37 +108,80 @@ _TRUNCATED_VARIANCE = 1.0 - 2.0 * NOISE_CLIP * math.exp(-0.5 * NOISE_CLIP ** 2) 
     NOISE_CLIP / math.sqrt(2.0))
 
 
+@njit(cache=True, nogil=True, parallel=True)
+def _noise_rows(r, y, keep, c, l1, iterations, clip2, trunc, a_out, b_out, sw_out):  # pragma: no cover - numba
+    """Per pixel ``p`` (rows ``(npix, K)``: residuals ``r``, images ``y``, kept ``keep > 0``; row
+    weights ``c (K,)``): ``a_out[p]``, ``b_out[p]`` of ``var = a + b mu`` (:func:`row_noise`,
+    ``mu = max(y + r, 0)`` the render) and the row multipliers ``sw_out`` of the noise-weighted
+    normal matrix ``N``: ``sqrt(c keep / s)`` (``l1``) or ``c sqrt(keep) s`` (``l2``)."""
+    npix, k = r.shape
+    for p in prange(npix):
+        n, ss = 0.0, 0.0
+        for i in range(k):
+            if keep[p, i] > 0:
+                n += 1.0
+                ss += float(r[p, i]) ** 2
+        a = max(ss / max(n, 1.0), 1e-30)
+        b = 0.0
+        tiny = 1e-12 * a
+        for _ in range(iterations):
+            s0 = s1 = s2 = t0 = t1 = 0.0
+            for i in range(k):
+                if keep[p, i] > 0:
+                    m = max(float(y[p, i]) + float(r[p, i]), 0.0)
+                    v = max(a + b * m, 1e-30)
+                    r2 = float(r[p, i]) ** 2
+                    if r2 <= clip2 * v:
+                        w = 1.0 / (v * v)
+                        q = r2 / trunc
+                        s0 += w
+                        s1 += w * m
+                        s2 += w * m * m
+                        t0 += w * q
+                        t1 += w * m * q
+            if s0 <= 0.0:
+                break
+            det = s0 * s2 - s1 * s1
+            if det > 1e-300:
+                a_new, b_new = (s2 * t0 - s1 * t1) / det, (s0 * t1 - s1 * t0) / det
+            else:
+                a_new, b_new = t0 / s0, 0.0
+            if b_new < 0.0:  # no shot term: a alone
+                a_new, b_new = t0 / s0, 0.0
+            if a_new <= tiny:  # no read term: b alone
+                a_new, b_new = tiny, max(t1 / max(s2, 1e-300), 0.0)
+            a, b = a_new, b_new
+        a_out[p], b_out[p] = a, b
+        for i in range(k):
+            kk = max(float(keep[p, i]), 0.0)
+            sd = np.sqrt(max(a + b * max(float(y[p, i]) + float(r[p, i]), 0.0), 1e-30))
+            sw_out[p, i] = np.sqrt(c[i] * kk / sd) if l1 else c[i] * np.sqrt(kk) * sd
+
+
+def _noise(r: Tensor, y: np.ndarray, keep: Tensor, c: np.ndarray, l1: bool) -> tuple[Tensor, Tensor, Tensor]:
+    """``(a (H, W), b (H, W), sw (H, W, K))`` of :func:`_noise_rows`; ``y`` ``(npix, K)``."""
+    shape = r.shape
+    r2 = np.ascontiguousarray(r.reshape(-1, shape[-1]).numpy())
+    kp = np.ascontiguousarray(keep.reshape(-1, shape[-1]).numpy())
+    a, b = np.empty(r2.shape[0]), np.empty(r2.shape[0])
+    sw = np.empty_like(r2)
+    _noise_rows(r2, np.ascontiguousarray(y), kp, np.ascontiguousarray(c, dtype=np.float64), l1, NOISE_ITERATIONS,
+                NOISE_CLIP ** 2, _TRUNCATED_VARIANCE, a, b, sw)
+    t = torch.from_numpy
+    return t(a).reshape(shape[:-1]), t(b).reshape(shape[:-1]), t(sw).reshape(shape)
+
+
 def row_noise(r: Tensor, mu: Tensor, keep: Tensor) -> Tensor:
     """``(H, W, K)`` float64: each row's noise sigma under the per-pixel model ``var = a + b mu``
     (read noise plus shot noise, ``mu`` the rendered value, clamped at 0), fitted to the pixel's
-    kept residuals ``r`` (``keep`` > 0) by iteratively reweighted least squares on ``r^2`` (weights
-    ``1 / var^2``, since ``Var(r^2) = 2 var^2`` for a Gaussian ``r``; a row beyond
-    :data:`NOISE_CLIP` sigmas of the previous iterate is left out, and the truncation's bias
-    divided out), with ``a > 0`` and ``b >= 0``.  Starts from the homoscedastic mean square."""
-    r, mu = r.double(), mu.double().clamp(min=0.0)
-    k = (keep > 0).double()
-    n = k.sum(-1).clamp(min=1.0)
-    r2 = r * r * k
-    # start: the mean square of the kept rows (a), no shot term
-    a = (r2.sum(-1) / n).clamp(min=1e-30)
-    b = torch.zeros_like(a)
-    tiny = 1e-12 * a.clamp(min=1e-30)
-    for _ in range(NOISE_ITERATIONS):
-        v = (a.unsqueeze(-1) + b.unsqueeze(-1) * mu).clamp(min=1e-30)
-        y = r2 / _TRUNCATED_VARIANCE
-        w = k * (r2 <= NOISE_CLIP ** 2 * v) / (v * v)
-        s0, s1, s2 = w.sum(-1), (w * mu).sum(-1), (w * mu * mu).sum(-1)
-        t0, t1 = (w * y).sum(-1), (w * mu * y).sum(-1)
-        det = s0 * s2 - s1 * s1
-        a_new = torch.where(det > 0, (s2 * t0 - s1 * t1) / det.clamp(min=1e-300), t0 / s0.clamp(min=1e-300))
-        b_new = torch.where(det > 0, (s0 * t1 - s1 * t0) / det.clamp(min=1e-300), torch.zeros_like(a))
-        neg_b = b_new < 0  # no shot term: a alone
-        a_new = torch.where(neg_b, t0 / s0.clamp(min=1e-300), a_new)
-        b_new = b_new.clamp(min=0.0)
-        neg_a = a_new <= tiny  # no read term: b alone
-        b_new = torch.where(neg_a, t1 / s2.clamp(min=1e-300), b_new)
-        a, b = torch.where(neg_a, tiny, a_new), b_new.clamp(min=0.0)
-    return (a.unsqueeze(-1) + b.unsqueeze(-1) * mu).clamp(min=1e-30).sqrt()
+    kept residuals ``r`` (``keep`` > 0) by :data:`NOISE_ITERATIONS` of iteratively reweighted
+    least squares on ``r^2`` (weights ``1 / var^2``, since ``Var(r^2) = 2 var^2`` for a Gaussian
+    ``r``; a row beyond :data:`NOISE_CLIP` sigmas of the previous iterate is left out, and the
+    truncation's bias divided out), with ``a > 0`` and ``b >= 0``.  Starts from the
+    homoscedastic mean square.  (:func:`normal_matrices` calls the kernel itself.)"""
+    y = (mu.double() - r.double()).reshape(-1, r.shape[-1]).numpy()
+    a, b, _ = _noise(r.double(), y, keep.double(), np.ones(r.shape[-1]), True)
+    return (a.unsqueeze(-1) + b.unsqueeze(-1) * mu.double().clamp(min=0.0)).clamp(min=1e-30).sqrt()
 
 
 def normal_matrices(params: dict[str, Tensor], comps: Components, obs: Observations, preset: Preset
@@ -146,7 +190,7 @@ def normal_matrices(params: dict[str, Tensor], comps: Components, obs: Observati
     ``x`` ``(H, W, P)``, ``A = J^T C J`` and ``B = J^T C^2 J`` ``(H, W, P, P)`` float64 over the
     kept rows, the noise-weighted ``N`` (``J^T C S^-1 J`` for ``loss='l1'``, ``J^T C^2 S^2 J`` for
     ``'l2'``; ``S`` the rows' noise sigmas, :func:`row_noise`), ``keep`` ``(H, W, K)``,
-    ``residuals`` ``(H, W, K)``, ``noise`` ``(H, W, K)`` (the rows' sigmas) and ``prior_info``
+    ``residuals`` ``(H, W, K)``, ``noise`` ``(H, W, 2)`` (the noise model's ``a``, ``b``) and ``prior_info``
     ``(H, W, P)`` (1 / sd^2 on a prior's channel).  ``obs``: as given to ``fit_observations``
     (the preset's LED stride is applied)."""
     loss = lm.preset_loss(preset)
@@ -163,24 +207,22 @@ def normal_matrices(params: dict[str, Tensor], comps: Components, obs: Observati
         r = prob.residuals(xb, names, fx)
         keep = prob.irls(r, loss)[0]  # kept rows: valid and not in a cast shadow
         c = torch.from_numpy(prob.row_weights(c_back)).to(keep.dtype)
-        rows = prob.rows if prob.back.shape[0] != prob.rows.shape[0] else np.concatenate([prob.rows, prob.back], 1)
-        mu = r.double() + torch.from_numpy(rows).reshape(r.shape).double()  # the render
-        sd = row_noise(r, mu, keep)
+        y = prob.rows if prob.back.shape[0] != prob.rows.shape[0] else np.concatenate([prob.rows, prob.back], 1)
+        na, nb, sw = _noise(r, y, keep, prob.row_weights(c_back), loss.kind == "l1")
         a, _ = prob.normal_equations(xb, names, fx, r, (c * keep).sqrt())
         # B = J^T C^2 J differs from A = J^T C J on the back-lit rows only (c = 1 elsewhere)
         b = a + (c_back ** 2 - c_back) * prob.back_normal(xb, names, fx, keep.sqrt()) if c_back != 1.0 else a
-        w = c * keep / sd if loss.kind == "l1" else c * c * keep * sd * sd
-        nm, _ = prob.normal_equations(xb, names, fx, r, w.sqrt())
+        nm, _ = prob.normal_equations(xb, names, fx, r, sw)
         a_l.append(a)
         b_l.append(b)
         n_l.append(nm)
         keep_l.append(keep)
         r_l.append(r)
-        s_l.append(sd)
-    a, b, nm, keep, r, sd = (torch.cat(t, 0) for t in (a_l, b_l, n_l, keep_l, r_l, s_l))
+        s_l.append(torch.stack([na, nb], -1))
+    a, b, nm, keep, r, ab = (torch.cat(t, 0) for t in (a_l, b_l, n_l, keep_l, r_l, s_l))
     one = torch.ones(x.shape[:2], dtype=torch.float64)
     _, _, curv = loss.prior_terms(x.double(), names, one)  # k = 1: the curvature is 1 / sd^2
-    return {"names": names, "x": x.double(), "A": a, "B": b, "N": nm, "keep": keep, "residuals": r, "noise": sd,
+    return {"names": names, "x": x.double(), "A": a, "B": b, "N": nm, "keep": keep, "residuals": r, "noise": ab,
             "prior_info": curv, "kind": loss.kind}
 
 
@@ -435,4 +477,15 @@ def calibration(maps, sigma: dict, undetermined: dict, truth) -> dict[str, dict]
                 rec.update(z_sd=float(np.std(z)), z_mean=float(np.mean(z)), coverage_95=float(np.mean(np.abs(z) <= Z95)))
             rec["median_sigma"] = float(np.median(s[ok]))
         out[n] = rec
+    return out
+
+
+def median_sigmas(unc: Uncertainty) -> dict[str, float | None]:
+    """``{map: median sigma}`` over the determined texel channels of every channel together, in
+    the map's sigma units (``None`` where none is determined): the one figure per map that the
+    light-subset study and the preset table quote."""
+    out: dict[str, float | None] = {}
+    for n, s in unc.sigma.items():
+        v = s[~unc.undetermined[n] & torch.isfinite(s)]
+        out[n] = float(v.double().median()) if v.numel() else None
     return out
