@@ -81,14 +81,9 @@ def test_the_fit_out_of_core_writes_the_whole_map_uncertainty_by_rows(datasets, 
         assert np.array_equal(ua[n], ub[n]) and np.array_equal(sa[n], sb[n], equal_nan=True), n
     a = json.loads((tmp_path / "whole" / "fit.json").read_text())["uncertainty"]
     b = json.loads((tmp_path / "bands" / "fit.json").read_text())["uncertainty"]
-    assert a["noise"] == b["noise"] and a["files"] == b["files"] and list(a["maps"]) == list(b["maps"])
-    for n, ra in a["maps"].items():
-        rb = b["maps"][n]
-        assert ra["undetermined_fraction"] == rb["undetermined_fraction"] and ra["channels"] == rb["channels"]
-        for k in ("median", "p90"):  # the in-memory summary is of float32, the streamed one of the half floats
-            assert [x is None for x in ra[k]] == [x is None for x in rb[k]], (n, k)
-            assert [x for x in rb[k] if x is not None] == \
-                pytest.approx([x for x in ra[k] if x is not None], rel=2e-3), (n, k)
+    assert a["noise"] == b["noise"] and a["files"] == b["files"]
+    assert a["maps"] == b["maps"]  # the summary of the same float32 sigma (spilled by rows), not of the half floats
+    assert not list((tmp_path / "bands").glob(".tmp-*"))
     # without it, nothing is left of an earlier fit's uncertainty, on either path
     for name, memory in (("bands", _budget(root, 40)), ("whole", None)):
         api.fit_dataset(root, tmp_path / name, P, memory=memory, uncertainty=False, **kw)

@@ -9,9 +9,12 @@ the component decision and its evidence), ``dualscale:map``.
 from __future__ import annotations
 
 import json
+import tempfile
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any, Iterable
+
+import numpy as np
 
 from dualscale.formats.atomic import remove_file, write_json
 from dualscale.formats.exr import read_exr_attributes
@@ -85,7 +88,7 @@ def save_fit_rows(root: str | Path, res: FitResult, shape: tuple[int, int], name
     the same files, headers and ``fit.json``, written in the same order.  ``uncertainty``: the
     fit's :class:`.stream.UncertaintyRows`, written by rows through
     :class:`~dualscale.formats.maps.UncertaintyWriter` with its summary in ``fit.json``
-    (:func:`_streamed_summary`); ``None`` removes an earlier fit's, as :func:`save_fit` does."""
+    (:class:`_Spill`); ``None`` removes an earlier fit's, as :func:`save_fit` does."""
     from dualscale.formats.maps import MapsWriter, UncertaintyWriter
 
     root = Path(root)
@@ -98,39 +101,52 @@ def save_fit_rows(root: str | Path, res: FitResult, shape: tuple[int, int], name
     if uncertainty is None:
         _drop_uncertainty(root)
     else:
-        with UncertaintyWriter(root, uncertainty.names, shape[0], shape[1],
-                               {"noise": uncertainty.noise, "preset": res.preset.name}) as uw:
+        with tempfile.TemporaryDirectory(dir=root, prefix=".tmp-sigma-") as tmp, \
+                UncertaintyWriter(root, uncertainty.names, shape[0], shape[1],
+                                  {"noise": uncertainty.noise, "preset": res.preset.name}) as uw:
+            spill = _Spill(Path(tmp), uncertainty.names, shape)
             for y0, sigma, und in uncertainty.strips:
                 uw.write(y0, sigma, und)
-        report["uncertainty"] = _streamed_summary(root, uncertainty.names, uncertainty.noise, uncertainty.seconds)
+                spill.put(y0, sigma, und)
+            report["uncertainty"] = spill.summary(uncertainty.noise, uncertainty.seconds)
     return write_json(root / "fit.json", report)
 
 
-def _streamed_summary(root: Path, names: list[str], noise: str, seconds: float) -> dict[str, Any]:
-    """:func:`.uncertainty.summary` of the uncertainty just written under ``root`` without the
-    whole set in memory: each map's sigma and its mask channels are read back one map at a time.
-    Memory: one map's ``(H, W, C)`` float32 sigma and its float32 mask channels (C <= 3: 24 bytes
-    a pixel, 400 MiB at 4096^2), plus the float64 copy ``summary`` takes of them.  The values
-    are the written half floats: the medians and p90 agree with the in-memory fit's float32
-    ones to half precision (relative 1e-3)."""
-    from dualscale.formats.exr import read_exr
-    from dualscale.formats.maps import UNCERTAINTY_DIR, _sigma_names
+class _Spill:
+    """The float32 sigma and the mask of a fit out of core's uncertainty, spilled by rows to one
+    memory-mapped file per map under ``folder`` (removed by the caller), so that fit.json's
+    summary (:func:`.uncertainty.summary`: medians, p90 over the whole map) is that of the
+    in-memory fit, the same float32 values, with one map in memory at a time: its ``(H, W, C)``
+    float32 sigma, the float64 copy ``summary`` takes and the mask (C <= 3: <= 39 bytes a pixel,
+    650 MiB at 4096^2).  Disk: 4 bytes a value and 1 a mask entry, beside the maps."""
 
-    from .uncertainty import summary
+    def __init__(self, folder: Path, names: list[str], shape: tuple[int, int]) -> None:
+        from dualscale.formats.maps import SIGMA_CHANNELS
 
-    folder = root / UNCERTAINTY_DIR
-    rec: dict[str, Any] | None = None
-    for n in names:
-        sigma = read_exr(folder / f"{n}.exr", _sigma_names(n))
-        und = read_exr(folder / "undetermined.exr", [f"{n}.{c}" for c in _sigma_names(n)]) > 0.5
-        part = summary({n: sigma}, {n: und}, noise, seconds)
-        del sigma, und
-        if rec is None:
-            rec = part
-        else:
-            rec["maps"].update(part["maps"])
-    assert rec is not None
-    return rec
+        self.files = {n: (folder / f"{n}.f32", folder / f"{n}.u8", (*shape, SIGMA_CHANNELS[n])) for n in names}
+        for f32, u8, full in self.files.values():
+            np.lib.format.open_memmap(f32, "w+", np.float32, full).flush()
+            np.lib.format.open_memmap(u8, "w+", np.uint8, full).flush()
+
+    def put(self, y0: int, sigma: dict[str, Any], und: dict[str, Any]) -> None:
+        for n, (f32, u8, full) in self.files.items():
+            s, u = np.asarray(sigma[n], np.float32), np.asarray(und[n], np.uint8)
+            s, u = s.reshape(s.shape[0], *full[1:]), u.reshape(u.shape[0], *full[1:])
+            for path, a in ((f32, s), (u8, u)):
+                m = np.load(path, mmap_mode="r+")
+                m[y0:y0 + a.shape[0]] = a
+                m.flush()
+                del m
+
+    def summary(self, noise: str, seconds: float) -> dict[str, Any]:
+        from .uncertainty import summary
+
+        rec: dict[str, Any] | None = None
+        for n, (f32, u8, _) in self.files.items():
+            part = summary({n: np.load(f32)}, {n: np.load(u8).astype(bool)}, noise, seconds)
+            rec = part if rec is None else {**rec, "maps": {**rec["maps"], **part["maps"]}}
+        assert rec is not None
+        return rec
 
 
 def _report(res: FitResult, selection: dict | None, extra: dict | None) -> tuple[dict[str, Any], dict[str, Any]]:
