@@ -4,11 +4,19 @@ uncertainty").
     PYTHONPATH=host python bench/bench_uncertainty.py [--size 32] [--materials twill,leather,satin,denim]
         [--seeds 0,1,2] [--plans full,MOD3,ROW2+4] [--preset standard] [--json out.json]
 
-Each material and seed is captured by the virtual rig *with its realistic sensor* (``synth
---realistic``: metered exposures, LED gains, dark signal, shot and read noise, 12 bit), made
-radiance by the product's own calibration (``synth-targets`` -> ``calibrate`` ->
-:func:`dualscale.calib.apply.to_radiance`, one calibration for every sample, as one rig has),
-then fitted on each light plan with the preset, ``uncertainty`` on, with the ground truth's
+Each material and seed is rendered by the virtual rig and captured through its sensor model, in
+one of two ways (``--source``):
+
+* ``sensor`` (the default): the noise-free dataset captured image by image with the rig's
+  per-image metered exposure (peak at 90 % of full well), shot and read noise, saturation and 12
+  bit (``bench_fit.add_noise``: :func:`dualscale.sim.sensor.capture`), back to radiance by the
+  known exposure: the sensor's noise alone;
+* ``calibrated``: ``synth --realistic`` (also LED gains and spectra, dark signal, vignetting)
+  made radiance by the product's own calibration (``synth-targets`` -> ``calibrate`` ->
+  :func:`dualscale.calib.apply.to_radiance`, one calibration for every sample, as one rig has):
+  the sensor's noise plus whatever error the calibration leaves.
+
+Each is fitted on each light plan with the preset, ``uncertainty`` on, with the ground truth's
 components.  Per map: the share of determined texel channels, the z-scores' spread and the 95 %
 coverage (:func:`dualscale.fit.uncertainty.calibration`), pooled over the seeds; the
 misspecified case fits the anisotropic twill with an isotropic lobe.  The cost is the
@@ -40,6 +48,8 @@ from dualscale.fit.uncertainty import calibration
 from dualscale.formats.maps import load_maps
 from dualscale.threads import set_threads
 
+import bench_fit  # (bench/ is on the path when this script runs)
+
 
 def _cli(*args: str) -> None:
     rc = cli_main([*args, "--threads", "1", "--no-progress"])
@@ -47,13 +57,13 @@ def _cli(*args: str) -> None:
         raise SystemExit(f"dualscale {' '.join(args)} failed ({rc})")
 
 
-def _dataset(work: Path, cal: Path, material: str, seed: int, size: int) -> tuple[Path, Path]:
+def _calibrated(work: Path, cal: Path, material: str, seed: int, size: int):
     raw = work / f"{material}-{seed}"
     _cli("synth", material, "--size", str(size), "--texel-um", "9", "--seed", str(seed), "--dataset", "--realistic",
          "--no-previews", "-o", str(raw))
     rad = work / f"{material}-{seed}-radiance"
     to_radiance(raw, rad, cal)
-    return rad, raw / "maps"
+    return load_observations(rad), load_maps(raw / "maps")[0]
 
 
 def _pool(recs: list[dict]) -> dict:
@@ -79,6 +89,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--seeds", default="0,1,2")
     ap.add_argument("--plans", default="full,MOD3,ROW2+4")
     ap.add_argument("--preset", default="standard")
+    ap.add_argument("--source", choices=("sensor", "calibrated"), default="sensor")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--work", default=None, help="keep the datasets here (default: a temporary folder)")
     ap.add_argument("--json", default=None)
@@ -90,17 +101,19 @@ def main(argv: list[str] | None = None) -> dict:
     work = Path(a.work or tempfile.mkdtemp(prefix="bench-unc-"))
     work.mkdir(parents=True, exist_ok=True)
     cal = work / "rig.calib.json"
-    if not cal.is_file():
+    if a.source == "calibrated" and not cal.is_file():
         _cli("synth-targets", "-o", str(work / "targets"), "--led-step", "1")
         _cli("calibrate", str(work / "targets"), "-o", str(cal))
     cases: dict[tuple[str, str], list[dict]] = {}
     costs: list[float] = []
+    walls: list[float] = []
     noise = None
     for material in a.materials.split(","):
         for seed in (int(s) for s in a.seeds.split(",")):
-            rad, gt_dir = _dataset(work, cal, material, seed, a.size)
-            gt, _ = load_maps(gt_dir)
-            obs = load_observations(rad)
+            if a.source == "calibrated":
+                obs, gt = _calibrated(work, cal, material, seed, a.size)
+            else:
+                obs, gt = bench_fit.dataset(work / f"{material}-{seed}-sensor", material, a.size, 9.0, seed=seed)
             comps = gt.components()
             plans = {"full": None, **subsets}
             if material == "twill":
@@ -115,6 +128,10 @@ def main(argv: list[str] | None = None) -> dict:
                 noise = u.noise
                 if "misspecified" not in plan:
                     costs.append(u.seconds / max(1e-9, total - u.seconds))
+                if plan == "full":  # the same fit without its uncertainty, timed beside it
+                    t0 = time.perf_counter()
+                    fit_observations(o, preset, c, seed=seed, uncertainty=False)
+                    walls.append(total / (time.perf_counter() - t0) - 1.0)
                 cases.setdefault((material if "misspecified" not in plan else "twill (isotropic fit)",
                                   plan.split(",")[0]), []).append(calibration(res.maps, u.sigma, u.undetermined, gt))
                 print(f"{material} seed {seed} {plan}: {total:.1f} s, uncertainty {u.seconds:.2f} s", flush=True)
@@ -124,12 +141,15 @@ def main(argv: list[str] | None = None) -> dict:
             by_plan.setdefault(plan, []).extend(recs)
     rep = {"date": date.today().isoformat(), "machine": f"{platform.machine()}, {os.cpu_count()} cores",
            "load": os.getloadavg()[0], "threads": a.threads, "size": a.size, "preset": a.preset, "noise": noise,
+           "source": a.source,
            "cost_median": statistics.median(costs) if costs else None,
+           "wall_cost_median": statistics.median(walls) if walls else None,
            "per_plan": {p: _pool(r) for p, r in by_plan.items()},
            "per_case": {f"{m} / {p}": _pool(r) for (m, p), r in cases.items()}}
     print(f"\n{rep['date']}, {rep['machine']}, load {rep['load']:.2f}, {a.threads} thread(s); "
-          f"{a.size}^2 synth --realistic, calibrated; preset {a.preset}; noise scale: {noise}")
-    print(f"uncertainty cost: median {100 * rep['cost_median']:.1f} % of the fit without it\n")
+          f"{a.size}^2, source {a.source}; preset {a.preset}; noise scale: {noise}")
+    print(f"uncertainty cost: its own time is a median {100 * rep['cost_median']:.1f} % of the fit's; the fit with it "
+          f"took a median {100 * rep['wall_cost_median']:+.1f} % longer than the same fit without it (full plan)\n")
     print("| plan / case | map | determined | z sd | 95 % coverage | median σ |\n|---|---|---|---|---|---|")
     for title, group in (("all materials", rep["per_plan"]), ("", rep["per_case"])):
         for plan, maps in group.items():

@@ -559,7 +559,6 @@ UNDETERMINED_NAME = "magenta"
 UNDETERMINED_HEX = "#ff00ff"
 #: the short unit of each map's sigma on axes (the full one is ``SIGMA_UNITS`` of dualscale.formats.maps)
 SIGMA_SHORT_UNITS = {"normal": "°", "tangent": "°", "ior": "η"}
-Z95 = 1.96  # |error| <= 1.96 sigma: the share expected of a Gaussian error is 95 %
 
 
 def sigma_unit(name: str) -> str:
@@ -753,5 +752,5 @@ __all__ = ["Range", "robust_range", "clip_note", "srgb_encode", "luminance", "di
            "scalar_image", "rgb_image", "normal_image", "map_figure", "residual_figure", "heldout_figure",
            "hemisphere", "hemisphere_norm", "hemisphere_figure", "time_bars", "flyout_figure", "max_pool", "block_mean",
            "guidance_figure", "overlapping_texts", "MAP_TITLES", "UNIT_RANGE_MAPS", "SIGMA_CMAP", "UNDETERMINED_RGB",
-           "UNDETERMINED_NAME", "UNDETERMINED_HEX", "Z95", "sigma_unit", "sigma_display", "sigma_range", "sigma_colours",
+           "UNDETERMINED_NAME", "UNDETERMINED_HEX", "sigma_unit", "sigma_display", "sigma_range", "sigma_colours",
            "sigma_figure", "sigma_colorbar"]

@@ -599,23 +599,6 @@ def _heldout(run: Path, doc: dict[str, Any], assets: Assets, texel_mm: float | N
 # ---------------------------------------------------------------------------------------------
 # per-pixel uncertainty (issue 26)
 
-def _gt_error(name: str, fit: np.ndarray, gt: np.ndarray) -> np.ndarray:
-    """|fitted - ground truth| of one map in its sigma's unit (``SIGMA_UNITS``): the angle
-    between the normals in degrees, the axial azimuth difference of the tangents in degrees,
-    eta for the IOR (eta = 1 + 2 v), the map's own value otherwise."""
-    f, g = np.asarray(fit, np.float64), np.asarray(gt, np.float64)
-    if name == "normal":
-        fn = f / np.maximum(np.linalg.norm(f, axis=-1, keepdims=True), 1e-12)
-        gn = g / np.maximum(np.linalg.norm(g, axis=-1, keepdims=True), 1e-12)
-        return np.degrees(np.arccos(np.clip((fn * gn).sum(-1, keepdims=True), -1.0, 1.0)))
-    if name == "tangent":
-        d = np.mod(180.0 * (f[..., :1] - g[..., :1]), 180.0)
-        return np.minimum(d, 180.0 - d)
-    if name == "ior":
-        return 2.0 * np.abs(f[..., :1] - g[..., :1])
-    return np.abs(f - g)
-
-
 def _channel_stats(s: np.ndarray, u: np.ndarray, pct: float) -> list[float | None]:
     out = []
     for c in range(s.shape[2]):
@@ -639,7 +622,9 @@ def _uncertainty(run: Path, fit_json: dict[str, Any], maps: dict[str, np.ndarray
     ``None`` when the fit wrote no uncertainty (a fit of an earlier dualscale).  Per map: the
     sigma image and histogram, beside the absolute error against the ground truth when the fit
     was scored against one (``fit.json``'s ``"ground_truth"``, its ``dir`` still readable), with
-    the share of texels whose |error| <= 1.96 sigma."""
+    the share of texels whose |error| <= 1.96 sigma (the normal's angle <= 1.73 sigma, a 2-D
+    error: :func:`dualscale.fit.uncertainty.calibration`'s rule)."""
+    from dualscale.fit.uncertainty import Z95, Z95_NORMAL, map_error
     from dualscale.formats.maps import SIGMA_UNITS, UNCERTAINTY_DIR, load_maps, load_uncertainty
 
     root = run / "fit" / "maps"
@@ -669,16 +654,18 @@ def _uncertainty(run: Path, fit_json: dict[str, Any], maps: dict[str, np.ndarray
         chans = ("R", "G", "B") if s.shape[2] == 3 else ("",)
         err = None
         if gt_maps is not None and n in gt_maps and n in maps and gt_maps[n].shape[:2] == s.shape[:2]:
-            err = _gt_error(n, maps[n], gt_maps[n])
+            err = np.abs(map_error(n, maps[n], gt_maps[n]))
         f, cap = plots.sigma_figure(n, s, u, units=str(units.get(n, SIGMA_UNITS.get(n, ""))), error=err,
                                     texel_mm=texel_mm)
         coverage = None
         if err is not None:
             ok = ~u & np.isfinite(s) & np.isfinite(err)
             if ok.any():
-                coverage = float((err[ok] <= plots.Z95 * s[ok]).mean())
+                z95 = Z95_NORMAL if n == "normal" else Z95
+                coverage = float((err[ok] <= z95 * s[ok]).mean())
                 cap += (f" Coverage: {fmt.percent(coverage)} of the determined texel channels have |error| ≤ "
-                        f"{plots.Z95:g}σ (95 % if σ is right and the error Gaussian).")
+                        f"{z95:.2f}σ (95 % if σ is right and the error Gaussian"
+                        + (", 2-D for the normal, whose σ is the RMS angle)." if n == "normal" else ")."))
         title = f"σ of {plots.MAP_TITLES.get(n, n)}"
         figs.append(Fig(assets.figure(f, f"sigma_{n}"), cap, title, title))
         undet = [float(u[..., c].mean()) for c in range(u.shape[2])]
@@ -691,7 +678,7 @@ def _uncertainty(run: Path, fit_json: dict[str, Any], maps: dict[str, np.ndarray
         rows.append(row)
     header = ["map", "unit of σ", "median σ", "90th percentile", "undetermined"]
     if gt_maps is not None:
-        header.append(f"|error| ≤ {plots.Z95:g}σ (ground truth)")
+        header.append(f"|error| ≤ {Z95:.2f}σ, the normal's ≤ {Z95_NORMAL:.2f}σ (ground truth; 95 % expected)")
     noise = rec.get("noise")
     info = [("noise scale", fmt.value(noise) if noise else "not recorded"),
             ("time", fmt.duration(rec.get("seconds")) if isinstance(rec.get("seconds"), (int, float)) else "not recorded"),
