@@ -42,7 +42,6 @@ from dualscale.calib.apply import to_radiance
 from dualscale.cli import main as cli_main
 from dualscale.fit.core import fit_observations
 from dualscale.fit.observations import load_observations
-from dualscale.fit.presets import PRESETS
 from dualscale.fit.study import builtin_subsets
 from dualscale.fit.uncertainty import calibration
 from dualscale.formats.maps import load_maps
@@ -88,14 +87,14 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--materials", default="twill,leather,satin,denim")
     ap.add_argument("--seeds", default="0,1,2")
     ap.add_argument("--plans", default="full,MOD3,ROW2+4")
-    ap.add_argument("--preset", default="standard")
+    ap.add_argument("--preset", default="standard", help="a preset, or bench_fit's NAME[@LOSS][*FACTOR][~SD][%%RATIO]")
     ap.add_argument("--source", choices=("sensor", "calibrated"), default="sensor")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--work", default=None, help="keep the datasets here (default: a temporary folder)")
     ap.add_argument("--json", default=None)
     a = ap.parse_args(argv)
     set_threads(a.threads)
-    preset = PRESETS[a.preset]
+    preset = bench_fit.preset(a.preset)  # NAME[@LOSS][*FACTOR][~SD][%RATIO], as bench_fit
     wanted = [p for p in a.plans.split(",") if p != "full"]
     subsets = builtin_subsets(names=wanted) if wanted else {}
     work = Path(a.work or tempfile.mkdtemp(prefix="bench-unc-"))

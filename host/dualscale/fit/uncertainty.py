@@ -97,8 +97,9 @@ def _offsets(names: tuple[str, ...]) -> dict[str, slice]:
     return out
 
 
-#: iterations of the per-pixel noise-model fit (:func:`row_noise`)
-NOISE_ITERATIONS = 4
+#: iterations of the per-pixel noise-model fit (:func:`row_noise`; 2 recover the per-row sigmas
+#: as well as 4 in ``tests/fit/test_uncertainty.py``)
+NOISE_ITERATIONS = 2
 #: rows whose residual exceeds this many of their model sigmas are left out of the next
 #: iteration of the noise-model fit (cast-shadow edges, misfit, hot pixels)
 NOISE_CLIP = 3.0
@@ -206,12 +207,13 @@ def normal_matrices(params: dict[str, Tensor], comps: Components, obs: Observati
         prob = lm._problem(lm._block(d, y0, y1), comps)
         r = prob.residuals(xb, names, fx)
         keep = prob.irls(r, loss)[0]  # kept rows: valid and not in a cast shadow
-        c = torch.from_numpy(prob.row_weights(c_back)).to(keep.dtype)
+        c_rows = prob.row_weights(c_back)
+        sqrt_c = torch.from_numpy(np.sqrt(c_rows)).to(keep.dtype)
         y = prob.rows if prob.back.shape[0] != prob.rows.shape[0] else np.concatenate([prob.rows, prob.back], 1)
-        na, nb, sw = _noise(r, y, keep, prob.row_weights(c_back), loss.kind == "l1")
-        a, _ = prob.normal_equations(xb, names, fx, r, (c * keep).sqrt())
+        na, nb, sw = _noise(r, y, keep, c_rows, loss.kind == "l1")
+        a, _ = prob.normal_equations(xb, names, fx, r, sqrt_c * keep)  # keep is 0/1: its own square root
         # B = J^T C^2 J differs from A = J^T C J on the back-lit rows only (c = 1 elsewhere)
-        b = a + (c_back ** 2 - c_back) * prob.back_normal(xb, names, fx, keep.sqrt()) if c_back != 1.0 else a
+        b = a + (c_back ** 2 - c_back) * prob.back_normal(xb, names, fx, keep) if c_back != 1.0 else a
         nm, _ = prob.normal_equations(xb, names, fx, r, sw)
         a_l.append(a)
         b_l.append(b)
@@ -255,16 +257,24 @@ def pixel_covariance(params: dict[str, Tensor], comps: Components, obs: Observat
     names, x, a, b, keep = m["names"], m["x"], m["A"], m["B"], m["keep"]
     p = x.shape[-1]
     det = _candidates(x, names, a, keep)
+    eye = torch.eye(p, dtype=a.dtype)
     for _ in range(p):  # set aside unconstrained directions one parameter at a time
         am = _masked(a, det, 1.0)
         s = torch.diagonal(am, dim1=-2, dim2=-1).clamp(min=1e-300).rsqrt()
-        ev, vec = torch.linalg.eigh(am * s.unsqueeze(-1) * s.unsqueeze(-2))
-        bad = (ev[..., 0] < EIG_TOL) & det.any(-1)
+        corr = am * s.unsqueeze(-1) * s.unsqueeze(-2)
+        # screen: corr - EIG_TOL I is positive definite (Cholesky succeeds) iff the smallest
+        # eigenvalue is above EIG_TOL; only the others need the eigenvectors
+        screen = (torch.linalg.cholesky_ex(corr - EIG_TOL * eye)[1] > 0) & det.any(-1)
+        if not bool(screen.any()):
+            break
+        where = screen.nonzero(as_tuple=True)
+        ev, vec = torch.linalg.eigh(corr[where])
+        bad = ev[:, 0] < EIG_TOL
         if not bool(bad.any()):
             break
-        share = torch.where(det, vec[..., :, 0].abs(), torch.full_like(ev, -1.0))
+        share = torch.where(det[where], vec[:, :, 0].abs(), torch.full_like(ev, -1.0))
         drop = torch.nn.functional.one_hot(share.argmax(-1), p).bool() & bad.unsqueeze(-1)
-        det &= ~drop
+        det[where] = det[where] & ~drop
     am, bm, nm = _masked(a, det, 1.0), _masked(b, det, 1.0), _masked(m["N"], det, 1.0)
     if m["kind"] == "l1":  # Sigma = (pi/2) N^-1 B N^-1: the information (2/pi) N B^-1 N
         y, info_b = torch.linalg.solve_ex(bm, nm)
