@@ -57,10 +57,10 @@ def _cli(*args: str) -> None:
 
 
 def _calibrated(work: Path, cal: Path, material: str, seed: int, size: int):
-    raw = work / f"{material}-{seed}"
+    raw = work / f"{material}-{seed}-{size}"
     _cli("synth", material, "--size", str(size), "--texel-um", "9", "--seed", str(seed), "--dataset", "--realistic",
          "--no-previews", "-o", str(raw))
-    rad = work / f"{material}-{seed}-radiance"
+    rad = work / f"{material}-{seed}-{size}-radiance"
     to_radiance(raw, rad, cal)
     return load_observations(rad), load_maps(raw / "maps")[0]
 
@@ -81,6 +81,26 @@ def _pool(recs: list[dict]) -> dict:
     return out
 
 
+def _command_cost(work: Path, size: int, preset: str, repeats: int) -> dict:
+    """The whole ``dualscale fit`` command (selection, cross-validation, the fit, the files)
+    with and without its uncertainty, alternating, ``repeats`` each: median wall times."""
+    ds = work / f"command-{size}"
+    if not (ds / "micro" / "manifest.json").is_file():
+        _cli("synth", "twill", "--size", str(size), "--texel-um", "9", "--dataset", "--no-previews", "-o", str(ds))
+    times: dict[bool, list[float]] = {True: [], False: []}
+    for with_unc in (True, False):  # untimed: the kernels' first calls (numba's on-disk cache, allocators)
+        _cli("fit", str(ds), "-o", str(work / f"command-fit-{with_unc}"), "--overwrite", "--preset", preset,
+             "--no-previews", *([] if with_unc else ["--no-uncertainty"]))
+    for k in range(repeats):
+        for with_unc in (True, False) if k % 2 == 0 else (False, True):
+            t0 = time.perf_counter()
+            _cli("fit", str(ds), "-o", str(work / f"command-fit-{with_unc}"), "--overwrite", "--preset", preset,
+                 "--no-previews", *([] if with_unc else ["--no-uncertainty"]))
+            times[with_unc].append(time.perf_counter() - t0)
+    w, wo = statistics.median(times[True]), statistics.median(times[False])
+    return {"with_s": w, "without_s": wo, "cost": w / wo - 1.0, "runs": {str(k): v for k, v in times.items()}}
+
+
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--size", type=int, default=32)
@@ -91,6 +111,10 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--source", choices=("sensor", "calibrated"), default="sensor")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--work", default=None, help="keep the datasets here (default: a temporary folder)")
+    ap.add_argument("--command-size", type=int, default=64,
+                    help="also time the whole dualscale fit command on a twill of this size, with and without its "
+                         "uncertainty (0: not)")
+    ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--json", default=None)
     a = ap.parse_args(argv)
     set_threads(a.threads)
@@ -112,11 +136,13 @@ def main(argv: list[str] | None = None) -> dict:
             if a.source == "calibrated":
                 obs, gt = _calibrated(work, cal, material, seed, a.size)
             else:
-                obs, gt = bench_fit.dataset(work / f"{material}-{seed}-sensor", material, a.size, 9.0, seed=seed)
+                obs, gt = bench_fit.dataset(work / f"{material}-{seed}-{a.size}-sensor", material, a.size, 9.0, seed=seed)
             comps = gt.components()
             plans = {"full": None, **subsets}
             if material == "twill":
                 plans["full, isotropic lobe (misspecified)"] = None
+            if not costs and not walls:  # untimed: the kernels' first calls
+                fit_observations(obs.crop(0, 4, 0, 4), preset.scaled(0.02), comps, seed=seed, uncertainty=True)
             for plan, ids in plans.items():
                 o = obs if ids is None else obs.select_leds(ids & set(obs.led_ids.tolist()))
                 c = replace(comps, isotropic=True) if "misspecified" in plan else comps
@@ -134,6 +160,7 @@ def main(argv: list[str] | None = None) -> dict:
                 cases.setdefault((material if "misspecified" not in plan else "twill (isotropic fit)",
                                   plan.split(",")[0]), []).append(calibration(res.maps, u.sigma, u.undetermined, gt))
                 print(f"{material} seed {seed} {plan}: {total:.1f} s, uncertainty {u.seconds:.2f} s", flush=True)
+    command = _command_cost(work, a.command_size, a.preset, a.repeats) if a.command_size else None
     by_plan: dict[str, list[dict]] = {}
     for (m, plan), recs in cases.items():
         if "isotropic" not in m:
@@ -142,13 +169,17 @@ def main(argv: list[str] | None = None) -> dict:
            "load": os.getloadavg()[0], "threads": a.threads, "size": a.size, "preset": a.preset, "noise": noise,
            "source": a.source,
            "cost_median": statistics.median(costs) if costs else None,
-           "wall_cost_median": statistics.median(walls) if walls else None,
+           "wall_cost_median": statistics.median(walls) if walls else None, "command": command,
            "per_plan": {p: _pool(r) for p, r in by_plan.items()},
            "per_case": {f"{m} / {p}": _pool(r) for (m, p), r in cases.items()}}
     print(f"\n{rep['date']}, {rep['machine']}, load {rep['load']:.2f}, {a.threads} thread(s); "
           f"{a.size}^2, source {a.source}; preset {a.preset}; noise scale: {noise}")
     print(f"uncertainty cost: its own time is a median {100 * rep['cost_median']:.1f} % of the fit's; the fit with it "
           f"took a median {100 * rep['wall_cost_median']:+.1f} % longer than the same fit without it (full plan)\n")
+    if command:
+        print(f"dualscale fit of a {a.command_size}^2 twill (noise-free), {a.repeats} runs each, alternating: median "
+              f"{command['with_s']:.1f} s with the uncertainty, {command['without_s']:.1f} s with --no-uncertainty: "
+              f"{100 * command['cost']:+.1f} %\n")
     print("| plan / case | map | determined | z sd | 95 % coverage | median σ |\n|---|---|---|---|---|---|")
     for title, group in (("all materials", rep["per_plan"]), ("", rep["per_case"])):
         for plan, maps in group.items():

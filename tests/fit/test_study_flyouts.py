@@ -49,13 +49,23 @@ def test_recommendation_by_the_sigma_a_user_accepts():
         recommend(rows, {"roughness": 0.1})
 
 
+@pytest.mark.parametrize("bad", ["normal", "normal=x", "normal=-1", "colour=0.1", "normal=inf"])
+def test_cli_study_lights_refuses_a_bad_max_sigma_before_any_work(tmp_path, capsys, bad):
+    out = tmp_path / "study"
+    assert main(["study", "lights", str(tmp_path / "nothing"), "-o", str(out), "--max-sigma", bad]) == 2
+    assert "--max-sigma" in capsys.readouterr().err and not out.exists()
+
+
 def test_cli_study_lights(datasets, tmp_path, capsys):
     out = tmp_path / "study"
     rc = main(["study", "lights", str(datasets("leather", 12)), "-o", str(out), "--preset", "draft",
                "--only", "ALL", "MINIMAL", "mine", "--subset", "mine=1-20",
-               "--gt", str(datasets("leather", 12) / "maps")])
+               "--gt", str(datasets("leather", 12) / "maps"), "--max-sigma", "normal=1000,albedo=1"])
     assert rc == 0
     rep = json.loads((out / "study.json").read_text())
+    # every subset meets so loose a limit: the fewest lights win, by the sigma asked for
+    fewest = min(rep["rows"], key=lambda r: r["leds"])["subset"]
+    assert rep["recommendation"]["subset"] == fewest and "median sigma" in rep["recommendation"]["reason"]
     assert [r["subset"] for r in rep["rows"]] == ["ALL", "MINIMAL", "mine"]
     assert rep["rows"][0]["leds"] == 127 - len(rep["heldout_leds"])
     assert rep["rows"][0]["images"] == 2 * rep["rows"][0]["leds"]  # both analyser modes of each LED
