@@ -1,11 +1,14 @@
 """Synthetic calibration captures on the virtual dome, with known truth and injected defects.
 
 Every capture is physically composed: per-pixel geometry factors come from the dome renderer
-(:func:`dualscale.sim.render.render`, a grey matte/glossy surface with albedo 1 and 0, so the
-diffuse part ``G_d`` and the white specular part ``G_s`` are separated), and colour comes from
-spectral reflectances x the light's spectrum x the camera's spectral sensitivities
-(colour-science), never from RGB: ``raw(x) = sum_k [label(x) = k] raw_k G_d(x) + raw_white
-G_s(x)``.  This is exact because the renderer is linear in albedo and the specular is white.
+(:func:`dualscale.sim.render.render`, a grey surface with albedo 1 and 0, so the diffuse part
+``G_d`` and the white specular part ``G_s`` are separated), and colour comes from spectral
+reflectances x the light's spectrum x the camera's spectral sensitivities (colour-science), never
+from RGB: ``raw(x) = sum_k [label(x) = k] raw_k G_d(x) + raw_white G_s(x)``.  This is exact
+because the renderer is linear in albedo and the specular is white.  The calibration targets
+(white sheet, markers, ColorChecker) are matte Lambertian, ``G_d = l_z / pi`` and ``G_s = 0``,
+as the calibration assumes (:attr:`SynthConfig.target_brdf`; ``"burley"`` for the earlier
+Burley + specular targets).
 
 Defects (all with known truth): per-LED irradiance gains, a per-LED linear irradiance ramp over
 the micro field (collimation), analyser misalignment, spatially varying Gaussian blur of the
@@ -64,9 +67,22 @@ class Defects:
     seed: int = 0
 
 
+TARGET_BRDFS = ("lambert", "burley")
+"""How the calibration targets reflect (:attr:`SynthConfig.target_brdf`)."""
+
+
 @dataclass(frozen=True)
 class SynthConfig:
-    """Sizes and the rig's optics; the micro camera keeps the 0.92 mm footprint, binned."""
+    """Sizes and the rig's optics; the micro camera keeps the 0.92 mm footprint, binned.
+
+    ``target_brdf``: the reflection of the calibration targets (white sheet, holder markers,
+    ColorChecker): ``"lambert"`` (default) is a matte Lambertian reflector, ``rho l_z / pi``
+    per unit LED irradiance, with no specular -- the sheet the calibration assumes
+    (:mod:`dualscale.calib.apply`, step ``irradiance``; docs/CALIBRATION.md); ``"burley"`` is
+    Burley's diffuse of roughness ``roughness`` with a white specular lobe (what the virtual rig
+    had before: its sheet is 1.107 x Lambert at l_z 0.31 and its specular adds 3-6 % to ``r_c``,
+    so a calibrated capture comes out 0.85 x the truth on the lowest ring), to study what a
+    non-Lambertian sheet costs.  The dot grid and the polarisation target keep their own models."""
 
     micro_px: int = 16
     other_px: int = 48
@@ -85,6 +101,11 @@ class SynthConfig:
     white_level: float | tuple[float, float, float] = 1.0
     white_level_spread: float = 0.0
     declare_white_level: bool = True
+    target_brdf: str = "lambert"
+
+    def __post_init__(self) -> None:
+        if self.target_brdf not in TARGET_BRDFS:
+            raise InputError(f"unknown target_brdf {self.target_brdf!r}; choose from {list(TARGET_BRDFS)}")
 
     def sensor(self) -> SensorModel:
         """The cameras' sensor model (:data:`SENSOR` with this white level)."""
@@ -123,9 +144,11 @@ def _grey_maps(albedo: float, roughness: float) -> MaterialMaps:
 
 
 def geometry_factors(camera: Camera, kind: str, light_id: int | None, analyzer: Analyzer | None,
-                     roughness: float, dome: DomeGeometry) -> tuple[np.ndarray, np.ndarray]:
+                     roughness: float, dome: DomeGeometry, diffuse: str = "burley") -> tuple[np.ndarray, np.ndarray]:
     """``(G_d, G_s)`` ``(H, W)``: radiance of a grey surface per unit diffuse albedo, and of its
-    white specular lobe, under one LED (unit irradiance) or the diffuse group (unit radiance)."""
+    white specular lobe, under one LED (unit irradiance) or the diffuse group (unit radiance).
+    ``diffuse``: the diffuse lobe (:data:`dualscale.bsdf.maps.DIFFUSE_MODELS`); ``"lambert"``
+    gives ``G_d = l_z / pi`` (LED) and ``sum_k w_k l_kz / pi`` (diffuse group) exactly."""
     if kind == "backlight":
         raise ValueError("back lights have no reflection factors")
     light = LightState.led(light_id) if kind == "led" else LightState.diffuse_group()
@@ -133,7 +156,8 @@ def geometry_factors(camera: Camera, kind: str, light_id: int | None, analyzer: 
     if camera.kind == "orthographic":  # every pixel sees the same: render one
         cam = replace(camera, width=1, height=1, field_mm=(camera.field_mm[0] / camera.width,
                                                             camera.field_mm[1] / camera.height))
-    kw = dict(dome=dome, analyzer=analyzer, texel_mm=1.0, light_chunk=None)
+    comps = replace(_grey_maps(1.0, roughness).components(), diffuse=diffuse)
+    kw = dict(dome=dome, analyzer=analyzer, texel_mm=1.0, light_chunk=None, comps=comps)
     r1 = render(_grey_maps(1.0, roughness), cam, light, **kw)[..., 0].numpy()
     r0 = render(_grey_maps(0.0, roughness), cam, light, **kw)[..., 0].numpy()
     shape = (camera.height, camera.width)
@@ -225,9 +249,14 @@ def true_radiance(target: str, camera: Camera, kind: str, light_id: int | None, 
         cols = cr.camera_raw(scene.transmit, sens, ill) * w_d
         return cols[scene.labels]
     cols = cr.camera_raw(scene.reflect, sens, ill)
-    white = cr.camera_raw([cr.flat_spectrum(1.0, 1.0)], sens, ill)[0]
-    g_d, g_s = geometry_factors(camera, kind, light_id, analyzer, cfg.roughness if roughness is None else roughness, dome)
-    rad = cols[scene.labels] * g_d[..., None] + white * g_s[..., None]
+    rough = cfg.roughness if roughness is None else roughness
+    if cfg.target_brdf == "lambert":  # matte Lambertian targets: the calibration's convention
+        g_d, _ = geometry_factors(camera, kind, light_id, analyzer, rough, dome, diffuse="lambert")
+        rad = cols[scene.labels] * g_d[..., None]
+    else:
+        white = cr.camera_raw([cr.flat_spectrum(1.0, 1.0)], sens, ill)[0]
+        g_d, g_s = geometry_factors(camera, kind, light_id, analyzer, rough, dome)
+        rad = cols[scene.labels] * g_d[..., None] + white * g_s[..., None]
     if kind == "led":
         rad = rad * led_gains(dome.n_leds, defects)[light_id] * collimation_ramp(camera, light_id, defects)[..., None]
     return rad
