@@ -5,7 +5,7 @@ through the fused kernel's Jacobian also for Adam), :func:`.io.save_fit` then wr
 :func:`calibration` scores it against a ground truth.
 
 At the fitted parameters ``x`` of a pixel, with the joint step's free parameters, the fused
-kernel builds (two more passes, :meth:`.fused.Problem.normal_equations`) the matrices
+kernel builds (one more pass, :meth:`.fused.Problem.normal_matrices`) the matrices
 
 * ``A = J^T C J``, ``B = J^T C^2 J`` and the noise-weighted ``N`` (below)
 
@@ -35,6 +35,15 @@ A^-1``.  Under shot noise a single scale per pixel follows the many dark rows an
 the highlights' noise, which carry the roughness and the normal: on a twill crop with the
 virtual sensor's shot and read noise the z-scores' spread was 1.4-1.7 with it and 0.9-1.05 with
 the model (``tests/fit/test_uncertainty.py``).
+
+**The optimiser's own error.**  ``Sigma`` is the spread of the *optimum* under the noise; a fit
+that stopped short of it (Adam's presets, a coarse start, few lights) is off by more.  The one
+Gauss-Newton step the optimiser would take next from the solution, ``dx = -(J^T W J + prior)^-1
+(J^T W r + prior gradient)`` with the fit's own reweighting ``W`` (:meth:`.fused.Problem.irls`),
+estimates that distance, and ``Sigma + dx dx^T`` is reported: at a converged LM fit ``dx`` is
+negligible beside ``Sigma``, after ``adam-fast`` it took the z-scores' spread from 3.5-7 to
+1.25-1.6 (docs/FITTING.md).  The three matrices (``J^T W J``, ``A``, ``N``) come from one
+evaluation of the Jacobian (:meth:`.fused.Problem.normal_matrices`).
 
 A prior (:attr:`.lm.Loss.priors`, the presets' IOR prior) is added in information units: the
 data give the information ``Sigma_data^-1`` (``(2 / pi) N B^-1 N`` or ``A N^-1 A``), the
@@ -191,7 +200,8 @@ def normal_matrices(params: dict[str, Tensor], comps: Components, obs: Observati
     ``x`` ``(H, W, P)``, ``A = J^T C J`` and ``B = J^T C^2 J`` ``(H, W, P, P)`` float64 over the
     kept rows, the noise-weighted ``N`` (``J^T C S^-1 J`` for ``loss='l1'``, ``J^T C^2 S^2 J`` for
     ``'l2'``; ``S`` the rows' noise sigmas, :func:`row_noise`), ``keep`` ``(H, W, K)``,
-    ``residuals`` ``(H, W, K)``, ``noise`` ``(H, W, 2)`` (the noise model's ``a``, ``b``) and ``prior_info``
+    ``residuals`` ``(H, W, K)``, ``noise`` ``(H, W, 2)`` (the noise model's ``a``, ``b``), ``step``
+    ``(H, W, P)`` (the optimiser's next Gauss-Newton step, module doc) and ``prior_info``
     ``(H, W, P)`` (1 / sd^2 on a prior's channel).  ``obs``: as given to ``fit_observations``
     (the preset's LED stride is applied)."""
     loss = lm.preset_loss(preset)
@@ -199,33 +209,38 @@ def normal_matrices(params: dict[str, Tensor], comps: Components, obs: Observati
     fixed = {k: v for k, v in params.items() if k not in names}
     d = step_data(stride_leds(obs, preset.led_stride), "joint", "fused")
     x = pack(params, names)
-    a_l, b_l, n_l, keep_l, r_l, s_l = [], [], [], [], [], []
+    a_l, b_l, n_l, keep_l, r_l, s_l, st_l = [], [], [], [], [], [], []
     c_back = float(loss.back_weight)
     for y0, y1 in lm._chunks(*x.shape[:2]):
         xb = x[y0:y1]
         fx = {k: v[y0:y1] for k, v in fixed.items()}
         prob = lm._problem(lm._block(d, y0, y1), comps)
         r = prob.residuals(xb, names, fx)
-        keep = prob.irls(r, loss)[0]  # kept rows: valid and not in a cast shadow
+        keep, sw_fit, _, scale = prob.irls(r, loss)  # kept rows: valid and not in a cast shadow
         c_rows = prob.row_weights(c_back)
         sqrt_c = torch.from_numpy(np.sqrt(c_rows)).to(keep.dtype)
         y = prob.rows if prob.back.shape[0] != prob.rows.shape[0] else np.concatenate([prob.rows, prob.back], 1)
         na, nb, sw = _noise(r, y, keep, c_rows, loss.kind == "l1")
-        a, _ = prob.normal_equations(xb, names, fx, r, sqrt_c * keep)  # keep is 0/1: its own square root
+        # one Jacobian, three weightings: the optimiser's own (its next step), A (keep is 0/1: its
+        # own square root) and N
+        (h_fit, a, nm), g_fit = prob.normal_matrices(xb, names, fx, r, [sw_fit, sqrt_c * keep, sw])
         # B = J^T C^2 J differs from A = J^T C J on the back-lit rows only (c = 1 elsewhere)
         b = a + (c_back ** 2 - c_back) * prob.back_normal(xb, names, fx, keep) if c_back != 1.0 else a
-        nm, _ = prob.normal_equations(xb, names, fx, r, sw)
+        _, pg, ph = loss.prior_terms(xb.double(), names, scale.double())
+        step, _ = torch.linalg.solve_ex(h_fit + torch.diag_embed(ph + 1e-12 * torch.diagonal(h_fit, dim1=-2, dim2=-1)),
+                                        -(g_fit + pg).unsqueeze(-1))
+        st_l.append(torch.nan_to_num(step.squeeze(-1), nan=0.0, posinf=0.0, neginf=0.0))
         a_l.append(a)
         b_l.append(b)
         n_l.append(nm)
         keep_l.append(keep)
         r_l.append(r)
         s_l.append(torch.stack([na, nb], -1))
-    a, b, nm, keep, r, ab = (torch.cat(t, 0) for t in (a_l, b_l, n_l, keep_l, r_l, s_l))
+    a, b, nm, keep, r, ab, st = (torch.cat(t, 0) for t in (a_l, b_l, n_l, keep_l, r_l, s_l, st_l))
     one = torch.ones(x.shape[:2], dtype=torch.float64)
     _, _, curv = loss.prior_terms(x.double(), names, one)  # k = 1: the curvature is 1 / sd^2
     return {"names": names, "x": x.double(), "A": a, "B": b, "N": nm, "keep": keep, "residuals": r, "noise": ab,
-            "prior_info": curv, "kind": loss.kind}
+            "prior_info": curv, "kind": loss.kind, "step": st}
 
 
 def _candidates(x: Tensor, names: tuple[str, ...], a: Tensor, keep: Tensor) -> Tensor:
@@ -289,6 +304,8 @@ def pixel_covariance(params: dict[str, Tensor], comps: Components, obs: Observat
     good &= ((diag > 0) | ~det).all(-1)
     det &= good.unsqueeze(-1)
     outer = det.unsqueeze(-1) & det.unsqueeze(-2)
+    dx = m["step"] * det  # the optimiser's remaining step: an error the noise does not explain (module doc)
+    cov = cov + dx.unsqueeze(-1) * dx.unsqueeze(-2)
     cov = torch.where(outer, cov, torch.full_like(cov, float("nan")))
     return cov, names, det
 
