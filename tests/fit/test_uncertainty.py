@@ -27,6 +27,15 @@ def _fit(obs, preset):
     return params
 
 
+def _noisy_crop(root, n: int, noise: float, seed: int):
+    """The ``n`` x ``n`` corner of a dataset with Gaussian noise of ``noise`` on every LED and
+    back-lit sample."""
+    obs = load_observations(root).crop(0, n, 0, n)
+    g = torch.Generator().manual_seed(seed)
+    return replace(obs, images=obs.images + noise * torch.randn(obs.images.shape, generator=g),
+                   backlight=obs.backlight + noise * torch.randn(obs.backlight.shape, generator=g))
+
+
 def test_normal_matrix_is_the_finite_difference_hessian(datasets):
     """At the true maps of a noise-free dataset the residuals vanish, so the Hessian of the L2 cost
     ``sum c r^2`` over the kept rows is exactly ``2 J^T C J``: the matrix the covariance inverts
@@ -104,11 +113,8 @@ def test_calibration_smoke(datasets):
     with ``standard``: the z-scores of albedo and roughness over the determined pixels must have
     a spread in [0.6, 1.6] (a loose smoke bound, not the issue's calibration table)."""
     root = datasets("twill")
-    n, noise = 12, 0.003
-    obs = load_observations(root).crop(0, n, 0, n)
-    g = torch.Generator().manual_seed(7)
-    obs = replace(obs, images=obs.images + noise * torch.randn(obs.images.shape, generator=g),
-                  backlight=obs.backlight + noise * torch.randn(obs.backlight.shape, generator=g))
+    n = 12
+    obs = _noisy_crop(root, n, 0.003, seed=7)
     preset = PRESETS["standard"]
     params = _fit(obs, preset)
     cov, names, det = pixel_covariance(params, TWILL, obs, preset)
@@ -247,11 +253,8 @@ def test_a_fit_stopped_short_reports_the_optimisers_remaining_step(datasets):
     and its sigma grows with it: the short fit's roughness z-scores' spread stays within [0.6, 1.7]
     (measured 1.57; the noise-only sigma gave 2.14)."""
     root = datasets("twill")
-    n, noise = 8, 0.003
-    obs = load_observations(root).crop(0, n, 0, n)
-    g = torch.Generator().manual_seed(2)
-    obs = replace(obs, images=obs.images + noise * torch.randn(obs.images.shape, generator=g),
-                  backlight=obs.backlight + noise * torch.randn(obs.backlight.shape, generator=g))
+    n = 8
+    obs = _noisy_crop(root, n, 0.003, seed=2)
     full = PRESETS["standard"]
     short = replace(full, iterations=(1, 1, 1))
     gt, _ = load_maps(root / "maps")
