@@ -131,12 +131,11 @@ def test_calibration_smoke(datasets):
 
 def test_back_lit_rows_weighted_twice_match_the_kernels_pass(datasets):
     """``B = J^T C^2 J`` of a translucent material (the back-lit rows weigh ``back_weight`` in
-    ``A``, its square in ``B``): the analytic back-lit share (:meth:`.fused.Problem.back_normal`)
-    added to ``A`` equals the fused kernel's own pass with the row multipliers ``C keep``."""
+    ``A``, its square in ``B``) equals the fused kernel's own pass with the row multipliers
+    ``C keep``, and differs from ``A``."""
     from dualscale.bsdf import Components
     from dualscale.fit import lm
     from dualscale.fit.loop import free_names
-    from dualscale.fit.params import pack
 
     root = datasets("sheer")
     obs = load_observations(root).crop(0, 4, 0, 4)

@@ -903,32 +903,6 @@ class Problem:
                         self.flags, self.eta, g, out)
         return torch.from_numpy(out).to(x.dtype).reshape(*self.shape, -1)
 
-    def back_normal(self, x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor], sw: Tensor) -> Tensor:
-        """The back-lit rows' share of :meth:`normal_equations`' ``J^T W J``, ``(H, W, P, P)``
-        float64, for the row multipliers ``sw`` ``(H, W, K)`` (only the last three, the back-lit
-        rows, are read): the same rows, derivatives and clamp as the kernel's back-lit loop
-        (:func:`_back_derivative`), without its pass over the lights.  Zero for an opaque
-        material or without a back-lit image.  The covariance uses it to weight the back-lit
-        rows twice (:mod:`.uncertainty`)."""
-        full, cols = full_vectors(x, names, fixed)
-        npix, p = full.shape[0], cols.shape[0]
-        out = np.zeros((npix, p, p))
-        if self.back.shape[0] != npix or self.comps.opaque:
-            return torch.from_numpy(out).reshape(*self.shape, p, p)
-        n3 = self.rows.shape[1]
-        w = sw.reshape(npix, -1)[:, n3:n3 + 3].double().numpy()
-        t, o = full[:, 10:13], full[:, 13:14]
-        bk = self.back_wd * (t * o + 1.0 - o)
-        w = np.where(bk > CLAMP, 0.0, w)  # a clamped render has no derivative
-        jac = np.zeros((npix, 3, p))  # d(back-lit render, channel c) / d(free slot)
-        for i, slot in enumerate(cols):
-            if 10 <= slot < 13:
-                jac[:, slot - 10, i] = self.back_wd * o[:, 0]
-            elif slot == 13:
-                jac[:, :, i] = self.back_wd * (t - 1.0)
-        jw = jac * w[..., None]
-        return torch.from_numpy(np.einsum("nci,ncj->nij", jw, jw)).reshape(*self.shape, p, p)
-
     def normal_matrices(self, x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor], r: Tensor,
                         sws: list[Tensor]) -> tuple[list[Tensor], Tensor]:
         """``([J^T W_e J (H, W, P, P) per sws[e]], J^T W_0 r (H, W, P))`` in float64 from one

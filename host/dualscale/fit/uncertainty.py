@@ -223,9 +223,11 @@ def normal_matrices(params: dict[str, Tensor], comps: Components, obs: Observati
         na, nb, sw = _noise(r, y, keep, c_rows, loss.kind == "l1")
         # one Jacobian, three weightings: the optimiser's own (its next step), A (keep is 0/1: its
         # own square root) and N
-        (h_fit, a, nm), g_fit = prob.normal_matrices(xb, names, fx, r, [sw_fit, sqrt_c * keep, sw])
-        # B = J^T C^2 J differs from A = J^T C J on the back-lit rows only (c = 1 elsewhere)
-        b = a + (c_back ** 2 - c_back) * prob.back_normal(xb, names, fx, keep) if c_back != 1.0 else a
+        # own square root) and N; and B = J^T C^2 J where it differs from A (weighted back-lit rows)
+        sws = [sw_fit, sqrt_c * keep, sw] + ([torch.from_numpy(c_rows).to(keep.dtype) * keep] if c_back != 1.0 else [])
+        mats, g_fit = prob.normal_matrices(xb, names, fx, r, sws)
+        h_fit, a, nm = mats[:3]
+        b = mats[3] if c_back != 1.0 else a
         _, pg, ph = loss.prior_terms(xb.double(), names, scale.double())
         step, _ = torch.linalg.solve_ex(h_fit + torch.diag_embed(ph + 1e-12 * torch.diagonal(h_fit, dim1=-2, dim2=-1)),
                                         -(g_fit + pg).unsqueeze(-1))
