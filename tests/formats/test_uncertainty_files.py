@@ -49,6 +49,24 @@ def test_the_uncertainty_is_at_most_the_maps_own_size(tmp_path):
     assert 0.3 < ratio < 0.8, ratio
 
 
+def test_tiny_and_huge_sigmas_survive_the_half_floats(tmp_path):
+    """A nearly noise-free fit's sigma (1e-9 of the map's value, 1e-8 degrees) is stored, not
+    rounded to 0 as plain half float would below 6e-8 (a fresh user's finding: "median sigma 0"
+    read as a perfectly known albedo); one beyond the range is stored at its top, still finite."""
+    h, w = 4, 5
+    sigma = {"albedo": np.full((h, w, 3), 3.6e-9), "normal": np.full((h, w, 1), 1e-8),
+             "roughness": np.full((h, w, 1), 1e-9)}
+    sigma["roughness"][0, 0, 0] = 100.0  # beyond the range (4)
+    und = {k: np.zeros(v.shape, bool) for k, v in sigma.items()}
+    save_uncertainty(tmp_path, sigma, und)
+    back, _, doc = load_uncertainty(tmp_path)
+    assert doc["scales"]["albedo"] == 2.0 ** -14 and doc["scales"]["normal"] == 2.0 ** -8
+    np.testing.assert_allclose(back["albedo"], 3.6e-9, rtol=2e-3)
+    np.testing.assert_allclose(back["normal"], 1e-8, rtol=2e-3)
+    np.testing.assert_allclose(back["roughness"][1:], 1e-9, rtol=2e-3)
+    assert np.isfinite(back["roughness"][0, 0, 0]) and back["roughness"][0, 0, 0] >= 3.99
+
+
 def test_a_new_set_removes_the_maps_an_earlier_set_had(tmp_path):
     sigma, und = _set()
     save_uncertainty(tmp_path, sigma, und)

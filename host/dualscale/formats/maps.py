@@ -358,6 +358,15 @@ UNCERTAINTY_DIR = "uncertainty"
 SIGMA_CHANNELS = {"albedo": 3, "transmittance": 3, "specular_tint": 1, "opacity": 1, "roughness": 1,
                   "anisotropy": 1, "ior": 1, "normal": 1, "tangent": 1}
 #: each map's uncertainty unit
+#: the half-float files hold ``sigma / SIGMA_SCALE[map]`` (a power of two, recorded in
+#: ``uncertainty.json``'s ``"scales"`` and each EXR's ``dualscale:sigma_scale``): half float's
+#: 11 significant bits then reach from ~1e-12 (the map's value; 2e-10 degrees) up to 4 (256
+#: degrees) instead of 6e-8..65504, so the tiny sigma of a nearly noise-free fit is not stored as
+#: 0; larger sigmas are stored at the top of the range (they mean "unknown" anyway)
+SIGMA_SCALE = {"albedo": 2.0 ** -14, "transmittance": 2.0 ** -14, "specular_tint": 2.0 ** -14, "opacity": 2.0 ** -14,
+               "roughness": 2.0 ** -14, "anisotropy": 2.0 ** -14, "ior": 2.0 ** -14, "normal": 2.0 ** -8,
+               "tangent": 2.0 ** -8}
+_HALF_MAX = 65504.0
 SIGMA_UNITS = {"albedo": "reflectance (the map's linear value)", "transmittance": "the map's linear value",
                "specular_tint": "the map's value", "opacity": "the map's value", "roughness": "the map's value",
                "anisotropy": "the map's value", "ior": "eta (index of refraction)",
@@ -379,7 +388,9 @@ def save_uncertainty(root: str | Path, sigma: dict[str, np.ndarray], undetermine
     "height", "width", "units", "meta"}``; an earlier one is removed first).  ``sigma``:
     ``{name: (H, W, C)}`` (or ``(H, W)`` for one channel), finite and >= 0 where determined;
     ``undetermined``: ``{name: (H, W, C)}`` bool.  Half float keeps the folder at half the
-    maps' own size (a sigma needs 3 significant digits, half float has 3.3).  The whole maps as
+    maps' own size (a sigma needs 3 significant digits, half float has 3.3); the files hold
+    ``sigma / SIGMA_SCALE`` (:data:`SIGMA_SCALE`, recorded in ``"scales"``), so the range
+    reaches down to ~1e-12.  The whole maps as
     one strip of :class:`UncertaintyWriter` (the same bytes as a write by rows).  Returns the
     path of ``uncertainty.json``.  ``ValueError`` for an unknown map, a shape that is not the
     others', or a sigma that is negative or not finite where determined (nothing is written or
@@ -459,6 +470,7 @@ class UncertaintyWriter:
                 spec = self._spec(_sigma_names(name))
                 spec.attribute("dualscale:sigma_of", name)
                 spec.attribute("dualscale:unit", SIGMA_UNITS[name])
+                spec.attribute("dualscale:sigma_scale", float(SIGMA_SCALE[name]))
                 self._open(self.folder / f"{name}.exr", spec)
             self._open(self.folder / "undetermined.exr",
                        self._spec([f"{n}.{c}" for n in self.names for c in _sigma_names(n)]))
@@ -497,7 +509,8 @@ class UncertaintyWriter:
             if bad.any():
                 raise ValueError(f"sigma of {name!r}: {int(bad.sum())} determined values are negative or not finite "
                                  f"(rows {y0}..{y0 + n - 1})")
-            arrays.append(np.ascontiguousarray(np.where(u, np.nan, s).astype(np.float16)))
+            stored = np.minimum(s / SIGMA_SCALE[name], _HALF_MAX)
+            arrays.append(np.ascontiguousarray(np.where(u, np.nan, stored).astype(np.float16)))
             masks.append(u)
         if n == 0 or y0 + n > self.height:
             raise ValueError(f"{self.folder}: rows {y0}..{y0 + n - 1} (n = {n}) empty or beyond the height "
@@ -533,7 +546,7 @@ class UncertaintyWriter:
                 remove_file(stale)
         doc = {"format": UNCERTAINTY_FORMAT, "version": UNCERTAINTY_VERSION, "maps": list(self.names),
                "height": self.height, "width": self.width, "units": {n: SIGMA_UNITS[n] for n in self.names},
-               "meta": self.meta or {}}
+               "scales": {n: SIGMA_SCALE[n] for n in self.names}, "meta": self.meta or {}}
         write_json(self.path, doc)
 
 
@@ -564,7 +577,10 @@ def load_uncertainty(root: str | Path) -> tuple[dict[str, np.ndarray], dict[str,
     for name in doc.get("maps", []):
         if name not in SIGMA_CHANNELS:
             raise FormatError(f"{path}: unknown map {name!r}")
-        s = read_exr(folder / f"{name}.exr", _sigma_names(name))
+        scale = (doc.get("scales") or {}).get(name, 1.0)  # (files without "scales" hold sigma itself)
+        if not isinstance(scale, (int, float)) or not 0 < scale < float("inf"):
+            raise FormatError(f"{path}: the scale of {name!r} is {scale!r}, not a positive number")
+        s = read_exr(folder / f"{name}.exr", _sigma_names(name)) * np.float32(scale)
         if s.shape[:2] != (h, w):
             raise FormatError(f"{folder / name}.exr is {s.shape[:2]}, uncertainty.json says {(h, w)}")
         try:
