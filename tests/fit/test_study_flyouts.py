@@ -47,9 +47,36 @@ def test_recommendation_by_the_sigma_a_user_accepts():
     assert recommend(rows, {"normal": 0.01})["subset"] is None  # none reaches it: said, not guessed
     with pytest.raises(ValueError, match="roughness"):
         recommend(rows, {"roughness": 0.1})
+    # a subset that leaves most of the map undetermined does not meet a limit on its median
+    rows[2]["undetermined"] = {"albedo": 0.7}
+    assert recommend(rows, {"albedo": 0.05})["subset"] == "MOD3"
 
 
-@pytest.mark.parametrize("bad", ["normal", "normal=x", "normal=-1", "colour=0.1", "normal=inf"])
+def test_cli_study_lights_an_unreachable_limit_is_said_and_a_map_not_fitted_refused_before_the_fits(
+        datasets, tmp_path, capsys):
+    from dualscale.fit import study
+
+    ds = datasets("leather", 12)  # isotropic: no tangent
+    out = tmp_path / "study"
+    fits = []
+    real = study.fit_observations
+    study.fit_observations = lambda *a, **k: fits.append(1) or real(*a, **k)
+    try:
+        assert main(["study", "lights", str(ds), "-o", str(out), "--preset", "draft", "--only", "MINIMAL",
+                     "--max-sigma", "tangent=1"]) == 2
+        assert "tangent" in capsys.readouterr().err and not fits  # refused before any subset's fit
+        assert main(["study", "lights", str(ds), "-o", str(out), "--preset", "draft", "--only", "MINIMAL",
+                     "--max-sigma", "normal=1e-12"]) == 0
+    finally:
+        study.fit_observations = real
+    printed = capsys.readouterr().out
+    assert "recommendation: none -- no subset reaches" in printed
+    assert "Recommendation: none (no subset reaches" in (out / "study.md").read_text()
+    assert json.loads((out / "study.json").read_text())["recommendation"]["subset"] is None
+
+
+@pytest.mark.parametrize("bad", ["normal", "normal=x", "normal=-1", "colour=0.1", "normal=inf",
+                                 "normal=0.1,normal=0.2"])
 def test_cli_study_lights_refuses_a_bad_max_sigma_before_any_work(tmp_path, capsys, bad):
     out = tmp_path / "study"
     assert main(["study", "lights", str(tmp_path / "nothing"), "-o", str(out), "--max-sigma", bad]) == 2

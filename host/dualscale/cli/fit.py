@@ -124,10 +124,12 @@ def _max_sigma(text: str) -> dict[str, float]:
     """``MAP=SIGMA[,MAP=SIGMA]`` of ``study lights --max-sigma``."""
     from dualscale.formats.maps import SIGMA_UNITS
 
-    out = {}
+    out: dict[str, float] = {}
     for part in text.split(","):
         name, sep, value = part.partition("=")
         name = name.strip()
+        if name in out:
+            raise argparse.ArgumentTypeError(f"{name!r} is given twice; give each map one limit")
         try:
             v = float(value)
         except ValueError:
@@ -148,8 +150,8 @@ def cmd_study_lights(args: argparse.Namespace) -> int:
         rep = run_study(args.dataset, args.output, preset=args.preset, custom=custom, names=args.only,
                         gt_dir=args.gt, progress=want_progress(args), max_sigma=args.max_sigma)
     print(rep["table_markdown"])
-    print(f"recommendation ({rep['material_class']}): {rep['recommendation']['subset']} -- "
-          f"{rep['recommendation']['reason']}")
+    cls = f" ({rep['material_class']})" if rep.get("material_class") not in (None, "unknown") else ""
+    print(f"recommendation{cls}: {rep['recommendation']['subset'] or 'none'} -- {rep['recommendation']['reason']}")
     print(f"wrote {Path(args.output) / 'study.json'} and {Path(args.output) / 'study.png'}")
     return 0
 

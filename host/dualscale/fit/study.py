@@ -32,6 +32,7 @@ from dualscale.geometry.dome import ring_layout
 from .core import fit_observations, split_holdout
 from .metrics import map_errors
 from .observations import Observations, load_observations
+from .params import param_names
 from .presets import get_preset
 from .select import select_components
 from .uncertainty import median_sigmas
@@ -84,14 +85,18 @@ def parse_subset(text: str) -> tuple[str, set[int]]:
 
 
 #: the maps whose median sigma the study's table shows, in this order
-SIGMA_MAPS = ("albedo", "normal", "roughness", "anisotropy", "ior")
+SIGMA_MAPS = ("albedo", "normal", "roughness", "anisotropy", "tangent", "ior", "specular_tint")
+#: a subset meets ``max_sigma`` only where at most this share of the named map is undetermined
+#: (the median is over the determined texels alone)
+MAX_UNDETERMINED = 0.5
 
 
 def recommend(rows: list[dict[str, Any]], max_sigma: dict[str, float] | None = None) -> dict[str, str]:
     """The fewest lights whose held-out SSIM is within ``SSIM_TOLERANCE`` of the best subset's;
     with ``max_sigma`` (``{map: sigma}`` in the map's sigma units, :data:`dualscale.formats.maps.
     SIGMA_UNITS`), the fewest lights whose median sigma of every named map is at most its limit
-    (no ground truth needed).  Raises ``ValueError`` for a map no row has a sigma of."""
+    and whose undetermined share of it at most :data:`MAX_UNDETERMINED` (no ground truth
+    needed).  Raises ``ValueError`` for a map no row has a sigma of."""
     if max_sigma:
         for n in max_sigma:
             if not any(n in (r.get("median_sigma") or {}) for r in rows):
@@ -99,8 +104,9 @@ def recommend(rows: list[dict[str, Any]], max_sigma: dict[str, float] | None = N
                                  f"known: {sorted({k for r in rows for k in (r.get('median_sigma') or {})})}")
 
         def meets(r):
-            ms = r.get("median_sigma") or {}
-            return all(ms.get(n) is not None and ms[n] <= v for n, v in max_sigma.items())
+            ms, un = r.get("median_sigma") or {}, r.get("undetermined") or {}
+            return all(ms.get(n) is not None and ms[n] <= v and un.get(n, 0.0) <= MAX_UNDETERMINED
+                       for n, v in max_sigma.items())
 
         ok = [r for r in rows if meets(r)]
         limits = ", ".join(f"{n} {v:g}" for n, v in max_sigma.items())
@@ -122,7 +128,8 @@ def _table(rows: list[dict[str, Any]]) -> str:
             if k in rows[0]]
     sig = [n for n in SIGMA_MAPS if any((r.get("median_sigma") or {}).get(n) is not None for r in rows)]
     units = {n: {"normal": " [°]", "tangent": " [°]", "ior": " [η]"}.get(n, "") for n in sig}
-    head = ("| subset | LEDs | images | held-out SSIM | " + " | ".join(keys + [f"median σ {n}{units[n]}" for n in sig])
+    sig_title = {"specular_tint": "tint"}
+    head = ("| subset | LEDs | images | held-out SSIM | " + " | ".join(keys + [f"median σ {sig_title.get(n, n)}{units[n]}" for n in sig])
             + " | time [s] |")
     lines = [head, "|---|---:|---:|---:|" + "---:|" * (len(keys) + len(sig)) + "---:|"]
     for r in rows:
@@ -178,6 +185,12 @@ def study_observations(obs: Observations, subsets: dict[str, set[int]], preset: 
     if held is None:
         raise ValueError("the study needs held-out LEDs; the dataset has too few")
     comps, sel = select_components(train_all)
+    if max_sigma:  # before any subset's fit: a map this fit has no sigma of
+        fitted = set(param_names(comps))
+        unknown = sorted(set(max_sigma) - fitted)
+        if unknown:
+            raise ValueError(f"--max-sigma {', '.join(unknown)}: the chosen components fit no {' or '.join(unknown)} "
+                             f"(they fit {sorted(fitted)})")
     rows, noise = [], None
     for name, leds in subsets.items():
         sub = train_all.select_leds(leds)
@@ -206,8 +219,8 @@ def write_study(rep: dict[str, Any], out: str | Path) -> None:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "study.json", rep)
-    write_text(out / "study.md", rep["table_markdown"] + "\n\nRecommendation: " + rep["recommendation"]["subset"]
-               + " (" + rep["recommendation"]["reason"] + ")\n")
+    write_text(out / "study.md", rep["table_markdown"] + "\n\nRecommendation: "
+               + (rep["recommendation"]["subset"] or "none") + " (" + rep["recommendation"]["reason"] + ")\n")
     _plot(rep["rows"], out / "study.png", f"{rep.get('material') or 'dataset'} ({rep['preset']})")
 
 
