@@ -91,7 +91,7 @@ def test_the_fit_out_of_core_writes_the_whole_map_uncertainty_by_rows(datasets, 
         assert "uncertainty" not in json.loads((tmp_path / name / "fit.json").read_text())
 
 
-def test_the_cli_fit_writes_it_unless_told_not_to(datasets, tmp_path):
+def test_the_cli_fit_writes_it_unless_told_not_to(datasets, tmp_path, capsys):
     from dualscale.cli import main
 
     ds = datasets("twill", 8) / "micro"
@@ -99,6 +99,10 @@ def test_the_cli_fit_writes_it_unless_told_not_to(datasets, tmp_path):
               "--cv-pixels", "0", "--no-previews", "--no-progress", "--threads", "1"]
     assert main(["fit", str(ds), "-o", str(tmp_path / "on"), *common]) == 0
     assert (tmp_path / "on" / UNCERTAINTY_DIR / "uncertainty.json").is_file()
-    assert "uncertainty" in json.loads((tmp_path / "on" / "fit.json").read_text())
+    rec = json.loads((tmp_path / "on" / "fit.json").read_text())["uncertainty"]
+    said = capsys.readouterr().out  # the fit says what it wrote and what it means
+    med = max(rec["maps"]["normal"]["median"])
+    assert "median 1-sigma" in said and f"normal {med:.2g}°" in said and "not the calibration" in said
     assert main(["fit", str(ds), "-o", str(tmp_path / "on"), *common, "--no-uncertainty"]) == 0
     assert not (tmp_path / "on" / UNCERTAINTY_DIR).exists()
+    assert "median 1-sigma" not in capsys.readouterr().out

@@ -98,8 +98,35 @@ def cmd_fit(args: argparse.Namespace) -> int:
         print(f"camera response: {r.get('response', r.get('transfer'))}; lights' intensities: {r.get('intensities')}")
     if "ground_truth" in extra:
         print("vs ground truth: " + ", ".join(f"{k}={v:.4g}" for k, v in extra["ground_truth"]["errors"].items()))
+    line = _uncertainty_line(Path(args.output))
+    if line:
+        print(line)
     print(f"wrote {Path(args.output) / 'fit.json'}")
     return 0
+
+
+def _uncertainty_line(out: Path) -> str | None:
+    """What the fit's uncertainty says, from ``fit.json``'s record: the median 1-sigma per map
+    (every channel's median, the largest shown), the undetermined shares over 1 %, its time."""
+    from dualscale.formats.versioned import read_json
+
+    try:
+        rec = read_json(out / "fit.json").get("uncertainty")
+    except (OSError, ValueError):
+        return None
+    if not isinstance(rec, dict) or not rec.get("maps"):
+        return None
+    unit = {"normal": "°", "tangent": "°", "ior": " (eta)"}
+    meds, und = [], []
+    for name, m in rec["maps"].items():
+        vals = [v for v in m.get("median") or [] if v is not None]
+        meds.append(f"{name} {max(vals):.2g}{unit.get(name, '')}" if vals else f"{name} undetermined")
+        frac = max(m.get("undetermined_fraction") or [0.0])
+        if frac > 0.01:
+            und.append(f"{name} {100 * frac:.0f} %")
+    return (f"uncertainty ({out / 'uncertainty'}/, {rec.get('seconds', 0):.2f} s): median 1-sigma "
+            + ", ".join(meds) + ("; undetermined: " + ", ".join(und) if und else "")
+            + " (covers the noise and the fit's convergence, not the calibration; docs/FITTING.md)")
 
 
 def _memory_line(extra: dict) -> str:
@@ -209,8 +236,9 @@ def register(subparsers) -> None:
     f.add_argument("--no-uncertainty", action="store_true",
                    help="do not compute the maps' per-pixel uncertainty (default: computed, written to "
                         "OUT/uncertainty/ as a 1-sigma EXR per map and undetermined.exr, summarised in fit.json; "
-                        "without it the viewer, report and export have no sigma to show; saves the two extra kernel "
-                        "passes at the solution, 8-13 %% of the optimiser's time on a 64x64 twill; docs/FITTING.md)")
+                        "without it the viewer, report and export have no sigma to show; saves the extra kernel "
+                        "pass at the solution: 11-13 %% of the LM presets' optimiser time, ~3 %% of a whole fit of a "
+                        "64x64 twill; docs/FITTING.md)")
     f.add_argument("--memory", default=DEFAULT_MEMORY, metavar="SIZE",
                    help="memory budget of the fit, e.g. 2G, 800M, or 'unlimited' (the whole map in memory): a "
                         "dataset whose fit needs more is fitted out of core, band by band from disk, with the same "
