@@ -127,3 +127,24 @@ def test_an_uncertainty_of_another_size_is_refused_before_writing(tmp_path):
     with pytest.raises(FormatError, match="the uncertainty is"):
         export_material(maps, tmp_path / "out", ["exr"])
     assert not (tmp_path / "out").exists()
+
+
+def test_an_uncertainty_of_other_maps_is_refused_before_writing(tmp_path):
+    """The uncertainty a fit writes names its maps (``meta.maps_sha256``); one copied in beside
+    other maps of the same size (a fresh user's trial: leather's sigma exported as the twill's)
+    is refused, and a folder whose record names these maps, or none (earlier fits), exports."""
+    import shutil
+
+    from dualscale.errors import FormatError
+    from dualscale.formats.maps import maps_sha256
+
+    twill = _folder(tmp_path / "twill" / "maps", "twill")
+    leather = _folder(tmp_path / "leather" / "maps", "leather")
+    s, u, _ = load_uncertainty(leather)
+    save_uncertainty(leather, s, u, meta={"noise": "n", "maps_sha256": maps_sha256(leather)})
+    export_material(leather, tmp_path / "ok", ["exr"])  # its own: exported
+    shutil.rmtree(twill / "uncertainty")
+    shutil.copytree(leather / "uncertainty", twill / "uncertainty")
+    with pytest.raises(FormatError, match="belongs to other maps"):
+        export_material(twill, tmp_path / "out", ["exr"])
+    assert not (tmp_path / "out").exists()

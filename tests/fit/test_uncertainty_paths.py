@@ -16,7 +16,7 @@ from dualscale.fit.core import fit_observations
 from dualscale.fit.observations import fit_layout, load_observations
 from dualscale.fit.params import fit_components
 from dualscale.fit.presets import get_preset
-from dualscale.formats.maps import UNCERTAINTY_DIR, load_uncertainty
+from dualscale.formats.maps import UNCERTAINTY_DIR, load_uncertainty, maps_sha256
 
 P = get_preset("standard").scaled(0.2)
 COMPS = fit_components(opaque=True, isotropic=False, tinted=False)
@@ -76,6 +76,9 @@ def test_the_fit_out_of_core_writes_the_whole_map_uncertainty_by_rows(datasets, 
     assert res.maps is None and ex["out_of_core"]["parts"] == 4  # 12 rows in bands of 3
     sa, ua, da = load_uncertainty(tmp_path / "whole")
     sb, ub, db = load_uncertainty(tmp_path / "bands")
+    # each names the maps beside it (their EXR bytes, whose headers carry each path's own record)
+    ids = [d["meta"].pop("maps_sha256") for d in (da, db)]
+    assert ids == [maps_sha256(tmp_path / "whole"), maps_sha256(tmp_path / "bands")]
     assert da == db and list(sa) == list(sb)
     for n in sa:  # the same half floats
         assert np.array_equal(ua[n], ub[n]) and np.array_equal(sa[n], sb[n], equal_nan=True), n

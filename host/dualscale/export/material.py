@@ -35,7 +35,7 @@ from typing import Any, Callable, Sequence
 
 from dualscale.errors import FormatError, InputError
 from dualscale.formats.atomic import atomic_dir, write_json
-from dualscale.formats.maps import UNCERTAINTY_DIR, load_maps, load_uncertainty, save_maps
+from dualscale.formats.maps import UNCERTAINTY_DIR, load_maps, load_uncertainty, maps_sha256, save_maps
 from dualscale.formats.versioned import read_versioned_json
 
 from . import NAME_RE, ExportContext, _registry
@@ -144,6 +144,10 @@ def export_material(maps_dir: str | Path, out: str | Path, formats: Sequence[str
         else:
             uncertainty = load_uncertainty(maps_dir)
             udoc = uncertainty[2]
+            theirs = (udoc.get("meta") or {}).get("maps_sha256")
+            if theirs and theirs != maps_sha256(maps_dir):
+                raise FormatError(f"{maps_dir / UNCERTAINTY_DIR}: the uncertainty belongs to other maps (its "
+                                  "maps_sha256 is not these maps'): refit, or remove the folder")
             if (udoc.get("height"), udoc.get("width")) != tuple(maps.shape):
                 raise FormatError(f"{maps_dir / UNCERTAINTY_DIR / 'uncertainty.json'}: the uncertainty is "
                                   f"{udoc.get('height')} x {udoc.get('width')}, the maps {maps.shape[0]} x "

@@ -49,8 +49,10 @@ def save_fit(root: str | Path, res: FitResult, selection: dict | None = None, ex
 def _save_uncertainty(root: Path, res: FitResult, report: dict[str, Any]) -> None:
     """The uncertainty of ``res`` into ``root/uncertainty/`` and its summary into ``report``
     (``fit.json``'s ``"uncertainty"``, :func:`.uncertainty.summary`); a fit without one
-    removes an earlier fit's record, so no stale uncertainty sits beside new maps."""
-    from dualscale.formats.maps import UNCERTAINTY_DIR, save_uncertainty
+    removes an earlier fit's record, so no stale uncertainty sits beside new maps.  Its record's
+    ``meta.maps_sha256`` (:func:`~dualscale.formats.maps.maps_sha256`) names the maps it belongs
+    to: ``dualscale export`` refuses an uncertainty copied in from another fit."""
+    from dualscale.formats.maps import maps_sha256, save_uncertainty
 
     from .uncertainty import summary
 
@@ -59,7 +61,7 @@ def _save_uncertainty(root: Path, res: FitResult, report: dict[str, Any]) -> Non
         _drop_uncertainty(root)
         return
     sigma, und = u.arrays()
-    save_uncertainty(root, sigma, und, {"noise": u.noise, "preset": res.preset.name})
+    save_uncertainty(root, sigma, und, {"noise": u.noise, "preset": res.preset.name, "maps_sha256": maps_sha256(root)})
     report["uncertainty"] = summary(sigma, und, u.noise, u.seconds)
 
 
@@ -89,7 +91,7 @@ def save_fit_rows(root: str | Path, res: FitResult, shape: tuple[int, int], name
     fit's :class:`.stream.UncertaintyRows`, written by rows through
     :class:`~dualscale.formats.maps.UncertaintyWriter` with its summary in ``fit.json``
     (:class:`_Spill`); ``None`` removes an earlier fit's, as :func:`save_fit` does."""
-    from dualscale.formats.maps import MapsWriter, UncertaintyWriter
+    from dualscale.formats.maps import MapsWriter, UncertaintyWriter, maps_sha256
 
     root = Path(root)
     report, meta = _report(res, selection, extra)
@@ -103,7 +105,8 @@ def save_fit_rows(root: str | Path, res: FitResult, shape: tuple[int, int], name
     else:
         with tempfile.TemporaryDirectory(dir=root, prefix=".tmp-sigma-") as tmp, \
                 UncertaintyWriter(root, uncertainty.names, shape[0], shape[1],
-                                  {"noise": uncertainty.noise, "preset": res.preset.name}) as uw:
+                                  {"noise": uncertainty.noise, "preset": res.preset.name,
+                                   "maps_sha256": maps_sha256(root)}) as uw:
             spill = _Spill(Path(tmp), uncertainty.names, shape)
             for y0, sigma, und in uncertainty.strips:
                 uw.write(y0, sigma, und)

@@ -27,6 +27,7 @@ with ``material.json``, non-finite values and normal maps whose vectors are not 
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import sys
 from pathlib import Path
 from typing import Any
@@ -548,6 +549,22 @@ class UncertaintyWriter:
                "height": self.height, "width": self.width, "units": {n: SIGMA_UNITS[n] for n in self.names},
                "scales": {n: SIGMA_SCALE[n] for n in self.names}, "meta": self.meta or {}}
         write_json(self.path, doc)
+
+
+def maps_sha256(root: str | Path) -> str:
+    """SHA-256 over the maps folder's map files (each listed map's name and its EXR's bytes, in
+    ``material.json``'s order; not ``material.json`` itself, whose metadata differ between the
+    fit's paths): the identity the uncertainty beside the maps records (``meta.maps_sha256``), so
+    a reader can tell an uncertainty of other maps.  ``FileNotFoundError``/``FormatError`` as
+    :func:`load_maps` for a folder without a readable ``material.json``."""
+    from .run import file_sha256
+
+    root = Path(root)
+    doc = read_versioned_json(root / "material.json", FORMAT, VERSION)
+    h = hashlib.sha256()
+    for name in doc.get("maps", []):
+        h.update(f"{name}:{file_sha256(root / f'{name}.exr')};".encode())
+    return h.hexdigest()
 
 
 def load_uncertainty(root: str | Path) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], dict[str, Any]]:
