@@ -63,6 +63,21 @@ def test_server_serves_the_sigma(runs):
         assert _get(v.url + "api/sigma/micro.json")[0] == 404
 
 
+def test_a_damaged_uncertainty_is_a_server_error_with_one_warning(tmp_path, capsys):
+    """A truncated sigma EXR (a fresh user's trial): the sigma routes answer 500 naming the
+    file, not 400 as if the request were bad; the terminal gets one warning; the rest is served."""
+    run = run_folder(tmp_path / "RUN")
+    add_uncertainty(run / "fit" / "maps")
+    victim = run / "fit" / "maps" / "uncertainty" / "normal.exr"
+    victim.write_bytes(victim.read_bytes()[:200])
+    with _serve(run) as v:
+        assert _get(v.url + "scene.json")[0] == 200
+        for url in ("api/sigma/micro.json", "api/sigma/micro/albedo.png", "api/sigma/micro.json"):
+            status, body = _get(v.url + url)
+            assert status == 500 and "normal.exr" in json.loads(body)["error"], (url, status)
+    assert capsys.readouterr().err.count("warning: the uncertainty of 'micro' is not readable") == 1
+
+
 @pytest.fixture(scope="module")
 def browser(tmp_path_factory):
     require_browser()

@@ -19,7 +19,8 @@ Routes (all ``GET``; docs/VIEWER.md):
   :func:`dualscale.report.plots.sigma_colours`), cached like the LED images.
 
 Unknown paths answer 404, a bad LED id 400 (JSON ``{"error": ...}``), anything that escapes a
-served folder 404.
+served folder 404; an uncertainty whose files are damaged 500 (the rest of the page still works;
+the viewer's terminal gets one warning).
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ import json
 import math
 import re
 import shutil
+import sys
 import tempfile
 import threading
 import urllib.parse
@@ -113,9 +115,13 @@ class _Handler(http.server.BaseHTTPRequestHandler):
             m = _SIGMA.match(path)
             if m:
                 key = urllib.parse.unquote(m.group(1))
-                if m.group(2) == ".json":
-                    return self._json(200, view.sigma_info(key))
-                return self._file(view.sigma_png(key, m.group(3)))
+                try:
+                    if m.group(2) == ".json":
+                        return self._json(200, view.sigma_info(key))
+                    return self._file(view.sigma_png(key, m.group(3)))
+                except (InputError, OSError) as e:  # a damaged file on our side, not a bad request
+                    view.warn_once(f"the uncertainty of {key!r} is not readable: {e}")
+                    return self._json(500, {"error": f"the uncertainty of {key!r} is not readable: {e}"})
             return self._file(_inside(STATIC, urllib.parse.unquote(path.lstrip("/"))))
         except InputError as e:
             return self._json(400, {"error": str(e)})
@@ -152,6 +158,7 @@ class ViewerServer:
         self._cache = Path(tempfile.mkdtemp(prefix="dualscale-view-"))
         self._png_lock = threading.Lock()
         self._sigma_cache: dict[str, tuple] = {}
+        self._warned: set[str] = set()
         self._thread: threading.Thread | None = None
 
     @property
@@ -190,6 +197,12 @@ class ViewerServer:
                 "rel_error": p.rel_error, "display_scale": display_scale(p),
                 "size": [int(p.captured.shape[1]), int(p.captured.shape[0])],
                 "captured": f"api/led/{led}/captured.png", "rendered": f"api/led/{led}/rendered.png"}
+
+    def warn_once(self, text: str) -> None:
+        """Print ``text`` on stderr the first time it is seen (the terminal the viewer runs in)."""
+        if text not in self._warned:
+            self._warned.add(text)
+            print(f"dualscale view: warning: {text}", file=sys.stderr, flush=True)
 
     def _sigma(self, key: str):
         """``(sigma, undetermined, doc)`` of export ``key``'s maps (read once); ``KeyError``
