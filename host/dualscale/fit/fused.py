@@ -913,8 +913,10 @@ class Problem:
         npix, p = full.shape[0], cols.shape[0]
         jtjs = np.empty((len(sws), npix, p, p))
         jtr = np.empty((npix, p))
-        r2 = np.ascontiguousarray(r.reshape(npix, -1).numpy())
-        sw2 = np.ascontiguousarray(np.stack([w.reshape(npix, -1).to(r.dtype).numpy() for w in sws]))
+        # float64 always: one compiled signature (the covariance is float64; the LM's own kernel
+        # keeps the images' dtype)
+        r2 = np.ascontiguousarray(r.reshape(npix, -1).double().numpy())
+        sw2 = np.ascontiguousarray(np.stack([w.reshape(npix, -1).double().numpy() for w in sws]))
         normal_matrices(full, cols, self.view, self.dirs, self.w_s, self.w_p, self.w_d, self.back, self.back_wd,
                         self.flags, self.eta, r2, sw2, jtjs, jtr)
         t = torch.from_numpy

@@ -171,12 +171,13 @@ def _noise_rows(r, y, keep, c, l1, iterations, clip2, trunc, a_out, b_out, sw_ou
 def _noise(r: Tensor, y: np.ndarray, keep: Tensor, c: np.ndarray, l1: bool) -> tuple[Tensor, Tensor, Tensor]:
     """``(a (H, W), b (H, W), sw (H, W, K))`` of :func:`_noise_rows`; ``y`` ``(npix, K)``."""
     shape = r.shape
-    r2 = np.ascontiguousarray(r.reshape(-1, shape[-1]).numpy())
-    kp = np.ascontiguousarray(keep.reshape(-1, shape[-1]).numpy())
+    # float64 always: one compiled signature of the kernel
+    r2 = np.ascontiguousarray(r.reshape(-1, shape[-1]).double().numpy())
+    kp = np.ascontiguousarray(keep.reshape(-1, shape[-1]).double().numpy())
     a, b = np.empty(r2.shape[0]), np.empty(r2.shape[0])
     sw = np.empty_like(r2)
-    _noise_rows(r2, np.ascontiguousarray(y), kp, np.ascontiguousarray(c, dtype=np.float64), l1, NOISE_ITERATIONS,
-                NOISE_CLIP ** 2, _TRUNCATED_VARIANCE, a, b, sw)
+    _noise_rows(r2, np.ascontiguousarray(y, dtype=np.float64), kp, np.ascontiguousarray(c, dtype=np.float64), l1,
+                NOISE_ITERATIONS, NOISE_CLIP ** 2, _TRUNCATED_VARIANCE, a, b, sw)
     t = torch.from_numpy
     return t(a).reshape(shape[:-1]), t(b).reshape(shape[:-1]), t(sw).reshape(shape)
 
