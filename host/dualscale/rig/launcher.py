@@ -209,8 +209,11 @@ class SimulatedRig:
         time.sleep(1.2)
         termios.tcflush(self._hold, termios.TCIOFLUSH)
         if self.frame_timeout_us:
-            os.write(self._hold, frame_timeout_broadcast(self.frame_timeout_us))
-            time.sleep(0.1)
+            # twice: under load QEMU's 1 s pty poll can still miss the first (found as a register
+            # left at 0 in a clean-clone run); the write is idempotent and a broadcast has no answer
+            for pause in (0.5, 0.1):
+                os.write(self._hold, frame_timeout_broadcast(self.frame_timeout_us))
+                time.sleep(pause)
         if (self.parity, self.stop_bits) != line_format(None, None):
             os.write(self._hold, line_format_broadcast(self.parity, self.stop_bits))
             time.sleep(0.1)
