@@ -74,11 +74,16 @@ def add_noise(obs, size: int, texel_um: float, headroom: float = 0.9, seed: int 
     def shoot(img, seed):
         peak = max(float(img.max()), 1e-6)
         s = replace(base, exposure_s=min(1.0, headroom * base.full_well_e / (peak * base.gain_e)))
-        return capture(img, cam, s, seed=seed) * radiance_per_dn(s)
+        scale = radiance_per_dn(s)
+        return capture(img, cam, s, seed=seed) * scale, scale
 
-    obs.images = torch.stack([shoot(img, seed * 100003 + i) for i, img in enumerate(obs.images)])
+    shots = [shoot(img, seed * 100003 + i) for i, img in enumerate(obs.images)]
+    obs.images = torch.stack([img for img, _ in shots])
+    # what a dataset records as each image's signal_scale (the exposure metered per image)
+    obs.signal_scale = torch.tensor([[float(k)] * 3 for _, k in shots], dtype=torch.float64)
     if obs.backlight is not None:
-        obs.backlight = shoot(obs.backlight, seed * 100003 + 99999)
+        obs.backlight, k = shoot(obs.backlight, seed * 100003 + 99999)
+        obs.back_signal_scale = torch.full((3,), float(k), dtype=torch.float64)
 
 
 def dataset(root: Path, material: str, size: int, texel_um: float, noise: bool = True, shadows: bool = False,

@@ -70,6 +70,9 @@ def test_canonical_dataset_gets_its_exposure_folded_in(tmp_path):
     assert torch.equal(a.valid, b.valid) and not b.valid[:, 2, 3].any() and not b.valid[:, 0].any()
     out_ds = read_dataset(out)
     assert all(r.exposure_s == 1.0 for r in out_ds.records)
+    # each image's signal scale (sensor signal to values) keeps what the folded exposure was
+    src = {r.file: r for r in read_dataset(ds).records}
+    assert all(r.signal_scale == pytest.approx([1.0 / src[r.file].exposure_s] * 3) for r in out_ds.records)
     assert out_ds.manifest["extra"]["calibration"] is None and out_ds.transfer == "srgb"
     assert out_ds.manifest["mask"] == "mask.exr" and out_ds.mask().sum() == 30
 
@@ -182,18 +185,29 @@ def test_clipped_raw_pixels_stay_clipped_after_calibration(tmp_path, rig_calibra
     src = read_dataset(raw / "micro")
     s = to_radiance(raw / "micro", tmp_path / "cal", rig_calibration)
     out = read_dataset(tmp_path / "cal")
-    n_clipped = 0
+    n_clipped, ratios = 0, []
     for i, rec in enumerate(src.records):
         if rec.light_kind == "off":
             continue
         clipped = (src.load(i) >= 1.0).any(-1)
         j = out.select(file=rec.file)[0]
+        # the signal scale: 1 / exposure times the white balance, irradiance and CCM's gains
+        scale = np.asarray(out.records[j].signal_scale)
+        assert scale.shape == (3,) and (scale > 0).all() and np.isfinite(scale).all()
+        if rec.light_kind == "led":
+            lz = rec.direction[2]
+            ratios.append(scale * rec.exposure_s / lz)
         if clipped.any():
             assert np.array_equal(~out.valid(j, out.load(j)), clipped)
         else:
             assert out.records[j].saturation is None
         n_clipped += int(clipped.sum())
     assert n_clipped > 0 and s["clipped_share"] == pytest.approx(n_clipped / (9 * 144))
+    # with exposure and irradiance divided out, what is left (white balance x CCM) is each LED's gain times
+    # the same channel proportions for every LED (the CCM's rows and the sheet's colour)
+    ratios = np.array(ratios)
+    prop = ratios / ratios[:, :1]
+    assert len(ratios) >= 4 and (prop.std(0) / prop.mean(0)).max() < 0.02
 
 
 def test_synth_realistic_capture_is_what_the_rig_calibration_undoes(tmp_path, rig_calibration):

@@ -57,3 +57,32 @@ def test_registries_are_documented():
     doc = dataset.__doc__
     for name in list(UNITS) + list(COLOUR_SPACES):
         assert f"``{name}``" in doc, name
+
+
+def test_signal_scale_round_trip_and_refusals(tmp_path):
+    """An image's ``signal_scale`` (per channel, sensor signal to file values) is written only
+    when given, read back, and folded with the exposure and the light by the fit's reader; a
+    malformed one is refused with the field named."""
+    import json
+
+    import pytest
+
+    from dualscale.errors import FormatError, UnitsError
+    from dualscale.fit.observations import load_observations
+
+    root = tmp_path / "ds"
+    with DatasetWriter(root) as w:
+        for i, (scale, t) in enumerate((([1.0, 2.0, 4.0], 1.0), (None, 0.5))):
+            w.add(np.full((4, 4, 3), 0.2, np.float32), micro_camera(4, 9.0), "led", i + 1, [0.0, 0.6, 0.8], 2.0,
+                  exposure_s=t, signal_scale=scale)
+    recs = json.loads((root / "manifest.json").read_text())["images"]
+    assert recs[0]["signal_scale"] == [1.0, 2.0, 4.0] and "signal_scale" not in recs[1]
+    obs = load_observations(root)
+    assert obs.signal_scale.tolist() == [[0.5, 1.0, 2.0], [1.0, 1.0, 1.0]]  # / (exposure x intensity)
+    for bad, err in (([1.0, 2.0], FormatError), ([1.0, -1.0, 1.0], UnitsError), ([1.0, float("nan"), 1.0], UnitsError)):
+        recs[0]["signal_scale"] = bad
+        m = json.loads((root / "manifest.json").read_text())
+        m["images"] = recs
+        (root / "manifest.json").write_text(json.dumps(m))
+        with pytest.raises(err, match="signal_scale"):
+            read_dataset(root)

@@ -219,6 +219,19 @@ def _convert_raw(raw: np.ndarray, rec: ImageRecord, cc: _CameraCal, diffuse: flo
     return x * _irradiance(rec, diffuse), clipped
 
 
+def _signal_scale(rec: ImageRecord, cc: _CameraCal | None, diffuse: float) -> list[float]:
+    """Per channel, the factor from the image's sensor signal to its converted values
+    (:mod:`dualscale.formats.dataset`, "Signal scale"): a raw image's ``irradiance / t`` times
+    the CCM's rows applied to the white balance ``r_ws / r_c`` (their norm); an image already in
+    radiance its own scale (``1`` when unrecorded) over ``t``."""
+    if cc is None:
+        own = np.ones(3) if rec.signal_scale is None else np.asarray(rec.signal_scale, np.float64)
+        return [float(v) for v in own / rec.exposure_s]
+    wb = np.asarray(cc.r_ws, np.float64) / np.asarray(cc.r_c[light_key(rec.light_kind, rec.light_id)], np.float64)
+    rows = np.linalg.norm(cc.ccm[_ccm_kind(rec)] * wb, axis=1)
+    return [float(v) for v in rows * _irradiance(rec, diffuse) / rec.exposure_s]
+
+
 def _carry_clipped(img: np.ndarray, clipped: np.ndarray | None) -> tuple[np.ndarray, float | None]:
     """float32 image and output ``saturation`` that classify ``clipped`` exactly (module doc)."""
     out = np.asarray(img, np.float32)
@@ -285,7 +298,9 @@ def to_radiance(dataset_dir: str | Path, out_dir: str | Path, calibration: str |
         for i in iterate(progress, todo, "calibrate", unit="image"):
             rec = ds.records[i]
             img = ds.load(i)
-            if _is_raw(rec):
+            raw = _is_raw(rec)
+            scale = _signal_scale(rec, plan.cameras[rec.camera] if raw else None, diffuse)
+            if raw:
                 rad, clipped = _convert_raw(img, rec, plan.cameras[rec.camera], diffuse)
             else:
                 rad = np.asarray(img, np.float64) / rec.exposure_s
@@ -294,7 +309,7 @@ def to_radiance(dataset_dir: str | Path, out_dir: str | Path, calibration: str |
                 raise CalibrationError(f"dataset {ds.root}: image {rec.file}: calibration produced non-finite values")
             data, sat = _carry_clipped(rad, clipped)
             w.add(data, cameras[rec.camera], rec.light_kind, rec.light_id, rec.direction, rec.intensity,
-                  rec.analyzer_deg, rec.analyzer_relative, 1.0, saturation=sat)
+                  rec.analyzer_deg, rec.analyzer_relative, 1.0, saturation=sat, signal_scale=scale)
             written += 1
             if rec.light_kind != "off":
                 inside = mask if mask is not None and mask.shape == data.shape[:2] else np.ones(data.shape[:2], bool)

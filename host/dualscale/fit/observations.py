@@ -127,12 +127,20 @@ class Observations:
     whole: WholeMap | None = None  # set on a tile of a tiled Adam fit (WholeMap)
     imported: bool = False  # photographs from `dualscale import` (already scaled by the lights' intensities)
     origin: DatasetOrigin | None = None  # what load_observations read (valid only while content_key matches)
+    #: ``(N, 3)`` float64: per image and channel, the factor from the sensor's signal to ``images``
+    #: (the dataset's ``signal_scale`` over exposure and intensity); ``None``: the same for every
+    #: image.  The uncertainty's noise model scales each image's read and shot noise by it.
+    signal_scale: Tensor | None = None
+    #: ``(3,)`` float64: the same for the back-lit image (``None`` with ``signal_scale``)
+    back_signal_scale: Tensor | None = None
 
     def __post_init__(self) -> None:
         if self.view is None:
             self.view = torch.tensor([0.0, 0.0, 1.0], dtype=self.images.dtype)
         if self.valid is not None and tuple(self.valid.shape) != tuple(self.images.shape[:3]):
             raise ValueError(f"valid mask is {tuple(self.valid.shape)}, images are {tuple(self.images.shape[:3])}")
+        if self.signal_scale is not None and tuple(self.signal_scale.shape) != (self.images.shape[0], 3):
+            raise ValueError(f"signal_scale is {tuple(self.signal_scale.shape)}, needs ({self.images.shape[0]}, 3)")
         if self.back_valid is not None and (self.backlight is None
                                             or tuple(self.back_valid.shape) != tuple(self.backlight.shape[:2])):
             raise ValueError("back_valid needs a back-lit image of the same size")
@@ -176,6 +184,7 @@ class Observations:
         return replace(self, images=self.images[idx], dirs=self.dirs[idx], w_s=self.w_s[idx], w_p=self.w_p[idx],
                        w_d=self.w_d[idx], led_ids=self.led_ids[idx],
                        valid=None if self.valid is None else self.valid[idx],
+                       signal_scale=None if self.signal_scale is None else self.signal_scale[idx],
                        whole=self.whole if self.whole is None or self.whole.counts is None
                        else replace(self.whole, counts=self.whole.counts[idx]))
 
@@ -297,8 +306,8 @@ def load_observations(root: str | Path, camera: str | None = None, dtype: torch.
     camera = fit_camera(ds, camera)
     check_fit_units(ds, camera)
     polar = str(ds.manifest.get("dome", {}).get("polarizer", "s"))
-    imgs, dirs, ws, wp, wd, ids, valids = [], [], [], [], [], [], []
-    back, back_wd, back_valid = None, 0.5, None
+    imgs, dirs, ws, wp, wd, ids, valids, scales = [], [], [], [], [], [], [], []
+    back, back_wd, back_valid, back_scale = None, 0.5, None, None
     for i, rec in enumerate(ds.records):
         if rec.camera != camera:
             continue
@@ -317,9 +326,11 @@ def load_observations(root: str | Path, camera: str | None = None, dtype: torch.
             wp.append(p)
             wd.append(d)
             ids.append(rec.light_id)
+            scales.append(signal_scale(rec))
         elif rec.light_kind == "backlight" and back is None:
             back, back_valid = _load(ds, i, box)
             back_wd = 1.0 if rec.analyzer_deg is None else 0.5
+            back_scale = signal_scale(rec)
     if not imgs:
         raise InputError(f"{ds.root}: no LED images for camera {camera!r}")
     cam = ds.manifest.get("cameras", {}).get(camera, {})
@@ -339,11 +350,23 @@ def load_observations(root: str | Path, camera: str | None = None, dtype: torch.
                        backlight=None if back is None else torch.from_numpy(back).to(**f), back_wd=back_wd,
                        pixel_mm=pixel_mm, valid=valid, back_valid=bv,
                        imported="import" in (ds.manifest.get("extra") or {}))
+    every = np.array(scales + ([] if back_scale is None else [back_scale]))
+    if not np.all(every == every[0]):  # one scale for all: the noise model needs none
+        obs = replace(obs, signal_scale=torch.from_numpy(np.array(scales)),
+                      back_signal_scale=None if back_scale is None else torch.from_numpy(np.array(back_scale)))
     if box is None:
         origin = DatasetOrigin(str(ds.root), camera, None if leds is None else tuple(sorted(int(i) for i in leds)),
                                str(dtype).replace("torch.", ""), content_key(obs))
         obs = replace(obs, origin=origin)
     return obs
+
+
+def signal_scale(rec) -> list[float]:
+    """Per channel, the factor from an image record's sensor signal to the radiance per unit
+    light intensity the fit reads (:func:`_load`): its ``signal_scale`` (``1`` when the dataset
+    records none: the file's values are taken as the signal) over ``exposure_s * intensity``."""
+    own = [1.0, 1.0, 1.0] if rec.signal_scale is None else rec.signal_scale
+    return [float(v) / (rec.exposure_s * rec.intensity) for v in own]
 
 
 def read_tile(origin: DatasetOrigin, box: tuple[int, int, int, int]) -> Observations:

@@ -21,11 +21,19 @@ shadows have zero weight), ``C`` the row weights of :class:`.lm.Loss` (1 per LED
   says nothing about the spread of the estimate.
 
 **Noise model** (:func:`row_noise`): each row's residual is Gaussian with the per-pixel
-variance ``s_i^2 = a + b mu_i`` (read noise plus shot noise; ``mu_i`` the render), ``a`` and
-``b`` fitted to the pixel's own kept residuals at the solution.  No dataset or calibration of
-this product records a sensor noise model yet (the camera's gain in electrons per DN, its read
-noise, an HDR merge's variance), so the residual model is the only source; ``Uncertainty.noise``
-says so per run.  Then, with ``f_i(0) = 1 / (sqrt(2 pi) s_i)``:
+variance ``s_i^2 = a u_i^2 + b u_i mu_i`` (read noise plus shot noise of the sensor's signal;
+``mu_i`` the render; ``u_i`` the row's *signal scale*, the factor from the sensor's signal to
+the image's radiance: ``1 / (exposure x intensity)`` times the calibration's gains, which the
+dataset records per image, ``signal_scale`` in :mod:`dualscale.formats.dataset`, and
+:attr:`.Observations.signal_scale` carries), ``a`` and ``b`` fitted to the pixel's own kept
+residuals at the solution.  A rig that meters every image (the paper's "dynamically computed
+exposure") gives its bright specular images short exposures, so in radiance their noise is
+larger than one ``a + b mu`` across the images says: on the virtual sensor the one-scale model
+put the z-scores' spread of roughness, anisotropy and IOR at 1.2-1.4, the recorded scales at
+1.0-1.17 (docs/FITTING.md).  Without recorded scales (``u = 1``) it is the one-scale model.  The
+sensor's gain and read noise themselves are not calibrated (no photon transfer curve yet), so
+``a`` and ``b`` are always fitted; ``Uncertainty.noise`` says which model ran.  Then, with
+``f_i(0) = 1 / (sqrt(2 pi) s_i)``:
 
 * ``loss='l1'``: ``Sigma = (pi / 2) N^-1 B N^-1``, ``N = J^T C S^-1 J``, ``B = J^T C^2 J``;
 * ``loss='l2'``: ``Sigma = A^-1 N A^-1``, ``N = J^T C^2 S^2 J``.
@@ -106,9 +114,10 @@ def _offsets(names: tuple[str, ...]) -> dict[str, slice]:
     return out
 
 
-#: iterations of the per-pixel noise-model fit (:func:`row_noise`; 2 recover the per-row sigmas
-#: as well as 4 in ``tests/fit/test_uncertainty.py``)
-NOISE_ITERATIONS = 2
+#: iterations of the per-pixel noise-model fit (:func:`row_noise`; with one signal scale 2
+#: recovered the per-row sigmas as well as 4; with images' scales over a range of 55x, 3 are
+#: needed and 6 do no better, ``tests/fit/test_uncertainty.py``)
+NOISE_ITERATIONS = 3
 #: rows whose residual exceeds this many of their model sigmas are left out of the next
 #: iteration of the noise-model fit (cast-shadow edges, misfit, hot pixels)
 NOISE_CLIP = 3.0
@@ -119,36 +128,40 @@ _TRUNCATED_VARIANCE = 1.0 - 2.0 * NOISE_CLIP * math.exp(-0.5 * NOISE_CLIP ** 2) 
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _noise_rows(r, y, keep, c, l1, iterations, clip2, trunc, a_out, b_out, sw_out):  # pragma: no cover - numba
-    """Per pixel ``p`` (rows ``(npix, K)``: residuals ``r``, images ``y``, kept ``keep > 0``; row
-    weights ``c (K,)``): ``a_out[p]``, ``b_out[p]`` of ``var = a + b mu`` (:func:`row_noise`,
-    ``mu = max(y + r, 0)`` the render) and the row multipliers ``sw_out`` of the noise-weighted
-    normal matrix ``N``: ``sqrt(c keep / s)`` (``l1``) or ``c sqrt(keep) s`` (``l2``)."""
+def _noise_rows(r, y, u, keep, c, l1, iterations, clip2, trunc, a_out, b_out, sw_out):  # pragma: no cover - numba
+    """Per pixel ``p`` (rows ``(npix, K)``: residuals ``r``, images ``y``, kept ``keep > 0``; per
+    row, the signal scales ``u (K,)`` and the weights ``c (K,)``): ``a_out[p]``, ``b_out[p]`` of
+    ``var = a u^2 + b u mu`` (:func:`row_noise`, ``mu = max(y + r, 0)`` the render) and the row
+    multipliers ``sw_out`` of the noise-weighted normal matrix ``N``: ``sqrt(c keep / s)``
+    (``l1``) or ``c sqrt(keep) s`` (``l2``)."""
     npix, k = r.shape
     for p in prange(npix):
-        n, ss = 0.0, 0.0
+        n, ss, su = 0.0, 0.0, 0.0
         for i in range(k):
             if keep[p, i] > 0:
                 n += 1.0
                 ss += float(r[p, i]) ** 2
-        a = max(ss / max(n, 1.0), 1e-30)
+                su += u[i] * u[i]
+        a = max(ss / max(su, 1e-300), 1e-30)
         b = 0.0
         tiny = 1e-12 * a
-        for _ in range(iterations):
+        flat = max(ss / max(n, 1.0), 1e-30)  # the first iteration weighs every row alike
+        for it in range(iterations):
             s0 = s1 = s2 = t0 = t1 = 0.0
             for i in range(k):
                 if keep[p, i] > 0:
-                    m = max(float(y[p, i]) + float(r[p, i]), 0.0)
-                    v = max(a + b * m, 1e-30)
+                    f0 = u[i] * u[i]
+                    f1 = u[i] * max(float(y[p, i]) + float(r[p, i]), 0.0)
+                    v = flat if it == 0 else max(a * f0 + b * f1, 1e-30)
                     r2 = float(r[p, i]) ** 2
                     if r2 <= clip2 * v:
                         w = 1.0 / (v * v)
                         q = r2 / trunc
-                        s0 += w
-                        s1 += w * m
-                        s2 += w * m * m
-                        t0 += w * q
-                        t1 += w * m * q
+                        s0 += w * f0 * f0
+                        s1 += w * f0 * f1
+                        s2 += w * f1 * f1
+                        t0 += w * f0 * q
+                        t1 += w * f1 * q
             if s0 <= 0.0:
                 break
             det = s0 * s2 - s1 * s1
@@ -164,35 +177,57 @@ def _noise_rows(r, y, keep, c, l1, iterations, clip2, trunc, a_out, b_out, sw_ou
         a_out[p], b_out[p] = a, b
         for i in range(k):
             kk = max(float(keep[p, i]), 0.0)
-            sd = np.sqrt(max(a + b * max(float(y[p, i]) + float(r[p, i]), 0.0), 1e-30))
+            sd = np.sqrt(max(a * u[i] * u[i] + b * u[i] * max(float(y[p, i]) + float(r[p, i]), 0.0), 1e-30))
             sw_out[p, i] = np.sqrt(c[i] * kk / sd) if l1 else c[i] * np.sqrt(kk) * sd
 
 
-def _noise(r: Tensor, y: np.ndarray, keep: Tensor, c: np.ndarray, l1: bool) -> tuple[Tensor, Tensor, Tensor]:
-    """``(a (H, W), b (H, W), sw (H, W, K))`` of :func:`_noise_rows`; ``y`` ``(npix, K)``."""
+def _noise(r: Tensor, y: np.ndarray, u: np.ndarray, keep: Tensor, c: np.ndarray, l1: bool
+           ) -> tuple[Tensor, Tensor, Tensor]:
+    """``(a (H, W), b (H, W), sw (H, W, K))`` of :func:`_noise_rows`; ``y`` ``(npix, K)``, ``u``
+    ``(K,)``."""
     shape = r.shape
     # float64 always: one compiled signature of the kernel
     r2 = np.ascontiguousarray(r.reshape(-1, shape[-1]).double().numpy())
     kp = np.ascontiguousarray(keep.reshape(-1, shape[-1]).double().numpy())
     a, b = np.empty(r2.shape[0]), np.empty(r2.shape[0])
     sw = np.empty_like(r2)
-    _noise_rows(r2, np.ascontiguousarray(y, dtype=np.float64), kp, np.ascontiguousarray(c, dtype=np.float64), l1,
-                NOISE_ITERATIONS, NOISE_CLIP ** 2, _TRUNCATED_VARIANCE, a, b, sw)
+    _noise_rows(r2, np.ascontiguousarray(y, dtype=np.float64), np.ascontiguousarray(u, dtype=np.float64), kp,
+                np.ascontiguousarray(c, dtype=np.float64), l1, NOISE_ITERATIONS, NOISE_CLIP ** 2, _TRUNCATED_VARIANCE,
+                a, b, sw)
     t = torch.from_numpy
     return t(a).reshape(shape[:-1]), t(b).reshape(shape[:-1]), t(sw).reshape(shape)
 
 
-def row_noise(r: Tensor, mu: Tensor, keep: Tensor) -> Tensor:
-    """``(H, W, K)`` float64: each row's noise sigma under the per-pixel model ``var = a + b mu``
-    (read noise plus shot noise, ``mu`` the rendered value, clamped at 0), fitted to the pixel's
-    kept residuals ``r`` (``keep`` > 0) by :data:`NOISE_ITERATIONS` of iteratively reweighted
-    least squares on ``r^2`` (weights ``1 / var^2``, since ``Var(r^2) = 2 var^2`` for a Gaussian
-    ``r``; a row beyond :data:`NOISE_CLIP` sigmas of the previous iterate is left out, and the
-    truncation's bias divided out), with ``a > 0`` and ``b >= 0``.  Starts from the
-    homoscedastic mean square.  (:func:`normal_matrices` calls the kernel itself.)"""
+def row_scales(obs: Observations, rows: int) -> np.ndarray:
+    """``(rows,)`` float64: each residual row's signal scale (:attr:`.Observations.signal_scale`,
+    row ``3 k + c`` of image ``k``, then the back-lit image's three when ``rows`` has them,
+    :class:`.fused.Problem`'s layout), relative to the largest; all 1 when the dataset records
+    one scale for every image."""
+    n = obs.images.shape[0]
+    if obs.signal_scale is None:
+        return np.ones(rows)
+    u = obs.signal_scale.double().reshape(-1).numpy()
+    if rows > 3 * n:
+        back = obs.back_signal_scale
+        u = np.concatenate([u, np.ones(3) * u.mean() if back is None else back.double().numpy()])
+    return np.ascontiguousarray(u / u.max())
+
+
+def row_noise(r: Tensor, mu: Tensor, keep: Tensor, u: np.ndarray | None = None) -> Tensor:
+    """``(H, W, K)`` float64: each row's noise sigma under the per-pixel model ``var = a u^2 + b u
+    mu`` (read noise plus shot noise of a signal that reached these values scaled by ``u (K,)``,
+    the rows' signal scales, :func:`row_scales`, default 1; ``mu`` the rendered value, clamped at
+    0), fitted to the pixel's kept residuals ``r`` (``keep`` > 0) by :data:`NOISE_ITERATIONS` of
+    iteratively reweighted least squares on ``r^2`` (weights ``1 / var^2``, since ``Var(r^2) = 2
+    var^2`` for a Gaussian ``r``; a row beyond :data:`NOISE_CLIP` sigmas of the previous iterate
+    is left out, and the truncation's bias divided out), with ``a > 0`` and ``b >= 0``.  Starts
+    from the read-noise-only mean square.  (:func:`normal_matrices` calls the kernel itself.)"""
+    u = np.ones(r.shape[-1]) if u is None else np.asarray(u, np.float64)
     y = (mu.double() - r.double()).reshape(-1, r.shape[-1]).numpy()
-    a, b, _ = _noise(r.double(), y, keep.double(), np.ones(r.shape[-1]), True)
-    return (a.unsqueeze(-1) + b.unsqueeze(-1) * mu.double().clamp(min=0.0)).clamp(min=1e-30).sqrt()
+    a, b, _ = _noise(r.double(), y, u, keep.double(), np.ones(r.shape[-1]), True)
+    ut = torch.from_numpy(u)
+    var = a.unsqueeze(-1) * ut ** 2 + b.unsqueeze(-1) * ut * mu.double().clamp(min=0.0)
+    return var.clamp(min=1e-30).sqrt()
 
 
 def normal_matrices(params: dict[str, Tensor], comps: Components, obs: Observations, preset: Preset
@@ -208,7 +243,9 @@ def normal_matrices(params: dict[str, Tensor], comps: Components, obs: Observati
     loss = lm.preset_loss(preset)
     names = free_names("joint", params)
     fixed = {k: v for k, v in params.items() if k not in names}
-    d = step_data(stride_leds(obs, preset.led_stride), "joint", "fused")
+    strided = stride_leds(obs, preset.led_stride)
+    d = step_data(strided, "joint", "fused")
+    u_rows = row_scales(strided, 3 * strided.n + (3 if strided.backlight is not None else 0))
     x = pack(params, names)
     a_l, b_l, n_l, keep_l, r_l, s_l, st_l = [], [], [], [], [], [], []
     c_back = float(loss.back_weight)
@@ -221,7 +258,7 @@ def normal_matrices(params: dict[str, Tensor], comps: Components, obs: Observati
         c_rows = prob.row_weights(c_back)
         sqrt_c = torch.from_numpy(np.sqrt(c_rows)).to(keep.dtype)
         y = prob.rows if prob.back.shape[0] != prob.rows.shape[0] else np.concatenate([prob.rows, prob.back], 1)
-        na, nb, sw = _noise(r, y, keep, c_rows, loss.kind == "l1")
+        na, nb, sw = _noise(r, y, u_rows[:y.shape[1]], keep, c_rows, loss.kind == "l1")
         # one Jacobian, three weightings: the optimiser's own (its next step), A (keep is 0/1: its
         # own square root) and N
         # own square root) and N; and B = J^T C^2 J where it differs from A (weighted back-lit rows)
@@ -377,6 +414,9 @@ BLOCK_PIXELS = 4096
 #: how the noise scale was obtained (``Uncertainty.noise``; module doc)
 NOISE_RESIDUAL = ("residual noise model: per pixel var = a + b * render (read + shot noise), fitted to its "
                   "kept residuals")
+#: the same with the dataset's per-image signal scales (exposure, light, calibration gains)
+NOISE_SCALED = ("residual noise model with the images' recorded signal scales u: per pixel var = a u^2 + b u "
+                "render (read + shot noise of the sensor's signal), a and b fitted to its kept residuals")
 
 
 @dataclass
@@ -419,7 +459,7 @@ def pixel_uncertainty(params: dict[str, Tensor], comps: Components, obs: Observa
             sig_l.setdefault(n, []).append(sig[n].float())
             und_l.setdefault(n, []).append(und[n])
     return Uncertainty({n: torch.cat(v, 0) for n, v in sig_l.items()}, {n: torch.cat(v, 0) for n, v in und_l.items()},
-                       NOISE_RESIDUAL, time.perf_counter() - t0)
+                       NOISE_RESIDUAL if obs.signal_scale is None else NOISE_SCALED, time.perf_counter() - t0)
 
 
 def summary(sigma: dict[str, "Tensor | object"], undetermined: dict[str, "Tensor | object"], noise: str,

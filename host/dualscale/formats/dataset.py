@@ -22,7 +22,8 @@ Layout of a dataset directory::
                            "direction": [x, y, z]|null, "intensity": float},
                  "analyzer_deg": float|null, "analyzer_relative": bool,
                  "exposure_s": float, "units": "...", "colour_space": "...",
-                 "saturation": float|null, "width": W, "height": H}, ...],
+                 "saturation": float|null, "width": W, "height": H,
+                 "signal_scale": [r, g, b]}, ...],         # optional (below)
      "extra": {...}}
 
 **Units** (:data:`UNITS`; anything else is refused with :class:`~dualscale.errors.UnitsError`):
@@ -48,6 +49,17 @@ Layout of a dataset directory::
 pixel is clipped; a pixel with any channel at or above it is never fitted as valid.  An 8-bit
 photo importer sets 1.0 (the top code value decodes to 1.0); the sensor model's full scale is
 1.0 ``dn_normalized``.  ``null`` means no pixel is known to be clipped.
+
+**Signal scale** (per image, optional): per channel, the factor from the sensor's signal
+(dark-subtracted DN) to the file's values, as the calibration applied it
+(:func:`dualscale.calib.apply.to_radiance`: ``1 / exposure``, the white balance against the
+sheet, the irradiance and the CCM's row norm; the flat field, the same for every image, is left
+out).  Written only where known, so other manifests are unchanged.  It is what lets the fit's
+uncertainty scale each image's read and shot noise (:mod:`dualscale.fit.uncertainty`, "Noise
+model"): a value ``v`` then has the variance ``a s^2 + b s v`` for a pixel's ``a`` and ``b``.
+Absent, a reader takes ``1 / (exposure_s * intensity)`` relative to the file's values (the
+recorded exposure and light are what made them).  Finite and > 0
+(:class:`~dualscale.errors.UnitsError`).
 
 **Mask** (dataset level, optional): a single-channel EXR the size of every camera's images;
 values above 0.5 mark sample pixels, the rest is ignored by every stage.
@@ -228,14 +240,20 @@ class ImageRecord:
     width: int
     height: int
     saturation: float | None = None
+    #: per channel, the factor from the sensor's signal (dark-subtracted DN) to this file's values
+    #: (module doc, "signal_scale"); ``None``: not recorded
+    signal_scale: list[float] | None = None
 
     def to_json(self) -> dict[str, Any]:
-        return {"file": self.file, "camera": self.camera,
-                "light": {"kind": self.light_kind, "id": self.light_id, "direction": self.direction,
-                          "intensity": self.intensity},
-                "analyzer_deg": self.analyzer_deg, "analyzer_relative": self.analyzer_relative,
-                "exposure_s": self.exposure_s, "units": self.units, "colour_space": self.colour_space,
-                "saturation": self.saturation, "width": self.width, "height": self.height}
+        d = {"file": self.file, "camera": self.camera,
+             "light": {"kind": self.light_kind, "id": self.light_id, "direction": self.direction,
+                       "intensity": self.intensity},
+             "analyzer_deg": self.analyzer_deg, "analyzer_relative": self.analyzer_relative,
+             "exposure_s": self.exposure_s, "units": self.units, "colour_space": self.colour_space,
+             "saturation": self.saturation, "width": self.width, "height": self.height}
+        if self.signal_scale is not None:  # only when recorded: other manifests stay as they were
+            d["signal_scale"] = list(self.signal_scale)
+        return d
 
     @classmethod
     def from_json(cls, d: dict[str, Any], defaults: dict[str, Any] | None = None,
@@ -255,7 +273,8 @@ class ImageRecord:
                        units=d.get("units", defaults.get("units")),
                        colour_space=d.get("colour_space", defaults.get("colour_space")),
                        width=_whole(d["width"], "width", f"{where}: image {d.get('file')!r}"),
-                       height=_whole(d["height"], "height", f"{where}: image {d.get('file')!r}"), saturation=sat)
+                       height=_whole(d["height"], "height", f"{where}: image {d.get('file')!r}"), saturation=sat,
+                       signal_scale=d.get("signal_scale"))
         except FormatError:
             raise
         except (KeyError, TypeError, ValueError) as e:
@@ -281,6 +300,11 @@ class ImageRecord:
             self.direction = [float(x) for x in self.direction]
         if self.width <= 0 or self.height <= 0:
             raise FormatError(f"{w}: width/height must be positive, got {self.width}x{self.height}")
+        if self.signal_scale is not None:
+            s = self.signal_scale
+            if not isinstance(s, (list, tuple)) or len(s) != 3:
+                raise FormatError(f"{w}: signal_scale must be a list of 3 numbers, got {s!r}")
+            self.signal_scale = [_positive(v, "signal_scale", w, UnitsError) for v in s]
         return self
 
 
@@ -333,9 +357,10 @@ class DatasetWriter:
     def add(self, image: np.ndarray, camera: Camera, light_kind: str, light_id: int | None = None,
             direction: list[float] | None = None, intensity: float = 1.0, analyzer_deg: float | None = None,
             analyzer_relative: bool = False, exposure_s: float = 1.0,
-            saturation: float | None = None) -> ImageRecord:
+            saturation: float | None = None, signal_scale: list[float] | None = None) -> ImageRecord:
         """Write one image ``(H, W, 3)`` (the camera's size, finite) in the writer's units;
-        ``saturation``: the value at/above which its pixels are clipped (module doc)."""
+        ``saturation``: the value at/above which its pixels are clipped; ``signal_scale``: per
+        channel, the factor from the sensor's signal to these values (module doc)."""
         img = np.asarray(image, dtype=np.float32)
         if img.shape != (camera.height, camera.width, 3):
             raise ValueError(f"image is {img.shape}, camera {camera.name!r} needs {(camera.height, camera.width, 3)}")
@@ -356,7 +381,7 @@ class DatasetWriter:
         rec = ImageRecord(name, camera.name, light_kind, light_id,
                           None if direction is None else [float(x) for x in direction], intensity, analyzer_deg,
                           analyzer_relative, exposure_s, self.units, self.colour_space, camera.width,
-                          camera.height, saturation)
+                          camera.height, saturation, None if signal_scale is None else [float(v) for v in signal_scale])
         rec.validate(f"dataset {self.root}")
         if self.mask is not None and self.mask.shape != (camera.height, camera.width):
             raise GeometryError(f"dataset {self.root}: mask is {self.mask.shape[1]}x{self.mask.shape[0]}, camera "
