@@ -502,11 +502,13 @@ def map_error(name: str, fit, truth):
     2 v``), the map's own value otherwise."""
     import numpy as np
 
+    from .metrics import normal_angle_deg
+
     f, g = (np.asarray(t.detach().cpu().numpy() if isinstance(t, Tensor) else t, np.float64) for t in (fit, truth))
     if name == "normal":
-        fn = f / np.maximum(np.linalg.norm(f, axis=-1, keepdims=True), 1e-12)
-        gn = g / np.maximum(np.linalg.norm(g, axis=-1, keepdims=True), 1e-12)
-        return np.degrees(np.arccos(np.clip((fn * gn).sum(-1, keepdims=True), -1.0, 1.0)))
+        # atan2(|a x b|, a . b): exact near 0, where the arccos of the dot product loses the
+        # small angles that a calibrated normal's sigma (a few hundredths of a degree) is made of
+        return normal_angle_deg(torch.from_numpy(f), torch.from_numpy(g)).numpy()[..., None]
     if name == "tangent":
         return np.mod(180.0 * (f[..., :1] - g[..., :1]) + 90.0, 180.0) - 90.0
     if name == "ior":
