@@ -39,7 +39,7 @@ from dualscale.bsdf import MAP_CHANNELS, MaterialMaps, validate_maps
 from dualscale.errors import FormatError, GeometryError
 
 from .atomic import atomic_path, remove_file, write_json
-from .exr import read_exr, srgb_encode, verify_image, write_exr, write_png_preview
+from .exr import read_exr, srgb_encode, verify_image, write_exr, write_pixels
 from .versioned import read_versioned_json
 
 FORMAT = "dualscale-maps"
@@ -83,11 +83,9 @@ def save_maps(root: str | Path, maps: MaterialMaps, meta: dict | None = None, pr
     for name, t in maps.items():
         arr = t.detach().cpu().numpy()
         write_exr(root / f"{name}.exr", arr, channel_names(name), _attributes(name, attributes))
-        if previews:
-            if name == "normal":
-                write_png_preview(root / f"{name}.png", 0.5 * arr + 0.5, srgb=False)
-            else:
-                write_png_preview(root / f"{name}.png", arr, srgb=name in ("albedo", "transmittance"))
+        if previews:  # the bytes MapsWriter writes by rows (one encoding: _preview_u8)
+            u8 = _preview_u8(name, arr.reshape(arr.shape[0], arr.shape[1], -1))
+            write_pixels(root / f"{name}.png", u8, _png_spec(u8))
     h, w = maps.shape
     return _finish(root, [n for n, _ in maps.items()], h, w, texel_mm, meta, previews)
 
@@ -130,6 +128,13 @@ def _preview_u8(name: str, rows: np.ndarray) -> np.ndarray:
     else:
         img = np.clip(np.nan_to_num(img), 0, 1)
     return np.ascontiguousarray(np.round(img * 255).astype(np.uint8))
+
+
+def _png_spec(u8: np.ndarray):
+    """The OpenImageIO spec of an 8-bit preview ``u8`` (H, W, C)."""
+    import OpenImageIO as oiio
+
+    return oiio.ImageSpec(u8.shape[1], u8.shape[0], u8.shape[2], "uint8")
 
 
 def _close_quietly(out) -> None:
