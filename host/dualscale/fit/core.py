@@ -20,7 +20,7 @@ from .observations import Observations, stride_leds
 from .optimize import run_adam
 from .params import to_maps
 from .presets import Preset
-from .uncertainty import Uncertainty, pixel_uncertainty
+from .uncertainty import Gather, Uncertainty, pixel_uncertainty
 from .pyramid import coarse_preset, downsample, fine_preset, start_from_coarse
 
 
@@ -97,11 +97,13 @@ def fit_observations(obs: Observations, preset: Preset, comps: Components, *, he
         done0 = loop.global_index(resume["step"], resume["iteration"])
         loop.bar.update(done0)
     try:
+        # the LM's last joint iteration builds the covariance's matrices in its own kernel pass
+        gather = Gather(obs, preset) if uncertainty and preset.optimizer == "lm" else None
         with torch.no_grad() if preset.optimizer == "lm" else torch.enable_grad():
             if preset.optimizer == "adam":
                 run_adam(params, comps, obs, loop, resume, seed)
             elif preset.optimizer == "lm":
-                run_lm(params, comps, obs, loop, resume)
+                run_lm(params, comps, obs, loop, resume, gather)
             else:
                 raise ValueError(f"unknown optimizer {preset.optimizer!r}")
     except KeyboardInterrupt:
@@ -113,7 +115,7 @@ def fit_observations(obs: Observations, preset: Preset, comps: Components, *, he
     unc = None
     if uncertainty:
         with torch.no_grad():  # obs is strided already
-            unc = pixel_uncertainty(final, comps, obs, replace(preset, led_stride=1))
+            unc = pixel_uncertainty(final, comps, obs, replace(preset, led_stride=1), gathered=gather)
     return FitResult(maps, comps, preset, preset.total, time.perf_counter() - t0, fit_losses(maps, comps, obs, held_out),
                      loop.history, done0, unc)
 

@@ -648,65 +648,6 @@ def normal_equations(x, cols, view, L, w_s, w_p, w_d, back, back_wd, flags, eta_
 
 
 @njit(parallel=True, **JIT)
-def normal_matrices(x, cols, view, L, w_s, w_p, w_d, back, back_wd, flags, eta_const, r, sws, jtjs, jtr):
-    """:func:`normal_equations` for ``m`` row weightings at once, from one evaluation of the
-    Jacobian: ``jtjs[e] = J^T W_e J (npix, P, P)`` for ``sws[e] = sqrt(W_e) (npix, K)``, ``e <
-    m``, and ``jtr = J^T W_0 r`` (the first weighting's).  Each ``jtjs[e]`` equals
-    :func:`normal_equations`' ``jtj`` for the same ``sw`` (the same products and sums, in the
-    same order).  The covariance of a fit needs three (:mod:`.uncertainty`)."""
-    npix, n, P, m = x.shape[0], L.shape[1], cols.shape[0], sws.shape[0]
-    iso, opaque, lam = flags[0] != 0, flags[2] != 0, flags[5] != 0
-    has_back = back.shape[0] == npix
-    for p in prange(npix):
-        geo, kc, al, xp, op, rows, coef = _pixel_start(x, p, view, flags, eta_const, cols)
-        bas, wv = np.empty((12, LIGHT_BLOCK)), np.empty((3, LIGHT_BLOCK))
-        jraw, jw, wr = np.empty((P, 3 * LIGHT_BLOCK)), np.empty((P, 3 * LIGHT_BLOCK)), np.empty(3 * LIGHT_BLOCK)
-        row = np.empty(P)
-        a, g, g_unused = np.zeros((m, P, P)), np.zeros(P), np.zeros(P)
-        for k0 in range(0, n, LIGHT_BLOCK):
-            k1 = min(n, k0 + LIGHT_BLOCK)
-            b = k1 - k0
-            _basis_lights(xp, geo, al, kc, L, view[p, 2], w_s, w_p, w_d, iso, opaque, lam, k0, k1, bas)
-            for i in range(P):
-                for c in range(3):
-                    r0, r1, r2 = rows[i, c, 0], rows[i, c, 1], rows[i, c, 2]
-                    w0, w1, w2 = coef[i, c, 0], coef[i, c, 1], coef[i, c, 2]
-                    for q in range(b):
-                        jraw[i, c * b + q] = w0 * bas[r0, q] + w1 * bas[r1, q] + w2 * bas[r2, q]
-            for e in range(m):
-                _block_weights(xp, kc, bas, opaque, op, sws[e], p, k0, b, wv)
-                for c in range(3):
-                    for q in range(b):
-                        wr[c * b + q] = r[p, 3 * (k0 + q) + c] * wv[c, q]
-                        for i in range(P):
-                            jw[i, c * b + q] = jraw[i, c * b + q] * wv[c, q]
-                _flush(jw, wr, 3 * b, a[e], g if e == 0 else g_unused)
-        if has_back and not opaque:
-            for c in range(3):
-                bk = back_wd * (xp[10 + c] * xp[13] + 1.0 - xp[13])
-                if bk > CLAMP:
-                    continue
-                for e in range(m):
-                    w = sws[e, p, 3 * n + c]
-                    if w == 0.0:
-                        continue
-                    for i in range(P):
-                        row[i] = _back_derivative(xp, back_wd, cols[i], c) * w
-                    wrb = r[p, 3 * n + c] * w
-                    for i in range(P):
-                        if e == 0:
-                            g[i] += row[i] * wrb
-                        for j in range(i, P):
-                            a[e, i, j] += row[i] * row[j]
-        for i in range(P):
-            jtr[p, i] = g[i]
-            for e in range(m):
-                for j in range(i, P):
-                    jtjs[e, p, i, j] = a[e, i, j]
-                    jtjs[e, p, j, i] = a[e, i, j]
-
-
-@njit(parallel=True, **JIT)
 def vector_jacobian(x, cols, view, L, w_s, w_p, w_d, back, back_wd, flags, eta_const, grad, out):
     """``out (npix, P)`` = ``J^T grad``: the gradient of a loss whose derivative with respect to
     the residuals is ``grad (npix, K)`` (reverse mode for Adam, :class:`Residuals`); clamped
@@ -836,6 +777,7 @@ class Problem:
                      else np.empty((0, 3), dtype=self.rows.dtype))
         self.back_wd = float(obs.back_wd)
         self.k = self.rows.shape[1] + (3 if back is not None else 0)
+        self._rows_and_back: np.ndarray | None = None
         valid = valid_rows(obs, back is not None, images.dtype)
         self.valid = (np.ascontiguousarray(valid.reshape(h * w, -1).numpy()) if valid is not None
                       else np.empty((0, self.k), dtype=self.rows.dtype))
@@ -903,24 +845,11 @@ class Problem:
                         self.flags, self.eta, g, out)
         return torch.from_numpy(out).to(x.dtype).reshape(*self.shape, -1)
 
-    def normal_matrices(self, x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor], r: Tensor,
-                        sws: list[Tensor]) -> tuple[list[Tensor], Tensor]:
-        """``([J^T W_e J (H, W, P, P) per sws[e]], J^T W_0 r (H, W, P))`` in float64 from one
-        Jacobian evaluation (:func:`normal_matrices`); ``sws``: row multipliers ``sqrt(W_e)``
-        ``(H, W, K)`` each."""
-        _threads()
-        full, cols = full_vectors(x, names, fixed)
-        npix, p = full.shape[0], cols.shape[0]
-        jtjs = np.empty((len(sws), npix, p, p))
-        jtr = np.empty((npix, p))
-        # float64 always: one compiled signature (the covariance is float64; the LM's own kernel
-        # keeps the images' dtype)
-        r2 = np.ascontiguousarray(r.reshape(npix, -1).double().numpy())
-        sw2 = np.ascontiguousarray(np.stack([w.reshape(npix, -1).double().numpy() for w in sws]))
-        normal_matrices(full, cols, self.view, self.dirs, self.w_s, self.w_p, self.w_d, self.back, self.back_wd,
-                        self.flags, self.eta, r2, sw2, jtjs, jtr)
-        t = torch.from_numpy
-        return [t(j).reshape(*self.shape, p, p) for j in jtjs], t(jtr).reshape(*self.shape, p)
+    def rows_and_back(self) -> np.ndarray:
+        """``(npix, K)``: the images' LED rows, then the back-lit image's three (made once)."""
+        if self._rows_and_back is None:
+            self._rows_and_back = np.ascontiguousarray(np.concatenate([self.rows, self.back], 1))
+        return self._rows_and_back
 
     def normal_equations(self, x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor], r: Tensor,
                          sw: Tensor) -> tuple[Tensor, Tensor]:

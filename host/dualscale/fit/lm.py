@@ -275,10 +275,12 @@ def _carried(db: StepData, x: Tensor, fixed: dict[str, Tensor]) -> Tensor | None
 
 
 def _normal_equations(x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor], comps: Components, d: StepData,
-                      loss: Loss, hi: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor | None]:
+                      loss: Loss, hi: Tensor, gather=None) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor | None]:
     """``(J^T W J (H, W, P, P), J^T W r (H, W, P), data cost (H, W), likelihood scale (H, W),
     kept rows (H, W, K) or None)`` (fused kernel, or forward differences), with the weights ``W`` and the kept
-    rows taken at the current residuals (IRLS for L1)."""
+    rows taken at the current residuals (IRLS for L1).  ``gather`` (fused kernel): a
+    :class:`.uncertainty.Gather`, called for each chunk in place of the kernel's
+    ``normal_equations``; it returns the same two matrices, bit for bit."""
     jtj, jtr, c, k, kept = [], [], [], [], []
     p = x.shape[-1]
     for y0, y1 in _chunks(*x.shape[:2]):
@@ -292,7 +294,10 @@ def _normal_equations(x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor
             db.cache["rows"] = r0
             prob = _problem(db, comps)
             keep, sw, cst, scl = prob.irls(r0, loss)
-            a, b = prob.normal_equations(xb, names, fx, r0, sw)
+            if gather is None:
+                a, b = prob.normal_equations(xb, names, fx, r0, sw)
+            else:
+                a, b = gather(prob, xb, names, fx, r0, keep, sw, scl, y0, y1)
             jtj.append(a)
             jtr.append(b)
             c.append(cst)
@@ -322,11 +327,12 @@ def _normal_equations(x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor
 
 
 def lm_iteration(x: Tensor, lam: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor], comps: Components,
-                 d: StepData, loss: Loss, bounds: dict[str, tuple[float, float]]) -> tuple[Tensor, Tensor, Tensor]:
+                 d: StepData, loss: Loss, bounds: dict[str, tuple[float, float]], gather=None
+                 ) -> tuple[Tensor, Tensor, Tensor]:
     """One damped (reweighted) Gauss-Newton step for every pixel: ``(x, lambda, cost)`` after it;
-    a pixel's step is kept only where its true cost drops."""
+    a pixel's step is kept only where its true cost drops.  ``gather``: see :func:`_normal_equations`."""
     lo, hi = _lohi(names, bounds, x)
-    jtj, jtr, c0, k, keep = _normal_equations(x, names, fixed, comps, d, loss, hi)
+    jtj, jtr, c0, k, keep = _normal_equations(x, names, fixed, comps, d, loss, hi, gather)
     pc, pg, ph = loss.prior_terms(x, names, k)
     c0, jtr, jtj = c0 + pc, jtr + pg, jtj + torch.diag_embed(ph)
     diag = torch.diagonal(jtj, dim1=-2, dim2=-1)
@@ -377,8 +383,10 @@ def grid_init(params: dict[str, Tensor], comps: Components, d: StepData, loss: L
 
 
 def run_lm(params: dict[str, Tensor], comps: Components, obs: Observations, loop: Loop,
-           resume: dict | None = None) -> dict[str, Tensor]:
-    """Optimise ``params`` in place through the preset's three steps; returns them."""
+           resume: dict | None = None, gather=None) -> dict[str, Tensor]:
+    """Optimise ``params`` in place through the preset's three steps; returns them.  ``gather``
+    (a :class:`.uncertainty.Gather`; fused kernel): the joint step's last iteration also builds
+    the matrices of the fit's covariance, in the same kernel pass (the maps do not change)."""
     preset = loop.preset
     loss = preset_loss(preset)
     lam_resume = resume.get("lambda") if resume is not None else None
@@ -389,8 +397,10 @@ def run_lm(params: dict[str, Tensor], comps: Components, obs: Observations, loop
         fixed = {k: v for k, v in params.items() if k not in free}
         x = pack(params, free)
         lam = lam_resume if (it0 > 0 and lam_resume is not None) else torch.full((h, w), 1e-2, dtype=x.dtype)
+        last = gather if (step == "joint" and data.kernel == "fused") else None
         for it in range(it0, preset.iterations[s]):
-            x, lam, c = lm_iteration(x, lam, free, fixed, comps, data, loss, loop.bounds(s, it))
+            x, lam, c = lm_iteration(x, lam, free, fixed, comps, data, loss, loop.bounds(s, it),
+                                     last if it == preset.iterations[s] - 1 else None)
             for k, v in unpack(x, free).items():
                 params[k].copy_(v)
             project(params, loop.bounds(s, it + 1))

@@ -4,8 +4,8 @@ through the fused kernel's Jacobian also for Adam), :func:`.io.save_fit` then wr
 (:func:`dualscale.formats.maps.save_uncertainty`) with :func:`summary` in ``fit.json``;
 :func:`calibration` scores it against a ground truth.
 
-At the fitted parameters ``x`` of a pixel, with the joint step's free parameters, the fused
-kernel builds (one more pass, :meth:`.fused.Problem.normal_matrices`) the matrices
+With the joint step's free parameters, one kernel pass per pixel (:func:`_covariance_rows`,
+the fused kernel's Jacobian) builds the matrices
 
 * ``A = J^T C J``, ``B = J^T C^2 J`` and the noise-weighted ``N`` (below)
 
@@ -50,8 +50,19 @@ Gauss-Newton step the optimiser would take next from the solution, ``dx = -(J^T 
 (J^T W r + prior gradient)`` with the fit's own reweighting ``W`` (:meth:`.fused.Problem.irls`),
 estimates that distance, and ``Sigma + dx dx^T`` is reported: at a converged LM fit ``dx`` is
 negligible beside ``Sigma``, after ``adam-fast`` it took the z-scores' spread from 3.5-7 to
-1.25-1.6 (docs/FITTING.md).  The three matrices (``J^T W J``, ``A``, ``N``) come from one
-evaluation of the Jacobian (:meth:`.fused.Problem.normal_matrices`).
+1.25-1.6 (docs/FITTING.md).  The matrices (``J^T W J``, ``A``, ``B``, ``N``) come from one
+evaluation of the Jacobian.
+
+**Where the pass runs.**  The LM presets (fused kernel) make it in their joint step's last
+iteration (:class:`Gather`): that iteration evaluates every pixel's Jacobian for its own ``J^T W
+J`` anyway, which the pass returns to it bit for bit, so the maps do not change and the
+covariance costs two more accumulations, the noise model and the small solves (docs/FITTING.md,
+*Cost*).  The matrices are then taken one accepted step before the solution; the remaining step
+from the solution is that iteration's Gauss-Newton step less the step it took (on a twill crop
+sigma agreed with a pass at the solution to a median 0.01 %, ``tests/fit/test_uncertainty.py``).
+A parameter at a bound at the solution is undetermined; the others keep the covariance
+conditional on the set determined at the evaluation point.  The Adam presets, the eager
+kernels and a fit resumed past its last iteration make a pass of their own at the solution.
 
 A prior (:attr:`.lm.Loss.priors`, the presets' IOR prior) is added in information units: the
 data give the information ``Sigma_data^-1`` (``(2 / pi) N B^-1 N`` or ``A N^-1 A``), the
@@ -86,7 +97,8 @@ from torch import Tensor
 from dualscale.bsdf import Components, normal_from_square
 from dualscale.bsdf.maps import IOR_MAX, IOR_MIN
 
-from . import lm
+from . import fused, lm
+from .fused import CLAMP, JIT, LIGHT_BLOCK, _back_derivative, _basis_lights, _block_weights, _flush, _pixel_start
 from .loop import free_names, step_data
 from .observations import Observations, stride_leds
 from .params import PARAM_CHANNELS, pack
@@ -127,75 +139,209 @@ _TRUNCATED_VARIANCE = 1.0 - 2.0 * NOISE_CLIP * math.exp(-0.5 * NOISE_CLIP ** 2) 
     NOISE_CLIP / math.sqrt(2.0))
 
 
-@njit(cache=True, nogil=True, parallel=True)
-def _noise_rows(r, y, u, keep, c, l1, iterations, clip2, trunc, a_out, b_out, sw_out):  # pragma: no cover - numba
-    """Per pixel ``p`` (rows ``(npix, K)``: residuals ``r``, images ``y``, kept ``keep > 0``; per
-    row, the signal scales ``u (K,)`` and the weights ``c (K,)``): ``a_out[p]``, ``b_out[p]`` of
-    ``var = a u^2 + b u mu`` (:func:`row_noise`, ``mu = max(y + r, 0)`` the render) and the row
-    multipliers ``sw_out`` of the noise-weighted normal matrix ``N``: ``sqrt(c keep / s)``
-    (``l1``) or ``c sqrt(keep) s`` (``l2``)."""
-    npix, k = r.shape
+#: the per-row loops of the covariance (reductions over one pixel's rows, which LLVM vectorises
+#: only when it may reassociate them; the results agree with the ordered sums to ~1e-8)
+FAST = dict(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc", "contract"})
+
+
+@njit(**FAST)
+def _gram(blk, q, a):  # pragma: no cover - numba
+    """``a += B B^T`` (upper triangle) over the first ``q`` columns of ``B = blk``, two rows by
+    two columns of ``a`` at a time (half the loads of :func:`.fused._flush`'s dot products; each
+    entry's sum is the same)."""
+    n = blk.shape[0]
+    for i in range(0, n - 1, 2):
+        b0, b1 = blk[i], blk[i + 1]
+        s00 = s01 = s11 = 0.0
+        for t in range(q):
+            s00 += b0[t] * b0[t]
+            s01 += b0[t] * b1[t]
+            s11 += b1[t] * b1[t]
+        a[i, i] += s00
+        a[i, i + 1] += s01
+        a[i + 1, i + 1] += s11
+        for j in range(i + 2, n - 1, 2):
+            c0, c1 = blk[j], blk[j + 1]
+            s00 = s01 = s10 = s11 = 0.0
+            for t in range(q):
+                s00 += b0[t] * c0[t]
+                s01 += b0[t] * c1[t]
+                s10 += b1[t] * c0[t]
+                s11 += b1[t] * c1[t]
+            a[i, j] += s00
+            a[i, j + 1] += s01
+            a[i + 1, j] += s10
+            a[i + 1, j + 1] += s11
+        if n % 2 == 1:
+            c0 = blk[n - 1]
+            s00 = s10 = 0.0
+            for t in range(q):
+                s00 += b0[t] * c0[t]
+                s10 += b1[t] * c0[t]
+            a[i, n - 1] += s00
+            a[i + 1, n - 1] += s10
+    if n % 2 == 1:
+        c0 = blk[n - 1]
+        s00 = 0.0
+        for t in range(q):
+            s00 += c0[t] * c0[t]
+        a[n - 1, n - 1] += s00
+
+
+@njit(**FAST)
+def _noise_pixel(r, y, u, keep, iterations, clip2, trunc):  # pragma: no cover - numba
+    """``(a, b)`` of one pixel's ``var = a u^2 + b u mu`` (:func:`row_noise`) from its rows:
+    residuals ``r``, images ``y``, kept ``keep > 0`` (``(K,)`` each) and signal scales ``u``."""
+    k = r.shape[0]
+    n, ss, su = 0.0, 0.0, 0.0
+    for i in range(k):
+        m = 1.0 if keep[i] > 0 else 0.0
+        n += m
+        ss += m * float(r[i]) ** 2
+        su += m * u[i] * u[i]
+    a = max(ss / max(su, 1e-300), 1e-30)
+    b = 0.0
+    tiny = 1e-12 * a
+    flat = max(ss / max(n, 1.0), 1e-30)  # the first iteration weighs every row alike
+    for it in range(iterations):
+        s0 = s1 = s2 = t0 = t1 = 0.0
+        for i in range(k):  # branch-free, so that it vectorises
+            f0 = u[i] * u[i]
+            f1 = u[i] * max(float(y[i]) + float(r[i]), 0.0)
+            v = flat if it == 0 else max(a * f0 + b * f1, 1e-30)
+            r2 = float(r[i]) ** 2
+            w = 1.0 / (v * v) if (keep[i] > 0 and r2 <= clip2 * v) else 0.0
+            q = r2 / trunc
+            s0 += w * f0 * f0
+            s1 += w * f0 * f1
+            s2 += w * f1 * f1
+            t0 += w * f0 * q
+            t1 += w * f1 * q
+        if s0 <= 0.0:
+            break
+        det = s0 * s2 - s1 * s1
+        if det > 1e-300:
+            a_new, b_new = (s2 * t0 - s1 * t1) / det, (s0 * t1 - s1 * t0) / det
+        else:
+            a_new, b_new = t0 / s0, 0.0
+        if b_new < 0.0:  # no shot term: a alone
+            a_new, b_new = t0 / s0, 0.0
+        if a_new <= tiny:  # no read term: b alone
+            a_new, b_new = tiny, max(t1 / max(s2, 1e-300), 0.0)
+        a, b = a_new, b_new
+    return a, b
+
+
+@njit(**FAST)
+def _row_multipliers(r, y, keep, c, u, a, b, l1, out):  # pragma: no cover - numba
+    """One pixel's row multipliers into ``out (3, 1, K)``: ``A``'s ``sqrt(c) keep``, ``N``'s
+    (``sqrt(c keep / s)`` for ``l1``, ``c sqrt(keep) s`` for ``l2``, ``s = sqrt(a u^2 + b u
+    mu)``, ``mu = max(y + r, 0)``) and the back-lit rows' own ``keep``."""
+    for i in range(r.shape[0]):
+        kp = max(float(keep[i]), 0.0)
+        sd = np.sqrt(max(a * u[i] * u[i] + b * u[i] * max(float(y[i]) + float(r[i]), 0.0), 1e-30))
+        out[0, 0, i] = np.sqrt(c[i]) * kp
+        out[1, 0, i] = np.sqrt(c[i] * kp / sd) if l1 else c[i] * np.sqrt(kp) * sd
+        out[2, 0, i] = kp
+
+
+@njit(parallel=True, **JIT)
+def _noise_rows(r, y, u, keep, iterations, clip2, trunc, a_out, b_out):  # pragma: no cover - numba
+    """:func:`_noise_pixel` of every pixel: rows ``(npix, K)``."""
+    for p in prange(r.shape[0]):
+        a_out[p], b_out[p] = _noise_pixel(r[p], y[p], u, keep[p], iterations, clip2, trunc)
+
+
+@njit(parallel=True, **JIT)
+def _covariance_rows(x, cols, view, L, w_s, w_p, w_d, back, back_wd, flags, eta_const, r, sw_fit, keep, images,
+                     c_rows, u, l1, iterations, clip2, trunc, jtjs, jtr, noise):  # pragma: no cover - numba
+    """One pass per pixel (rows ``(npix, K)``: residuals ``r``, the optimiser's row multipliers
+    ``sw_fit``, kept ``keep``, the images ``images`` (the LED rows, then the back-lit ones; the
+    render is ``images + r``), any one float dtype; ``c_rows``, ``u`` ``(K,)`` float64): the
+    noise model's ``a``, ``b`` (:func:`_noise_pixel`, into ``noise (npix, 2)``), then from one
+    evaluation of the Jacobian (as :func:`.fused.normal_equations`, ``LIGHT_BLOCK`` lights at a
+    time) ``jtjs (4, npix, P, P)``: ``J^T W J`` and ``jtr = J^T W r`` with ``sw_fit`` (bit for
+    bit the LM's own), ``A = J^T C K J``, the noise-weighted ``N`` (row multipliers ``sqrt(c
+    keep / s)`` for ``l1``, ``c sqrt(keep) s`` for ``l2``, ``s = sqrt(a u^2 + b u mu)``) and
+    the back-lit rows' own ``J_b^T K J_b``.  The weights are made per pixel: no ``(npix, K)``
+    array is written."""
+    npix, n, P = x.shape[0], L.shape[1], cols.shape[0]
+    iso, opaque, lam = flags[0] != 0, flags[2] != 0, flags[5] != 0
+    has_back = back.shape[0] == npix
+    kk = r.shape[1]
     for p in prange(npix):
-        n, ss, su = 0.0, 0.0, 0.0
-        for i in range(k):
-            if keep[p, i] > 0:
-                n += 1.0
-                ss += float(r[p, i]) ** 2
-                su += u[i] * u[i]
-        a = max(ss / max(su, 1e-300), 1e-30)
-        b = 0.0
-        tiny = 1e-12 * a
-        flat = max(ss / max(n, 1.0), 1e-30)  # the first iteration weighs every row alike
-        for it in range(iterations):
-            s0 = s1 = s2 = t0 = t1 = 0.0
-            for i in range(k):
-                if keep[p, i] > 0:
-                    f0 = u[i] * u[i]
-                    f1 = u[i] * max(float(y[p, i]) + float(r[p, i]), 0.0)
-                    v = flat if it == 0 else max(a * f0 + b * f1, 1e-30)
-                    r2 = float(r[p, i]) ** 2
-                    if r2 <= clip2 * v:
-                        w = 1.0 / (v * v)
-                        q = r2 / trunc
-                        s0 += w * f0 * f0
-                        s1 += w * f0 * f1
-                        s2 += w * f1 * f1
-                        t0 += w * f0 * q
-                        t1 += w * f1 * q
-            if s0 <= 0.0:
-                break
-            det = s0 * s2 - s1 * s1
-            if det > 1e-300:
-                a_new, b_new = (s2 * t0 - s1 * t1) / det, (s0 * t1 - s1 * t0) / det
-            else:
-                a_new, b_new = t0 / s0, 0.0
-            if b_new < 0.0:  # no shot term: a alone
-                a_new, b_new = t0 / s0, 0.0
-            if a_new <= tiny:  # no read term: b alone
-                a_new, b_new = tiny, max(t1 / max(s2, 1e-300), 0.0)
-            a, b = a_new, b_new
-        a_out[p], b_out[p] = a, b
-        for i in range(k):
-            kk = max(float(keep[p, i]), 0.0)
-            sd = np.sqrt(max(a * u[i] * u[i] + b * u[i] * max(float(y[p, i]) + float(r[p, i]), 0.0), 1e-30))
-            sw_out[p, i] = np.sqrt(c[i] * kk / sd) if l1 else c[i] * np.sqrt(kk) * sd
+        a_n, b_n = _noise_pixel(r[p], images[p], u, keep[p], iterations, clip2, trunc)
+        noise[p, 0], noise[p, 1] = a_n, b_n
+        wrow = np.empty((3, 1, kk))  # A's and N's row multipliers, then the back-lit rows' own
+        _row_multipliers(r[p], images[p], keep[p], c_rows, u, a_n, b_n, l1, wrow)
+        geo, kc, al, xp, op, rows, coef = _pixel_start(x, p, view, flags, eta_const, cols)
+        bas, wv = np.empty((12, LIGHT_BLOCK)), np.empty((3, LIGHT_BLOCK))
+        jraw, jw, wr = np.empty((P, 3 * LIGHT_BLOCK)), np.empty((P, 3 * LIGHT_BLOCK)), np.empty(3 * LIGHT_BLOCK)
+        row = np.empty(P)
+        acc, g = np.zeros((4, P, P)), np.zeros(P)
+        for k0 in range(0, n, LIGHT_BLOCK):
+            k1 = min(n, k0 + LIGHT_BLOCK)
+            b = k1 - k0
+            _basis_lights(xp, geo, al, kc, L, view[p, 2], w_s, w_p, w_d, iso, opaque, lam, k0, k1, bas)
+            for i in range(P):
+                for c in range(3):
+                    r0, r1, r2 = rows[i, c, 0], rows[i, c, 1], rows[i, c, 2]
+                    w0, w1, w2 = coef[i, c, 0], coef[i, c, 1], coef[i, c, 2]
+                    for q in range(b):
+                        jraw[i, c * b + q] = w0 * bas[r0, q] + w1 * bas[r1, q] + w2 * bas[r2, q]
+            for e in range(3):
+                if e == 0:
+                    _block_weights(xp, kc, bas, opaque, op, sw_fit, p, k0, b, wv)
+                else:
+                    _block_weights(xp, kc, bas, opaque, op, wrow[e - 1], 0, k0, b, wv)
+                for c in range(3):
+                    for q in range(b):
+                        if e == 0:
+                            wr[c * b + q] = r[p, 3 * (k0 + q) + c] * wv[c, q]
+                        for i in range(P):
+                            jw[i, c * b + q] = jraw[i, c * b + q] * wv[c, q]
+                if e == 0:
+                    _flush(jw, wr, 3 * b, acc[0], g)
+                else:
+                    _gram(jw, 3 * b, acc[e])
+        if has_back and not opaque:
+            for c in range(3):
+                bk = back_wd * (xp[10 + c] * xp[13] + 1.0 - xp[13])
+                if bk > CLAMP:
+                    continue
+                for e in range(4):
+                    w = sw_fit[p, 3 * n + c] if e == 0 else wrow[e - 1, 0, 3 * n + c]
+                    if w == 0.0:
+                        continue
+                    for i in range(P):
+                        row[i] = _back_derivative(xp, back_wd, cols[i], c) * w
+                    # in the rows' dtype, as normal_equations forms it (the LM's bits)
+                    wrb = r[p, 3 * n + c] * sw_fit[p, 3 * n + c]
+                    for i in range(P):
+                        if e == 0:
+                            g[i] += row[i] * wrb
+                        for j in range(i, P):
+                            acc[e, i, j] += row[i] * row[j]
+        for i in range(P):
+            jtr[p, i] = g[i]
+            for e in range(4):
+                for j in range(i, P):
+                    jtjs[e, p, i, j] = acc[e, i, j]
+                    jtjs[e, p, j, i] = acc[e, i, j]
 
 
-def _noise(r: Tensor, y: np.ndarray, u: np.ndarray, keep: Tensor, c: np.ndarray, l1: bool
-           ) -> tuple[Tensor, Tensor, Tensor]:
-    """``(a (H, W), b (H, W), sw (H, W, K))`` of :func:`_noise_rows`; ``y`` ``(npix, K)``, ``u``
-    ``(K,)``."""
+def _noise(r: Tensor, y: np.ndarray, u: np.ndarray, keep: Tensor) -> tuple[Tensor, Tensor]:
+    """``(a (H, W), b (H, W))`` of :func:`_noise_rows`; ``r``, ``keep`` ``(H, W, K)``, ``y``
+    ``(npix, K)``, ``u`` ``(K,)``."""
     shape = r.shape
     # float64 always: one compiled signature of the kernel
     r2 = np.ascontiguousarray(r.reshape(-1, shape[-1]).double().numpy())
     kp = np.ascontiguousarray(keep.reshape(-1, shape[-1]).double().numpy())
     a, b = np.empty(r2.shape[0]), np.empty(r2.shape[0])
-    sw = np.empty_like(r2)
     _noise_rows(r2, np.ascontiguousarray(y, dtype=np.float64), np.ascontiguousarray(u, dtype=np.float64), kp,
-                np.ascontiguousarray(c, dtype=np.float64), l1, NOISE_ITERATIONS, NOISE_CLIP ** 2, _TRUNCATED_VARIANCE,
-                a, b, sw)
+                NOISE_ITERATIONS, NOISE_CLIP ** 2, _TRUNCATED_VARIANCE, a, b)
     t = torch.from_numpy
-    return t(a).reshape(shape[:-1]), t(b).reshape(shape[:-1]), t(sw).reshape(shape)
+    return t(a).reshape(shape[:-1]), t(b).reshape(shape[:-1])
 
 
 def row_scales(obs: Observations, rows: int) -> np.ndarray:
@@ -224,72 +370,15 @@ def row_noise(r: Tensor, mu: Tensor, keep: Tensor, u: np.ndarray | None = None) 
     from the read-noise-only mean square.  (:func:`normal_matrices` calls the kernel itself.)"""
     u = np.ones(r.shape[-1]) if u is None else np.asarray(u, np.float64)
     y = (mu.double() - r.double()).reshape(-1, r.shape[-1]).numpy()
-    a, b, _ = _noise(r.double(), y, u, keep.double(), np.ones(r.shape[-1]), True)
+    a, b = _noise(r.double(), y, u, keep.double())
     ut = torch.from_numpy(u)
     var = a.unsqueeze(-1) * ut ** 2 + b.unsqueeze(-1) * ut * mu.double().clamp(min=0.0)
     return var.clamp(min=1e-30).sqrt()
 
 
-def normal_matrices(params: dict[str, Tensor], comps: Components, obs: Observations, preset: Preset
-                    ) -> dict[str, Tensor | tuple[str, ...]]:
-    """The pieces of :func:`pixel_covariance` at ``params``: ``names`` (joint free parameters),
-    ``x`` ``(H, W, P)``, ``A = J^T C J`` and ``B = J^T C^2 J`` ``(H, W, P, P)`` float64 over the
-    kept rows, the noise-weighted ``N`` (``J^T C S^-1 J`` for ``loss='l1'``, ``J^T C^2 S^2 J`` for
-    ``'l2'``; ``S`` the rows' noise sigmas, :func:`row_noise`), ``keep`` ``(H, W, K)``,
-    ``residuals`` ``(H, W, K)``, ``noise`` ``(H, W, 2)`` (the noise model's ``a``, ``b``), ``step``
-    ``(H, W, P)`` (the optimiser's next Gauss-Newton step, module doc) and ``prior_info``
-    ``(H, W, P)`` (1 / sd^2 on a prior's channel).  ``obs``: as given to ``fit_observations``
-    (the preset's LED stride is applied)."""
-    loss = lm.preset_loss(preset)
-    names = free_names("joint", params)
-    fixed = {k: v for k, v in params.items() if k not in names}
-    strided = stride_leds(obs, preset.led_stride)
-    d = step_data(strided, "joint", "fused")
-    u_rows = row_scales(strided, 3 * strided.n + (3 if strided.backlight is not None else 0))
-    x = pack(params, names)
-    a_l, b_l, n_l, keep_l, r_l, s_l, st_l = [], [], [], [], [], [], []
-    c_back = float(loss.back_weight)
-    for y0, y1 in lm._chunks(*x.shape[:2]):
-        xb = x[y0:y1]
-        fx = {k: v[y0:y1] for k, v in fixed.items()}
-        prob = lm._problem(lm._block(d, y0, y1), comps)
-        r = prob.residuals(xb, names, fx)
-        keep, sw_fit, _, scale = prob.irls(r, loss)  # kept rows: valid and not in a cast shadow
-        c_rows = prob.row_weights(c_back)
-        sqrt_c = torch.from_numpy(np.sqrt(c_rows)).to(keep.dtype)
-        y = prob.rows if prob.back.shape[0] != prob.rows.shape[0] else np.concatenate([prob.rows, prob.back], 1)
-        na, nb, sw = _noise(r, y, u_rows[:y.shape[1]], keep, c_rows, loss.kind == "l1")
-        # one Jacobian, three weightings: the optimiser's own (its next step), A (keep is 0/1: its
-        # own square root) and N
-        # own square root) and N; and B = J^T C^2 J where it differs from A (weighted back-lit rows)
-        sws = [sw_fit, sqrt_c * keep, sw] + ([torch.from_numpy(c_rows).to(keep.dtype) * keep] if c_back != 1.0 else [])
-        mats, g_fit = prob.normal_matrices(xb, names, fx, r, sws)
-        h_fit, a, nm = mats[:3]
-        b = mats[3] if c_back != 1.0 else a
-        _, pg, ph = loss.prior_terms(xb.double(), names, scale.double())
-        step, _ = torch.linalg.solve_ex(h_fit + torch.diag_embed(ph + 1e-12 * torch.diagonal(h_fit, dim1=-2, dim2=-1)),
-                                        -(g_fit + pg).unsqueeze(-1))
-        st_l.append(torch.nan_to_num(step.squeeze(-1), nan=0.0, posinf=0.0, neginf=0.0))
-        a_l.append(a)
-        b_l.append(b)
-        n_l.append(nm)
-        keep_l.append(keep)
-        r_l.append(r)
-        s_l.append(torch.stack([na, nb], -1))
-    a, b, nm, keep, r, ab, st = (torch.cat(t, 0) for t in (a_l, b_l, n_l, keep_l, r_l, s_l, st_l))
-    one = torch.ones(x.shape[:2], dtype=torch.float64)
-    _, _, curv = loss.prior_terms(x.double(), names, one)  # k = 1: the curvature is 1 / sd^2
-    return {"names": names, "x": x.double(), "A": a, "B": b, "N": nm, "keep": keep, "residuals": r, "noise": ab,
-            "prior_info": curv, "kind": loss.kind, "step": st}
-
-
 def _candidates(x: Tensor, names: tuple[str, ...], a: Tensor, keep: Tensor) -> Tensor:
     """``(H, W, P)`` bool: not at a bound, seen by the data, in a pixel with enough kept rows."""
-    lo, hi = lm._lohi(names, {}, x)
-    ok = (x - lo > BOUND_TOL) & (hi - x > BOUND_TOL)
-    if "roughness" in names:
-        j = _offsets(names)["roughness"].start
-        ok[..., j] &= x[..., j] > ROUGHNESS_FLOOR
+    ok = ~_bounded(x, names)
     diag = torch.diagonal(a, dim1=-2, dim2=-1)
     ok &= diag > DIAG_TOL * diag.amax(-1, keepdim=True).clamp(min=1e-300)
     ok &= (keep.sum(-1) > x.shape[-1]).unsqueeze(-1)
@@ -298,19 +387,55 @@ def _candidates(x: Tensor, names: tuple[str, ...], a: Tensor, keep: Tensor) -> T
 
 def _masked(m: Tensor, det: Tensor, fill: float) -> Tensor:
     """``m`` on the determined block, ``fill`` on the other diagonal entries, 0 elsewhere."""
-    outer = det.unsqueeze(-1) & det.unsqueeze(-2)
-    return torch.where(outer, m, torch.zeros_like(m)) + torch.diag_embed((~det).to(m.dtype) * fill)
+    d = det.to(m.dtype)
+    out = m * (d.unsqueeze(-1) * d.unsqueeze(-2))
+    out.diagonal(dim1=-2, dim2=-1).add_((1.0 - d) * fill)
+    return out
 
 
-def pixel_covariance(params: dict[str, Tensor], comps: Components, obs: Observations,
-                     preset: Preset) -> tuple[Tensor, tuple[str, ...], Tensor]:
-    """``(cov (H, W, P, P) float64, names, determined (H, W, P) bool)`` of the joint step's free
-    parameters at the fitted ``params`` (normalised units, as :func:`.lm.run_lm` leaves them),
-    for the LM presets (module doc: the formula, the noise scale, the undetermined rules).
-    Undetermined parameters have NaN rows and columns."""
-    m = normal_matrices(params, comps, obs, preset)
-    names, x, a, b, keep = m["names"], m["x"], m["A"], m["B"], m["keep"]
+def _block_matrices(prob, x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor], r: Tensor, keep: Tensor,
+                    sw_fit: Tensor, loss: lm.Loss, u_rows: np.ndarray) -> tuple[Tensor, Tensor, dict[str, Tensor]]:
+    """One block's matrices from one pass of :func:`_covariance_rows` at ``x (h, w, P)`` with
+    residuals ``r``, kept rows ``keep`` and the optimiser's row multipliers ``sw_fit`` (all
+    ``(h, w, K)`` in the images' dtype, as :meth:`.fused.Problem.irls` gives them; other dtypes
+    are cast to it): ``(J^T W J, J^T W r, {"A", "B", "N", "keep", "residuals", "noise"})``
+    (module doc; ``noise`` ``(h, w, 2)``: the model's ``a``, ``b``).  ``J^T W J`` and ``J^T W
+    r`` are bit for bit those of :meth:`.fused.Problem.normal_equations` with ``sw_fit``: the
+    LM's last iteration takes them as its own (:class:`Gather`).  ``B = A + (c^2 - c) J_b^T K
+    J_b``, the back-lit rows weighing ``c^2`` in it and ``c`` in ``A``."""
+    fused._threads()
+    full, cols = fused.full_vectors(x, names, fixed)
+    npix, p = full.shape[0], cols.shape[0]
+    dt = prob.rows.dtype
+    has_back = prob.back.shape[0] == npix
+    images = prob.rows if not has_back else prob.rows_and_back()
+    rows = [np.ascontiguousarray(t.reshape(npix, -1).numpy(), dtype=dt) for t in (r, sw_fit, keep)]
+    c_back = float(loss.back_weight)
+    c_rows = prob.row_weights(c_back)
+    jtjs, jtr, noise = np.empty((4, npix, p, p)), np.empty((npix, p)), np.empty((npix, 2))
+    _covariance_rows(full, cols, prob.view, prob.dirs, prob.w_s, prob.w_p, prob.w_d, prob.back, prob.back_wd,
+                     prob.flags, prob.eta, *rows, images, c_rows, np.ascontiguousarray(u_rows[:images.shape[1]]),
+                     loss.kind == "l1", NOISE_ITERATIONS, NOISE_CLIP ** 2, _TRUNCATED_VARIANCE, jtjs, jtr, noise)
+    h_fit, a, nm, back = (torch.from_numpy(j).reshape(*x.shape[:2], p, p) for j in jtjs)
+    b = a + (c_back * c_back - c_back) * back if has_back else a
+    return (h_fit, torch.from_numpy(jtr).reshape(*x.shape[:2], p),
+            {"A": a, "B": b, "N": nm, "keep": keep, "residuals": r, "noise": torch.from_numpy(noise).reshape(*x.shape[:2], 2)})
+
+
+def _block_covariance(x: Tensor, names: tuple[str, ...], m: dict[str, Tensor], h_fit: Tensor, g_fit: Tensor,
+                      scale: Tensor, loss: lm.Loss) -> dict[str, Tensor]:
+    """A block's covariance at the evaluation point ``x (h, w, P)`` float64 from
+    :func:`_block_matrices`' ``m``: ``{"x", "cov" (h, w, P, P), "determined" (h, w, P),
+    "step" (h, w, P)}``, ``cov`` the noise's (with the prior, conditional on the determined
+    block; anything on the others), ``step`` the optimiser's next Gauss-Newton step from ``x``
+    (``-(J^T W J + prior)^-1 (J^T W r + prior gradient)``, undamped; 0 where the solve fails)."""
     p = x.shape[-1]
+    _, pg, ph = loss.prior_terms(x, names, scale.double())
+    step, _ = torch.linalg.solve_ex(h_fit + torch.diag_embed(ph + 1e-12 * torch.diagonal(h_fit, dim1=-2, dim2=-1)),
+                                    -(g_fit + pg).unsqueeze(-1))
+    step = torch.nan_to_num(step.squeeze(-1), nan=0.0, posinf=0.0, neginf=0.0)
+    _, _, prior_info = loss.prior_terms(x, names, torch.ones(x.shape[:-1], dtype=x.dtype))  # k = 1: 1 / sd^2
+    a, b, keep = m["A"], m["B"], m["keep"]
     det = _candidates(x, names, a, keep)
     eye = torch.eye(p, dtype=a.dtype)
     for _ in range(p):  # set aside unconstrained directions one parameter at a time
@@ -331,22 +456,135 @@ def pixel_covariance(params: dict[str, Tensor], comps: Components, obs: Observat
         drop = torch.nn.functional.one_hot(share.argmax(-1), p).bool() & bad.unsqueeze(-1)
         det[where] = det[where] & ~drop
     am, bm, nm = _masked(a, det, 1.0), _masked(b, det, 1.0), _masked(m["N"], det, 1.0)
-    if m["kind"] == "l1":  # Sigma = (pi/2) N^-1 B N^-1: the information (2/pi) N B^-1 N
+    if loss.kind == "l1":  # Sigma = (pi/2) N^-1 B N^-1: the information (2/pi) N B^-1 N
         y, info_b = torch.linalg.solve_ex(bm, nm)
         info = (2.0 / math.pi) * (nm @ y)
     else:  # Sigma = A^-1 N A^-1: the information A N^-1 A
         y, info_b = torch.linalg.solve_ex(nm, am)
         info = am @ y
-    info = info + torch.diag_embed(m["prior_info"] * det)
+    info = info + torch.diag_embed(prior_info * det)
     cov, info_i = torch.linalg.inv_ex(_masked(info, det, 1.0))
     good = (info_b == 0) & (info_i == 0) & torch.isfinite(cov).all((-2, -1))
     diag = torch.diagonal(cov, dim1=-2, dim2=-1)
     good &= ((diag > 0) | ~det).all(-1)
     det &= good.unsqueeze(-1)
+    return {"x": x, "cov": cov, "determined": det, "step": step}
+
+
+def _bounded(x: Tensor, names: tuple[str, ...]) -> Tensor:
+    """``(..., P)`` bool: within :data:`BOUND_TOL` of the box, or a roughness below the floor."""
+    lo, hi = lm._lohi(names, {}, x)
+    out = (x - lo <= BOUND_TOL) | (hi - x <= BOUND_TOL)
+    if "roughness" in names:
+        j = _offsets(names)["roughness"].start
+        out[..., j] |= x[..., j] <= ROUGHNESS_FLOOR
+    return out
+
+
+def _finish(x: Tensor, names: tuple[str, ...], point: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
+    """``(cov, determined)`` at the solution ``x (h, w, P)`` float64 from a :func:`_block_covariance`
+    taken at ``point["x"]`` (the solution itself, or the LM's last iterate before it): a
+    parameter at a bound at ``x`` is undetermined too, and the optimiser's remaining step from
+    ``x`` (the one from the evaluation point less the way already gone; the tangent's wrapped)
+    is added, ``Sigma + dx dx^T`` (module doc).  Undetermined rows and columns are NaN."""
+    det = point["determined"] & ~_bounded(x, names)
+    gone = x - point["x"]
+    if "tangent" in names:
+        j = _offsets(names)["tangent"].start
+        gone[..., j] = torch.remainder(gone[..., j] + 0.5, 1.0) - 0.5
+    dx = (point["step"] - gone) * det
+    cov = point["cov"] + dx.unsqueeze(-1) * dx.unsqueeze(-2)
     outer = det.unsqueeze(-1) & det.unsqueeze(-2)
-    dx = m["step"] * det  # the optimiser's remaining step: an error the noise does not explain (module doc)
-    cov = cov + dx.unsqueeze(-1) * dx.unsqueeze(-2)
-    cov = torch.where(outer, cov, torch.full_like(cov, float("nan")))
+    return torch.where(outer, cov, torch.full_like(cov, float("nan"))), det
+
+
+def _separate_pass(params: dict[str, Tensor], comps: Components, obs: Observations, preset: Preset
+                   ) -> tuple[tuple[str, ...], list[tuple[dict[str, Tensor], dict[str, Tensor]]]]:
+    """``(names, [(matrices, covariance)] per chunk)``: :func:`_block_matrices` and
+    :func:`_block_covariance` at the fitted ``params`` themselves, by the LM's chunks of rows
+    (``obs`` as given to ``fit_observations``: the preset's stride is applied)."""
+    loss = lm.preset_loss(preset)
+    names = free_names("joint", params)
+    fixed = {k: v for k, v in params.items() if k not in names}
+    strided = stride_leds(obs, preset.led_stride)
+    d = step_data(strided, "joint", "fused")
+    u_rows = row_scales(strided, 3 * strided.n + (3 if strided.backlight is not None else 0))
+    x = pack(params, names)
+    parts = []
+    for y0, y1 in lm._chunks(*x.shape[:2]):
+        xb = x[y0:y1]
+        fx = {k: v[y0:y1] for k, v in fixed.items()}
+        prob = lm._problem(lm._block(d, y0, y1), comps)
+        r = prob.residuals(xb, names, fx)
+        keep, sw_fit, _, scale = prob.irls(r, loss)  # kept rows: valid and not in a cast shadow
+        h_fit, g_fit, m = _block_matrices(prob, xb, names, fx, r, keep, sw_fit, loss, u_rows)
+        parts.append((m, _block_covariance(xb.double(), names, m, h_fit, g_fit, scale, loss)))
+    return names, parts
+
+
+def _cat(parts: list[dict[str, Tensor]]) -> dict[str, Tensor]:
+    return {k: torch.cat([p[k] for p in parts], 0) for k in parts[0]}
+
+
+def normal_matrices(params: dict[str, Tensor], comps: Components, obs: Observations, preset: Preset
+                    ) -> dict[str, Tensor | tuple[str, ...]]:
+    """The pieces of :func:`pixel_covariance` at ``params``: ``names`` (joint free parameters),
+    ``x`` ``(H, W, P)``, ``A = J^T C J`` and ``B = J^T C^2 J`` ``(H, W, P, P)`` float64 over the
+    kept rows, the noise-weighted ``N`` (``J^T C S^-1 J`` for ``loss='l1'``, ``J^T C^2 S^2 J`` for
+    ``'l2'``; ``S`` the rows' noise sigmas, :func:`row_noise`), ``keep`` ``(H, W, K)``,
+    ``residuals`` ``(H, W, K)``, ``noise`` ``(H, W, 2)`` (the noise model's ``a``, ``b``) and
+    ``step`` ``(H, W, P)`` (the optimiser's next Gauss-Newton step, module doc).  ``obs``: as
+    given to ``fit_observations`` (the preset's LED stride is applied)."""
+    names, parts = _separate_pass(params, comps, obs, preset)
+    out = _cat([{**m, "step": c["step"]} for m, c in parts])
+    return {"names": names, "x": pack(params, names).double(), "kind": preset.loss, **out}
+
+
+class Gather:
+    """The covariance from the LM's last iteration of its joint step (:func:`.lm.run_lm`'s
+    ``gather``): that iteration evaluates the Jacobian of every pixel anyway, so its kernel pass
+    (:func:`_block_matrices`) builds ``A``, ``B`` and ``N`` beside the LM's own ``J^T W J``,
+    which it returns to the LM unchanged (the maps are bit for bit those of a fit without it),
+    and :func:`_block_covariance` reduces each chunk at once (memory: one ``(P, P)`` matrix per
+    pixel).  The matrices are then one accepted step before the solution; :func:`_finish`
+    takes the remaining step from there.  ``obs``: the fit's (strided) observations."""
+
+    def __init__(self, obs: Observations, preset: Preset) -> None:
+        self.loss = lm.preset_loss(preset)
+        self.u_rows = row_scales(obs, 3 * obs.n + (3 if obs.backlight is not None else 0))
+        self.height = obs.shape[0]
+        self.parts: list[tuple[int, int, dict[str, Tensor]]] = []
+        self.seconds = 0.0  # time spent in the gathering passes
+
+    def __call__(self, prob, x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor], r: Tensor, keep: Tensor,
+                 sw: Tensor, scale: Tensor, y0: int, y1: int) -> tuple[Tensor, Tensor]:
+        """One chunk of rows ``y0:y1`` of the LM's normal equations: ``(J^T W J, J^T W r)``."""
+        t0 = time.perf_counter()
+        if self.parts and self.parts[-1][1] != y0:  # a new iteration: keep the last one only
+            self.parts, self.seconds = [], 0.0
+        h_fit, g_fit, m = _block_matrices(prob, x, names, fixed, r, keep, sw, self.loss, self.u_rows)
+        self.parts.append((y0, y1, _block_covariance(x.double(), names, m, h_fit, g_fit, scale, self.loss)))
+        self.seconds += time.perf_counter() - t0
+        return h_fit, g_fit
+
+    def point(self) -> dict[str, Tensor] | None:
+        """The gathered covariance over every row, or ``None`` when no whole iteration was gathered."""
+        if not self.parts or self.parts[0][0] != 0 or self.parts[-1][1] != self.height:
+            return None
+        return {k: torch.cat([p[2][k] for p in self.parts], 0) for k in self.parts[0][2]}
+
+
+def pixel_covariance(params: dict[str, Tensor], comps: Components, obs: Observations, preset: Preset,
+                     point: dict[str, Tensor] | None = None) -> tuple[Tensor, tuple[str, ...], Tensor]:
+    """``(cov (H, W, P, P) float64, names, determined (H, W, P) bool)`` of the joint step's free
+    parameters at the fitted ``params`` (normalised units, as the optimisers leave them), any
+    preset (module doc: the formula, the noise scale, the undetermined rules); ``point``: a
+    :class:`Gather`'s (the LM's last iteration), else a pass of its own at ``params``.
+    Undetermined parameters have NaN rows and columns."""
+    names = free_names("joint", params)
+    if point is None:
+        point = _cat([c for _, c in _separate_pass(params, comps, obs, preset)[1]])
+    cov, det = _finish(pack(params, names).double(), names, point)
     return cov, names, det
 
 
@@ -440,26 +678,33 @@ class Uncertainty:
 
 
 def pixel_uncertainty(params: dict[str, Tensor], comps: Components, obs: Observations, preset: Preset,
-                      block_pixels: int = BLOCK_PIXELS) -> Uncertainty:
+                      block_pixels: int = BLOCK_PIXELS, gathered: Gather | None = None) -> Uncertainty:
     """The :class:`Uncertainty` of the fitted ``params`` (normalised, ``(H, W, C)`` each, as the
     optimisers leave them) on ``obs`` (as given to the fit: the preset's LED stride is applied
-    here), for any preset: :func:`pixel_covariance` then :func:`map_sigmas`, by blocks of rows of
-    at most ``block_pixels`` pixels (pixels are independent, so blocks change nothing)."""
+    here), for any preset: :func:`pixel_covariance` then :func:`map_sigmas`.  From ``gathered``
+    (the LM's last iteration) when it holds every row, else by a pass of its own, in blocks of
+    rows of at most ``block_pixels`` pixels (pixels are independent, so blocks change nothing).
+    ``seconds``: this call's time plus the gathering's (which includes the kernel pass the LM's
+    last iteration makes anyway: the cost of the uncertainty is the fit's time with it less
+    the fit's without, ``bench/bench_uncertainty.py``)."""
     t0 = time.perf_counter()
     h, w = next(iter(params.values())).shape[:2]
-    rows = max(1, block_pixels // max(1, w))
+    point = None if gathered is None else gathered.point()
+    rows = h if point is not None else max(1, block_pixels // max(1, w))
     sig_l: dict[str, list[Tensor]] = {}
     und_l: dict[str, list[Tensor]] = {}
     for y0 in range(0, h, rows):
         y1 = min(h, y0 + rows)
         pb = {k: v[y0:y1].detach() for k, v in params.items()}
-        cov, names, det = pixel_covariance(pb, comps, obs.crop(y0, y1, 0, w), preset)
+        cov, names, det = pixel_covariance(pb, comps, obs.crop(y0, y1, 0, w), preset, point)
         sig, und = map_sigmas(pb, cov, names, det, comps)
         for n in sig:
             sig_l.setdefault(n, []).append(sig[n].float())
             und_l.setdefault(n, []).append(und[n])
+    extra = gathered.seconds if point is not None else 0.0
     return Uncertainty({n: torch.cat(v, 0) for n, v in sig_l.items()}, {n: torch.cat(v, 0) for n, v in und_l.items()},
-                       NOISE_RESIDUAL if obs.signal_scale is None else NOISE_SCALED, time.perf_counter() - t0)
+                       NOISE_RESIDUAL if obs.signal_scale is None else NOISE_SCALED,
+                       time.perf_counter() - t0 + extra)
 
 
 def summary(sigma: dict[str, "Tensor | object"], undetermined: dict[str, "Tensor | object"], noise: str,
