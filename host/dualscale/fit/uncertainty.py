@@ -385,14 +385,6 @@ def _candidates(x: Tensor, names: tuple[str, ...], a: Tensor, keep: Tensor) -> T
     return ok
 
 
-def _masked(m: Tensor, det: Tensor, fill: float) -> Tensor:
-    """``m`` on the determined block, ``fill`` on the other diagonal entries, 0 elsewhere."""
-    d = det.to(m.dtype)
-    out = m * (d.unsqueeze(-1) * d.unsqueeze(-2))
-    out.diagonal(dim1=-2, dim2=-1).add_((1.0 - d) * fill)
-    return out
-
-
 def _block_matrices(prob, x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor], r: Tensor, keep: Tensor,
                     sw_fit: Tensor, loss: lm.Loss, u_rows: np.ndarray) -> tuple[Tensor, Tensor, dict[str, Tensor]]:
     """One block's matrices from one pass of :func:`_covariance_rows` at ``x (h, w, P)`` with
@@ -422,53 +414,173 @@ def _block_matrices(prob, x: Tensor, names: tuple[str, ...], fixed: dict[str, Te
             {"A": a, "B": b, "N": nm, "keep": keep, "residuals": r, "noise": torch.from_numpy(noise).reshape(*x.shape[:2], 2)})
 
 
+@njit(**JIT)
+def _lu_solve(a, b, n, m):  # pragma: no cover - numba
+    """Solve ``a[:n, :n] X = b[:n, :m]`` in place (``b`` becomes ``X``, ``a`` its LU) by Gaussian
+    elimination with partial pivoting; False when a pivot is zero or not finite (singular)."""
+    for k in range(n):
+        piv, big = k, abs(a[k, k])
+        for i in range(k + 1, n):
+            if abs(a[i, k]) > big:
+                piv, big = i, abs(a[i, k])
+        if not (big > 0.0) or not np.isfinite(big):
+            return False
+        if piv != k:
+            for j in range(n):
+                a[k, j], a[piv, j] = a[piv, j], a[k, j]
+            for j in range(m):
+                b[k, j], b[piv, j] = b[piv, j], b[k, j]
+        for i in range(k + 1, n):
+            f = a[i, k] / a[k, k]
+            if f != 0.0:
+                for j in range(k + 1, n):
+                    a[i, j] -= f * a[k, j]
+                for j in range(m):
+                    b[i, j] -= f * b[k, j]
+    for k in range(n - 1, -1, -1):
+        for j in range(m):
+            s = b[k, j]
+            for t in range(k + 1, n):
+                s -= a[k, t] * b[t, j]
+            b[k, j] = s / a[k, k]
+    return True
+
+
+@njit(**JIT)
+def _positive_definite(a, n, shift, work):  # pragma: no cover - numba
+    """Whether ``a[:n, :n] - shift I`` is positive definite (a Cholesky factorisation in ``work``)."""
+    for j in range(n):
+        s = a[j, j] - shift
+        for t in range(j):
+            s -= work[j, t] * work[j, t]
+        if not (s > 0.0):
+            return False
+        d = np.sqrt(s)
+        work[j, j] = d
+        for i in range(j + 1, n):
+            s = a[i, j]
+            for t in range(j):
+                s -= work[i, t] * work[j, t]
+            work[i, j] = s / d
+    return True
+
+
+@njit(**JIT)
+def _mask(m, det, out):  # pragma: no cover - numba
+    """``out``: ``m`` on the determined block, 1 on the other diagonal entries, 0 elsewhere."""
+    p = m.shape[0]
+    for i in range(p):
+        for j in range(p):
+            out[i, j] = m[i, j] if (det[i] and det[j]) else (1.0 if i == j else 0.0)
+
+
+@njit(parallel=True, **JIT)
+def _covariance_solve(a, b, n, h_fit, rhs, ph, prior_info, det, l1, eig_tol, cov, step):  # pragma: no cover
+    """Per pixel (``(npix, P, P)`` ``a``, ``b``, ``n``, ``h_fit``; ``(npix, P)`` ``rhs = -(J^T W
+    r + prior gradient)``, ``ph`` the prior's curvature, ``prior_info`` its ``1 / sd^2``, ``det``
+    the candidates, updated in place): ``step`` = the undamped Gauss-Newton step (0 where the
+    solve fails), the unconstrained directions set aside one parameter at a time (unit-diagonal
+    ``A``'s smallest eigenvalue below ``eig_tol``, the parameter with the largest share of its
+    eigenvector dropped), then ``cov`` = the inverse of the information ``(2 / pi) N B^-1 N``
+    (``l1``) or ``A N^-1 A``, plus the prior's, over the determined block; a pixel whose solves
+    fail, or that gives a non-positive variance, has nothing determined."""
+    npix, p = a.shape[0], a.shape[1]
+    for q in prange(npix):
+        m1, m2, m3, work = np.empty((p, p)), np.empty((p, p)), np.empty((p, p)), np.empty((p, p))
+        v = np.empty((p, 1))
+        for i in range(p):
+            for j in range(p):
+                m1[i, j] = h_fit[q, i, j]
+            m1[i, i] += ph[q, i] + 1e-12 * h_fit[q, i, i]
+            v[i, 0] = rhs[q, i]
+        ok = _lu_solve(m1, v, p, 1)
+        for i in range(p):
+            step[q, i] = v[i, 0] if (ok and np.isfinite(v[i, 0])) else 0.0
+        d = det[q]
+        for _ in range(p):  # set aside unconstrained directions one parameter at a time
+            anyd = False
+            for i in range(p):
+                anyd = anyd or d[i]
+            if not anyd:
+                break
+            _mask(a[q], d, m1)
+            for i in range(p):
+                for j in range(p):
+                    m2[i, j] = m1[i, j] / np.sqrt(max(m1[i, i], 1e-300) * max(m1[j, j], 1e-300))
+            if _positive_definite(m2, p, eig_tol, work):  # smallest eigenvalue above eig_tol
+                break
+            ev, vec = np.linalg.eigh(m2)
+            if ev[0] >= eig_tol:
+                break
+            best, share = -1, -1.0
+            for i in range(p):
+                if d[i] and abs(vec[i, 0]) > share:
+                    best, share = i, abs(vec[i, 0])
+            d[best] = False
+        _mask(a[q], d, m1)
+        if l1:  # (2/pi) N B^-1 N
+            _mask(b[q], d, m2)
+            _mask(n[q], d, m3)
+            ok = _lu_solve(m2, m3, p, p)  # m3 = B^-1 N
+            _mask(n[q], d, m2)
+            f = 2.0 / math.pi
+        else:  # A N^-1 A
+            _mask(n[q], d, m2)
+            for i in range(p):
+                for j in range(p):
+                    m3[i, j] = m1[i, j]
+            ok = _lu_solve(m2, m3, p, p)  # m3 = N^-1 A
+            f = 1.0
+            for i in range(p):
+                for j in range(p):
+                    m2[i, j] = m1[i, j]
+        for i in range(p):  # info = f m2 m3 (+ prior), into work; masked again below
+            for j in range(p):
+                s = 0.0
+                for t in range(p):
+                    s += m2[i, t] * m3[t, j]
+                work[i, j] = f * s
+            if d[i]:
+                work[i, i] += prior_info[q, i]
+        _mask(work, d, m1)
+        for i in range(p):
+            for j in range(p):
+                m2[i, j] = 1.0 if i == j else 0.0
+        ok = ok and _lu_solve(m1, m2, p, p)
+        for i in range(p):
+            for j in range(p):
+                cov[q, i, j] = m2[i, j]
+                if not np.isfinite(m2[i, j]):
+                    ok = False
+            if d[i] and not (m2[i, i] > 0.0):
+                ok = False
+        if not ok:
+            for i in range(p):
+                d[i] = False
+
+
 def _block_covariance(x: Tensor, names: tuple[str, ...], m: dict[str, Tensor], h_fit: Tensor, g_fit: Tensor,
                       scale: Tensor, loss: lm.Loss) -> dict[str, Tensor]:
     """A block's covariance at the evaluation point ``x (h, w, P)`` float64 from
     :func:`_block_matrices`' ``m``: ``{"x", "cov" (h, w, P, P), "determined" (h, w, P),
     "step" (h, w, P)}``, ``cov`` the noise's (with the prior, conditional on the determined
     block; anything on the others), ``step`` the optimiser's next Gauss-Newton step from ``x``
-    (``-(J^T W J + prior)^-1 (J^T W r + prior gradient)``, undamped; 0 where the solve fails)."""
-    p = x.shape[-1]
+    (``-(J^T W J + prior)^-1 (J^T W r + prior gradient)``, undamped; 0 where the solve fails);
+    the small solves per pixel in :func:`_covariance_solve`."""
+    shape, p = x.shape[:-1], x.shape[-1]
     _, pg, ph = loss.prior_terms(x, names, scale.double())
-    step, _ = torch.linalg.solve_ex(h_fit + torch.diag_embed(ph + 1e-12 * torch.diagonal(h_fit, dim1=-2, dim2=-1)),
-                                    -(g_fit + pg).unsqueeze(-1))
-    step = torch.nan_to_num(step.squeeze(-1), nan=0.0, posinf=0.0, neginf=0.0)
-    _, _, prior_info = loss.prior_terms(x, names, torch.ones(x.shape[:-1], dtype=x.dtype))  # k = 1: 1 / sd^2
-    a, b, keep = m["A"], m["B"], m["keep"]
-    det = _candidates(x, names, a, keep)
-    eye = torch.eye(p, dtype=a.dtype)
-    for _ in range(p):  # set aside unconstrained directions one parameter at a time
-        am = _masked(a, det, 1.0)
-        s = torch.diagonal(am, dim1=-2, dim2=-1).clamp(min=1e-300).rsqrt()
-        corr = am * s.unsqueeze(-1) * s.unsqueeze(-2)
-        # screen: corr - EIG_TOL I is positive definite (Cholesky succeeds) iff the smallest
-        # eigenvalue is above EIG_TOL; only the others need the eigenvectors
-        screen = (torch.linalg.cholesky_ex(corr - EIG_TOL * eye)[1] > 0) & det.any(-1)
-        if not bool(screen.any()):
-            break
-        where = screen.nonzero(as_tuple=True)
-        ev, vec = torch.linalg.eigh(corr[where])
-        bad = ev[:, 0] < EIG_TOL
-        if not bool(bad.any()):
-            break
-        share = torch.where(det[where], vec[:, :, 0].abs(), torch.full_like(ev, -1.0))
-        drop = torch.nn.functional.one_hot(share.argmax(-1), p).bool() & bad.unsqueeze(-1)
-        det[where] = det[where] & ~drop
-    am, bm, nm = _masked(a, det, 1.0), _masked(b, det, 1.0), _masked(m["N"], det, 1.0)
-    if loss.kind == "l1":  # Sigma = (pi/2) N^-1 B N^-1: the information (2/pi) N B^-1 N
-        y, info_b = torch.linalg.solve_ex(bm, nm)
-        info = (2.0 / math.pi) * (nm @ y)
-    else:  # Sigma = A^-1 N A^-1: the information A N^-1 A
-        y, info_b = torch.linalg.solve_ex(nm, am)
-        info = am @ y
-    info = info + torch.diag_embed(prior_info * det)
-    cov, info_i = torch.linalg.inv_ex(_masked(info, det, 1.0))
-    good = (info_b == 0) & (info_i == 0) & torch.isfinite(cov).all((-2, -1))
-    diag = torch.diagonal(cov, dim1=-2, dim2=-1)
-    good &= ((diag > 0) | ~det).all(-1)
-    det &= good.unsqueeze(-1)
-    return {"x": x, "cov": cov, "determined": det, "step": step}
+    _, _, prior_info = loss.prior_terms(x, names, torch.ones(shape, dtype=x.dtype))  # k = 1: 1 / sd^2
+    det = _candidates(x, names, m["A"], m["keep"]).reshape(-1, p).numpy().copy()
+
+    def flat(t: Tensor) -> np.ndarray:
+        return np.ascontiguousarray(t.double().reshape(det.shape[0], *t.shape[len(shape):]).numpy())
+
+    cov, step = np.empty((det.shape[0], p, p)), np.empty((det.shape[0], p))
+    _covariance_solve(flat(m["A"]), flat(m["B"]), flat(m["N"]), flat(h_fit), flat(-(g_fit + pg)), flat(ph),
+                      flat(prior_info), det, loss.kind == "l1", EIG_TOL, cov, step)
+    t = torch.from_numpy
+    return {"x": x, "cov": t(cov).reshape(*shape, p, p), "determined": t(det).reshape(*shape, p),
+            "step": t(step).reshape(*shape, p)}
 
 
 def _bounded(x: Tensor, names: tuple[str, ...]) -> Tensor:
