@@ -13,11 +13,18 @@ import pytest
 from dualscale.cli import main
 from dualscale.formats.dataset import read_dataset
 from dualscale.formats.lightfile import LightRecord, write_lights_json
-from photoset import nothing_written, render_sphere, srgb8, write_png
+from photoset import lights_one_side, nothing_written, render_sphere, srgb8, write_png
 
 
 def run(*args: str) -> int:
     return main(["import", *args])
+
+
+@pytest.fixture
+def small_set(tmp_path):
+    """``sphere_set`` at 24 x 24 px: for the tests of name matching and replacement, which do not
+    depend on the image size (every import still estimates the response, in time ~ pixels)."""
+    return render_sphere(tmp_path / "ball", lights_one_side(), size=24)
 
 
 def test_import_writes_a_v2_dataset_with_linear_radiance(sphere_set, tmp_path, capsys):
@@ -46,14 +53,14 @@ def test_import_writes_a_v2_dataset_with_linear_radiance(sphere_set, tmp_path, c
     assert json.loads((out / "manifest.json").read_text())["extra"]["import"]["texel_mm_known"] is True
 
 
-def test_import_matches_names_with_folder_prefixes_and_by_number(sphere_set, tmp_path, capsys):
-    recs = [LightRecord(f"C:\\captures\\BALL.{k}.png", tuple(d)) for k, d in enumerate(sphere_set.dirs)]
+def test_import_matches_names_with_folder_prefixes_and_by_number(small_set, tmp_path, capsys):
+    recs = [LightRecord(f"C:\\captures\\BALL.{k}.png", tuple(d)) for k, d in enumerate(small_set.dirs)]
     write_lights_json(tmp_path / "prefixed.json", recs)
-    assert run(str(sphere_set.folder), "--lights", str(tmp_path / "prefixed.json"), "-o", str(tmp_path / "a"),
+    assert run(str(small_set.folder), "--lights", str(tmp_path / "prefixed.json"), "-o", str(tmp_path / "a"),
                "--transfer", "srgb") == 0
     lp = tmp_path / "chrome.lp"  # lights recovered from chrome.<k>.png, object shot as ball.<k>.png
-    lp.write_text(sphere_set.lp.read_text().replace("ball.", "chrome."))
-    assert run(str(sphere_set.folder), "--lights", str(lp), "-o", str(tmp_path / "b"), "--transfer", "srgb") == 0
+    lp.write_text(small_set.lp.read_text().replace("ball.", "chrome."))
+    assert run(str(small_set.folder), "--lights", str(lp), "-o", str(tmp_path / "b"), "--transfer", "srgb") == 0
     assert "by the numbers in the names" in capsys.readouterr().out
     a, b = read_dataset(tmp_path / "a"), read_dataset(tmp_path / "b")
     assert np.allclose([r.direction for r in a.records], [r.direction for r in b.records], atol=1e-8)
@@ -72,9 +79,9 @@ def test_import_masks_clipped_pixels(tmp_path):
     assert np.array_equal(~ds.valid(0, img), clipped | ~s.mask)
 
 
-def test_import_replaces_an_earlier_dataset_only_when_complete(sphere_set, tmp_path):
+def test_import_replaces_an_earlier_dataset_only_when_complete(small_set, tmp_path):
     out = tmp_path / "ds"
-    args = [str(sphere_set.folder), "--lights", str(sphere_set.lp), "-o", str(out)]
+    args = [str(small_set.folder), "--lights", str(small_set.lp), "-o", str(out)]
     assert run(*args, "--transfer", "srgb") == 0
     before = (out / "manifest.json").read_bytes()
     assert run(*args) == 2  # refused: the first dataset is untouched
