@@ -88,6 +88,23 @@ def _checking_figures(problems: list):
 
 
 @pytest.fixture
+def figures_not_drawn(monkeypatch):
+    """``Assets.figure`` builds each figure but neither draws nor saves it: for the tests of the
+    page's words only (drawing is most of a report's time; the figures of these runs are drawn
+    and checked by ``run_report``, test_run_report_optional_stages_missing and
+    test_run_report_into_another_folder_and_rerun)."""
+    import matplotlib.pyplot as plt
+
+    from dualscale.report import html as rhtml
+
+    def figure(self, fig, stem):
+        plt.close(fig)
+        return self.rel(self.dir / f"{self._name(stem)}.png")
+
+    monkeypatch.setattr(rhtml.Assets, "figure", figure)
+
+
+@pytest.fixture
 def layout_checked(monkeypatch):
     """Every figure a report saves is checked (see :func:`_checking_figures`); returns the list
     of problems."""
@@ -233,7 +250,7 @@ def _section(page: Path, sid: str) -> str:
     return " ".join(p.text)
 
 
-def test_run_report_title_uses_the_name(tmp_path):
+def test_run_report_title_uses_the_name(tmp_path, figures_not_drawn):
     """The title names the material by ``--name`` (it used the input folder's name), else by
     the name the export stage gave it."""
     from dualscale.report import write_run_report
@@ -550,7 +567,7 @@ def test_report_loads_in_headless_browser(run_report, tmp_path):
     assert state["overflow"] <= 0, f"page is {state['overflow']} px wider than the window"
 
 
-def test_run_report_shows_the_runs_checks_near_the_top(tmp_path):
+def test_run_report_shows_the_runs_checks_near_the_top(tmp_path, figures_not_drawn):
     """Issue 24 trial: a run that failed its check (held-out 53 %) had a report saying only
     "held-out 53%"; the words goal/check/✗ appeared nowhere.  Now the checks (value, goal, ✓/✗)
     come right after the headline, computed from the fit stage's record."""

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from .runfolder import add_uncertainty, make_run
-from .test_report import _assert_readable, _checking_figures, _parse, _section
+from .test_report import _assert_readable, _checking_figures, _parse, _section, figures_not_drawn  # noqa: F401
 
 
 @pytest.fixture(scope="module")
@@ -75,7 +75,8 @@ def test_uncertainty_section_without_ground_truth_or_record(tmp_path):
     assert "Coverage" not in sec and "ground truth" not in sec
 
 
-def test_no_uncertainty_section_without_it(tmp_path):
+def test_no_uncertainty_section_without_it(tmp_path, figures_not_drawn):
+    """(The page's words only: its figures are not drawn, see figures_not_drawn.)"""
     from dualscale.report import write_run_report
 
     run = make_run(tmp_path / "RUN", flyouts=False, guidance=False)
