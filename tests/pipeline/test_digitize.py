@@ -27,9 +27,23 @@ def _records(run: Path) -> dict[str, dict]:
             if (run / "stages" / f"{s}.json").is_file()}
 
 
-def test_digitize_runs_every_stage_and_records_it(sample, tmp_path, capsys):
-    run = tmp_path / "run"
-    assert _digitize(sample, run) == 0
+@pytest.fixture(scope="module")
+def full_run(sample, tmp_path_factory) -> tuple[Path, str]:
+    """``(run folder, stdout)`` of one fresh digitize of the sample, every stage, shared by the
+    tests that only read it (its fit and flyouts stages are the ones ``--until fit`` /
+    ``--until flyouts`` run with the same options)."""
+    import contextlib
+    import io
+
+    run = tmp_path_factory.mktemp("full") / "run"
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        assert _digitize(sample, run) == 0
+    return run, out.getvalue()
+
+
+def test_digitize_runs_every_stage_and_records_it(full_run):
+    run, out = full_run
     recs = _records(run)
     assert list(recs) == list(STAGES)
     for name, r in recs.items():
@@ -63,7 +77,6 @@ def test_digitize_runs_every_stage_and_records_it(sample, tmp_path, capsys):
                                                for files in doc["formats"].values() for f in files)
     assert (run / "report" / "index.html").is_file()
     assert not (run / "work").exists() or not any((run / "work").iterdir())
-    out = capsys.readouterr().out
     assert str(run / "report" / "index.html") in out and str(run / "export") in out
     assert "maps fitted on 64 of 64 images; held-out relative L1" in out and "8-fold cross-validation" in out
 
@@ -156,15 +169,14 @@ def test_outputs_get_the_usual_file_mode(sample, tmp_path):
     assert (run / "calibrate").stat().st_mode & 0o777 == 0o755
 
 
-def test_digitize_fits_in_tiles_on_workers_with_the_same_maps(sample, tmp_path, capsys):
+def test_digitize_fits_in_tiles_on_workers_with_the_same_maps(sample, full_run, tmp_path, capsys):
     """``--workers 2``: the fit stage runs in tiles on a local Dask cluster (issue 16); its maps
-    are the in-process stage's bit for bit, so its record is the same and a rerun without
-    ``--workers`` skips it."""
+    are the in-process stage's (``full_run``'s) bit for bit, so its record is the same and a
+    rerun without ``--workers`` skips it."""
     pytest.importorskip("distributed", reason="the dask extra is not installed")
     from dualscale.formats.maps import load_maps
 
-    one, two = tmp_path / "one", tmp_path / "two"
-    assert _digitize(sample, one, "--until", "fit") == 0
+    one, two = full_run[0], tmp_path / "two"
     assert _digitize(sample, two, "--until", "fit", "--workers", "2") == 0
     fit = json.loads((two / "fit" / "maps" / "fit.json").read_text())
     assert fit["tiled"]["engine"].startswith("local (2 workers") and fit["tiled"]["tiles"] >= 1
@@ -181,12 +193,12 @@ def test_digitize_fits_in_tiles_on_workers_with_the_same_maps(sample, tmp_path, 
     assert "fit        up to date" in out and "calibrate  up to date" in out, out
 
 
-def test_the_fit_stage_out_of_core_gives_the_same_maps_and_evidence(sample, tmp_path, monkeypatch):
+def test_the_fit_stage_out_of_core_gives_the_same_maps_and_evidence(sample, full_run, tmp_path, monkeypatch):
     """``--memory`` below the micro dataset's fit (issue 25): the fit stage reads the dataset
     band by band and writes the maps by rows, and its residual map and re-renders are read band
     by band too, as is the fly-out stage's confidence map; the maps equal the in-memory stage's
     bit for bit, the evidence to float32 rounding, and the stage's record (its params) is the
-    same."""
+    same.  (The in-memory stages are ``full_run``'s.)"""
     import numpy as np
     import torch
 
@@ -200,8 +212,7 @@ def test_the_fit_stage_out_of_core_gives_the_same_maps_and_evidence(sample, tmp_
     _, _, (h, w), images = fit_layout(sample / "micro")
     monkeypatch.setattr(stream, "MIN_PART_PIXELS", 1)  # a small sample: parts below the product's least
     memory = RESERVE + (h * w // 4) * images * BYTES_PER_SAMPLE
-    one, two = tmp_path / "one", tmp_path / "two"
-    assert _digitize(sample, one, "--until", "flyouts") == 0
+    one, two = full_run[0], tmp_path / "two"
     assert _digitize(sample, two, "--until", "flyouts", "--memory", str(memory)) == 0
     fit = json.loads((two / "fit" / "maps" / "fit.json").read_text())
     assert fit["out_of_core"]["parts"] >= 4
