@@ -88,23 +88,6 @@ def _checking_figures(problems: list):
 
 
 @pytest.fixture
-def figures_not_drawn(monkeypatch):
-    """``Assets.figure`` builds each figure but neither draws nor saves it: for the tests of the
-    page's words only (drawing is most of a report's time; the figures of these runs are drawn
-    and checked by ``run_report``, test_run_report_optional_stages_missing and
-    test_run_report_into_another_folder_and_rerun)."""
-    import matplotlib.pyplot as plt
-
-    from dualscale.report import html as rhtml
-
-    def figure(self, fig, stem):
-        plt.close(fig)
-        return self.rel(self.dir / f"{self._name(stem)}.png")
-
-    monkeypatch.setattr(rhtml.Assets, "figure", figure)
-
-
-@pytest.fixture
 def layout_checked(monkeypatch):
     """Every figure a report saves is checked (see :func:`_checking_figures`); returns the list
     of problems."""

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from .runfolder import add_uncertainty, make_run
-from .test_report import _assert_readable, _checking_figures, _parse, _section, figures_not_drawn  # noqa: F401
+from .test_report import _assert_readable, _checking_figures, _parse, _section
 
 
 @pytest.fixture(scope="module")
