@@ -353,7 +353,7 @@ def test_the_lms_last_iteration_gathers_the_covariance(datasets):
 
 
 def test_pixels_the_last_step_moved_are_evaluated_again_at_the_solution(datasets):
-    """A fit stopped short (5 joint iterations): where its last accepted step moved a determined
+    """A fit stopped short (4 joint iterations): where its last accepted step moved a determined
     parameter by more than ``STALE_STEP`` sigmas the gathered matrices are stale, and those
     pixels are evaluated again at the solution: their sigma is the separate pass's, bit for bit
     (pixels are independent); elsewhere it is the gathered one."""
@@ -361,7 +361,7 @@ def test_pixels_the_last_step_moved_are_evaluated_again_at_the_solution(datasets
     from dualscale.fit.uncertainty import STALE_STEP, Gather, _gone, pixel_uncertainty
 
     obs = _noisy_crop(datasets("twill"), 8, 0.003, seed=4)
-    preset = replace(PRESETS["standard"], iterations=(3, 3, 5))
+    preset = replace(PRESETS["standard"], iterations=(3, 3, 4))
     params = {k: v.clone() for k, v in initial_params(obs, TWILL).items()}
     gather = Gather(obs, preset)
     run_lm(params, TWILL, obs, Loop(preset, TWILL, Checkpointer(None, "test", 0)), gather=gather)
