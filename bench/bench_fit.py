@@ -108,8 +108,8 @@ def run(materials: list[str], presets: list[str], size: int, texel_um: float, no
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         warm_obs, _ = dataset(Path(tmp) / "warm", "leather", 8, texel_um)
-        for p in presets:  # warm-up (allocator, thread pools)
-            fit_observations(warm_obs, preset(p).scaled(0.01), select_components(warm_obs)[0])
+        for p in presets:  # warm-up (allocator, thread pools, the kernels' compilation or cache loading)
+            fit_observations(warm_obs, preset(p).scaled(0.01), select_components(warm_obs)[0], uncertainty=True)
         for m in materials:
             obs, gt = dataset(Path(tmp) / m, m, size, texel_um, noise, shadows)
             train, held = split_holdout(obs, 8)
