@@ -118,12 +118,20 @@ class DigitizeOptions:
     engine: Any = None  # a dualscale.engine.EngineSpec: the fit stage runs in tiles on that cluster
     tile_px: int | None = None  # the side of those tiles (None: fit.tiled.TILE); the same maps at any side
     memory: int | None = 2 * 1024 ** 3  # the fit stage's budget in bytes (fit.stream.DEFAULT_MEMORY; None: unlimited)
+    #: ground-truth maps (a synthetic sample's ``maps/``) the fit stage is scored against
+    #: (evaluation only: ``fit.json``'s ``ground_truth``; the report then shows the maps' errors
+    #: beside their sigma and sigma's coverage)
+    gt: Path | None = None
     source: str | None = None
 
     def __post_init__(self) -> None:
         self.input, self.run = Path(self.input), Path(self.run)
         self.calibration = None if self.calibration is None else Path(self.calibration)
         self.guidance = None if self.guidance is None else Path(self.guidance)
+        self.gt = None if self.gt is None else Path(self.gt).resolve()  # the report reads it from anywhere
+        if self.gt is not None and not (self.gt / "material.json").is_file():
+            raise InputError(f"{self.option('gt')} {self.gt}: not a maps folder (no material.json): give the "
+                             "ground-truth maps, e.g. a synthetic sample's maps/")
         if self.guidance_transfer is not None and self.guidance is None:
             raise InputError(f"{self.option('transfer')} {self.guidance_transfer}: the transfer function is that of a "
                              f"display-encoded guidance image, and no guidance is given ({self.option('guidance')}); "
@@ -494,7 +502,8 @@ class Digitizer:
         params = {"preset": self.quality.fit_preset, "cv_pixels": self.quality.cv_pixels,
                   "cv_folds": self.quality.cv_folds, "seed": self.opts.seed}
         self._prev("calibrate")
-        return self._stage("fit", {"dataset": tree_sha256(self.dataset)}, params, self._fit)
+        inputs = {"dataset": tree_sha256(self.dataset), **({"gt": tree_sha256(self.opts.gt)} if self.opts.gt else {})}
+        return self._stage("fit", inputs, params, self._fit)
 
     def _fit(self, work: Path) -> dict[str, Any]:
         """The fit on every light (:func:`dualscale.fit.api.fit_dataset`, with its
@@ -517,7 +526,7 @@ class Digitizer:
                                      cv_pixels=self.quality.cv_pixels, cv_folds=self.quality.cv_folds,
                                      progress=self.opts.progress, seed=self.opts.seed,
                                      obs=obs if len(bands) == 1 else None, memory=self.opts.memory,
-                                     checkpoint_every=CHECKPOINT_EVERY, engine=self.opts.engine,
+                                     checkpoint_every=CHECKPOINT_EVERY, engine=self.opts.engine, gt=self.opts.gt,
                                      **({} if self.opts.tile_px is None else {"tile_px": self.opts.tile_px}))
         for w in caught:  # to the stage's record
             warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)

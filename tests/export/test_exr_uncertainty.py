@@ -148,3 +148,28 @@ def test_an_uncertainty_of_other_maps_is_refused_before_writing(tmp_path):
     with pytest.raises(FormatError, match="belongs to other maps"):
         export_material(twill, tmp_path / "out", ["exr"])
     assert not (tmp_path / "out").exists()
+
+
+def test_the_exports_maps_keep_their_uncertainty_for_the_viewer(tmp_path):
+    """An untiled export's ``maps/`` copy carries the uncertainty beside it, bound to the copy
+    (its ``maps_sha256``), so ``dualscale view`` finds sigma there once the source has moved
+    (a fresh user's trial: the viewer had looked only at the source folder); a tiled export's
+    copy has none."""
+    from dualscale.formats.maps import maps_sha256
+    from dualscale.view.scene import _sigma_source
+
+    maps = _folder(tmp_path / "twill" / "maps", "twill")
+    out = tmp_path / "out"
+    doc = export_material(maps, out, ["mtlx"])
+    assert "maps/uncertainty/uncertainty.json" in doc["formats"]["maps"]
+    s0, u0, _ = load_uncertainty(maps)
+    s1, u1, d1 = load_uncertainty(out / "maps")
+    assert d1["meta"]["maps_sha256"] == maps_sha256(out / "maps")
+    for k in s0:
+        assert np.array_equal(u0[k], u1[k]) and np.array_equal(np.nan_to_num(s0[k]), np.nan_to_num(s1[k]))
+    moved = tmp_path / "elsewhere"
+    (tmp_path / "twill").rename(moved)
+    assert _sigma_source(out, str(maps)) == out / "maps"
+    big = _folder(tmp_path / "big" / "maps", "twill", n=64)
+    tiled = export_material(big, tmp_path / "tiled", ["mtlx"], tile=True)
+    assert not (tmp_path / "tiled" / "maps" / "uncertainty").exists() and tiled["uncertainty_sha256"]

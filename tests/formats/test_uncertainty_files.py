@@ -126,8 +126,38 @@ def test_malformed_files_are_refused(tmp_path):
     k = np.argwhere(~und2["roughness"][..., 0])[0]
     a[k[0], k[1], 0] = np.nan
     write_pixels(p, a, spec)
+    with pytest.raises(FormatError, match="roughness.exr is not the file uncertainty.json was written with"):
+        load_uncertainty(tmp_path)
+    from dualscale.formats.run import file_sha256
+
+    doc = json.loads(j.read_text())  # a record that agrees with the damaged file: its pixels are checked too
+    doc["files_sha256"]["roughness.exr"] = file_sha256(p)
+    j.write_text(json.dumps(doc))
     with pytest.raises(FormatError, match="determined values are negative or not finite"):
         load_uncertainty(tmp_path)
+
+
+def test_a_sigma_file_from_another_fit_or_a_map_in_its_place_is_refused(tmp_path):
+    """Each sigma file must be the one its uncertainty.json was written with (``files_sha256``):
+    another fit's sigma copied over, or a file of the right shape and channels that is not a
+    sigma at all, is refused naming the file; a missing listed file too."""
+    a, b = tmp_path / "a", tmp_path / "b"
+    save_uncertainty(a, *_set(seed=0))
+    save_uncertainty(b, *_set(seed=1))
+    load_uncertainty(a)
+    (a / "uncertainty" / "roughness.exr").write_bytes((b / "uncertainty" / "roughness.exr").read_bytes())
+    with pytest.raises(FormatError, match="roughness.exr is not the file"):
+        load_uncertainty(a)
+    save_uncertainty(a, *_set(seed=0))
+    from dualscale.formats.exr import write_exr
+
+    write_exr(a / "uncertainty" / "normal.exr", np.full((9, 7, 1), 0.5, np.float32), ("Y",))  # a map, not a sigma
+    with pytest.raises(FormatError, match="normal.exr is not the file"):
+        load_uncertainty(a)
+    save_uncertainty(a, *_set(seed=0))
+    (a / "uncertainty" / "undetermined.exr").unlink()
+    with pytest.raises(FileNotFoundError, match="undetermined.exr"):
+        load_uncertainty(a)
 
 
 # --------------------------------------------------------------------------- UncertaintyWriter (by rows)

@@ -283,3 +283,20 @@ def test_a_memory_budget_below_the_fits_least_is_refused_before_the_run_folder(s
     assert _digitize(sample, run, "--memory", "10M", "--until", "fit") == 2
     assert "--memory 10 MiB is below what a fit of 64 images needs" in capsys.readouterr().err
     assert not run.exists()
+
+
+def test_digitize_scores_the_fit_against_a_ground_truth(sample, tmp_path):
+    """``--gt MAPS``: the fit stage is scored against the ground truth (``fit.json``'s
+    ``ground_truth``, from which the report's uncertainty section shows the maps' errors beside
+    their sigma and sigma's coverage, ``tests/report/test_uncertainty.py``); a folder that is no
+    maps folder is refused before the run folder is made."""
+    bad = tmp_path / "not-maps"
+    bad.mkdir()
+    assert _digitize(sample, tmp_path / "refused", "--gt", str(bad)) == 2
+    assert not (tmp_path / "refused").exists()
+    run = tmp_path / "run"
+    assert _digitize(sample, run, "--until", "fit", "--gt", str(sample / "maps")) == 0
+    fit = json.loads((run / "fit" / "maps" / "fit.json").read_text())
+    assert Path(fit["ground_truth"]["dir"]) == (sample / "maps").resolve()
+    assert fit["ground_truth"]["errors"]["albedo_rmse"] < 0.05 and fit["uncertainty"]["maps"]
+    assert _records(run)["fit"]["inputs"]["gt"]

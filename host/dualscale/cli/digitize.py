@@ -103,7 +103,7 @@ def cmd_digitize(a: argparse.Namespace) -> int:
                            guidance_transfer=a.transfer, guidance_texel_mm=a.guidance_texel_mm, quality=a.quality,
                            until=a.until, threads=apply_threads(a), progress=want_progress(a), seed=a.seed,
                            engine=engine_spec(a), tile_px=a.tile_px, memory=parse_memory(a.memory),
-                           export=tuple(parse_formats(a.export, '--export')), tile=a.tile, name=a.name)
+                           export=tuple(parse_formats(a.export, '--export')), tile=a.tile, name=a.name, gt=a.gt)
     def start() -> None:
         print(f"digitize {opts.input} -> {opts.run} (quality {opts.quality})", flush=True)
 
@@ -244,6 +244,10 @@ def register(sub) -> None:
     d.add_argument("--tile", action="store_true",
                    help="export a seamless tile of whole repeats of the propagated maps (docs/TILE.md)")
     d.add_argument("--name", default=None, help="material name in the exports (default: the input folder's name)")
+    d.add_argument("--gt", default=None, metavar="MAPS",
+                   help="ground-truth maps (e.g. a synth sample's maps/) to score the fit stage against: the report "
+                        "then shows the maps' errors beside their sigma and how often |error| <= 1.96 sigma "
+                        "(evaluation only; docs/FITTING.md)")
     from .capture import add_capture_options
 
     add_capture_options(d)

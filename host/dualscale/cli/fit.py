@@ -236,9 +236,9 @@ def register(subparsers) -> None:
     f.add_argument("--no-uncertainty", action="store_true",
                    help="do not compute the maps' per-pixel uncertainty (default: computed, written to "
                         "OUT/uncertainty/ as a 1-sigma EXR per map and undetermined.exr, summarised in fit.json; "
-                        "without it the viewer, report and export have no sigma to show; saves the extra kernel "
-                        "pass at the solution: 11-13 %% of the LM presets' optimiser time, ~3 %% of a whole fit of a "
-                        "64x64 twill; docs/FITTING.md)")
+                        "without it the viewer, report and export have no sigma to show; the LM presets build it in "
+                        "their last iteration's kernel pass, and it costs about 2-8 %% of the fit's time; "
+                        "docs/FITTING.md)")
     f.add_argument("--memory", default=DEFAULT_MEMORY, metavar="SIZE",
                    help="memory budget of the fit, e.g. 2G, 800M, or 'unlimited' (the whole map in memory): a "
                         "dataset whose fit needs more is fitted out of core, band by band from disk, with the same "

@@ -35,7 +35,8 @@ from typing import Any, Callable, Sequence
 
 from dualscale.errors import FormatError, InputError
 from dualscale.formats.atomic import atomic_dir, write_json
-from dualscale.formats.maps import UNCERTAINTY_DIR, load_maps, load_uncertainty, maps_sha256, save_maps
+from dualscale.formats.maps import (UNCERTAINTY_DIR, load_maps, load_uncertainty, maps_sha256, save_maps,
+                                    save_uncertainty)
 from dualscale.formats.versioned import read_versioned_json
 
 from . import NAME_RE, ExportContext, _registry
@@ -104,8 +105,10 @@ def export_material(maps_dir: str | Path, out: str | Path, formats: Sequence[str
 
     The maps' 1-sigma uncertainty (``maps_dir/uncertainty/``, issue 26) goes into the ``exr``
     set (:mod:`.exr`; absent: nothing changes); a tiled export leaves it out (the tile is
-    resampled, its sigma is not) and says so in ``exchange.json``.  A changed uncertainty redoes
-    ``exr`` only.  ``FormatError`` for an uncertainty folder that does not read or whose size is
+    resampled, its sigma is not) and says so in ``exchange.json``, and an untiled export's
+    ``maps/`` copy keeps it beside them (``maps/uncertainty/``, re-bound to the copy's
+    ``maps_sha256``), where ``dualscale view`` finds it when the source has moved.  A changed
+    uncertainty redoes ``exr`` and ``maps`` only.  ``FormatError`` for an uncertainty folder that does not read or whose size is
     not the maps'.
     """
     from dualscale.errors import UnitsError
@@ -137,7 +140,7 @@ def export_material(maps_dir: str | Path, out: str | Path, formats: Sequence[str
     source_sha = _digest(maps_dir / "material.json")
     uncertainty_sha = _uncertainty_digest(maps_dir)
     uncertainty, uncertainty_note = None, None
-    if uncertainty_sha is not None and "exr" in formats:
+    if uncertainty_sha is not None:
         if tile:
             uncertainty_note = ("a tiled export: the tile is a resampled, feathered cut of the maps "
                                 "(dualscale.tile) and the uncertainty is not cut with it")
@@ -178,7 +181,10 @@ def export_material(maps_dir: str | Path, out: str | Path, formats: Sequence[str
     else:
         with atomic_dir(out / "maps") as tmp:
             save_maps(tmp, maps, {"source": str(maps_dir), "tile": tile_info}, texel_mm=texel)
-            done["maps"] = sorted(f"maps/{p.name}" for p in tmp.iterdir())
+            if uncertainty is not None:  # the export's maps keep their uncertainty (the viewer reads it there)
+                sigma, und, udoc = uncertainty
+                save_uncertainty(tmp, sigma, und, {**(udoc.get("meta") or {}), "maps_sha256": maps_sha256(tmp)})
+            done["maps"] = sorted(f"maps/{p.relative_to(tmp).as_posix()}" for p in tmp.rglob("*") if p.is_file())
     for fmt in formats:
         if fmt in previous and (out / fmt).is_dir():
             done[fmt] = previous[fmt]
@@ -231,9 +237,11 @@ def _previous(out: Path, source_sha: str, options: dict,
         return {}, list(doc["formats"])
     done = dict(doc["formats"])
     stale = []
-    if doc.get("uncertainty_sha256") != uncertainty_sha and "exr" in done:
-        done.pop("exr")
-        stale.append("exr")
+    if doc.get("uncertainty_sha256") != uncertainty_sha:  # the exr set and the maps' copy carry it
+        for fmt in ("exr", "maps"):
+            if fmt in done:
+                done.pop(fmt)
+                stale.append(fmt)
     return {f: files for f, files in done.items() if all((out / p).is_file() for p in files)}, stale
 
 

@@ -550,9 +550,13 @@ class UncertaintyWriter:
         for stale in self.folder.glob("*.exr"):  # the maps of an earlier set that this one lacks
             if stale.stem not in self.names and stale.stem != "undetermined":
                 remove_file(stale)
+        from .run import file_sha256
+
+        files = [f"{n}.exr" for n in self.names] + ["undetermined.exr"]
         doc = {"format": UNCERTAINTY_FORMAT, "version": UNCERTAINTY_VERSION, "maps": list(self.names),
                "height": self.height, "width": self.width, "units": {n: SIGMA_UNITS[n] for n in self.names},
-               "scales": {n: SIGMA_SCALE[n] for n in self.names}, "meta": self.meta or {}}
+               "scales": {n: SIGMA_SCALE[n] for n in self.names},
+               "files_sha256": {f: file_sha256(self.folder / f) for f in files}, "meta": self.meta or {}}
         write_json(self.path, doc)
 
 
@@ -572,6 +576,28 @@ def maps_sha256(root: str | Path) -> str:
     return h.hexdigest()
 
 
+def _check_files(folder: Path, doc: dict) -> None:
+    """Each file ``uncertainty.json`` records (``"files_sha256"``; a record written before it
+    had none is not checked) must be the one written with it: a sigma file copied from another
+    fit, or a map put in its place, is refused (:class:`~dualscale.errors.FormatError` naming the
+    file) rather than read as this fit's sigma."""
+    from .run import file_sha256
+
+    record = doc.get("files_sha256")
+    if record is None:
+        return
+    if not isinstance(record, dict):
+        raise FormatError(f"{folder / 'uncertainty.json'}: 'files_sha256' is {type(record).__name__}, not a record")
+    for f, want in record.items():
+        p = folder / str(f)
+        if not p.is_file():
+            raise FileNotFoundError(f"{p}: listed in uncertainty.json but missing")
+        if file_sha256(p) != want:
+            raise FormatError(f"{p} is not the file uncertainty.json was written with (its SHA-256 differs): "
+                              "a sigma file replaced or copied from another fit; fit again to rewrite the "
+                              "uncertainty")
+
+
 def load_uncertainty(root: str | Path) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], dict[str, Any]]:
     """``(sigma, undetermined, doc)`` written by :func:`save_uncertainty` under ``root``
     (float32 ``(H, W, C)`` with NaN where undetermined; bool ``(H, W, C)``; the
@@ -584,6 +610,7 @@ def load_uncertainty(root: str | Path) -> tuple[dict[str, np.ndarray], dict[str,
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no uncertainty beside these maps")
     doc = read_versioned_json(path, UNCERTAINTY_FORMAT, UNCERTAINTY_VERSION)
+    _check_files(folder, doc)
     h, w = doc.get("height"), doc.get("width")
     mask = read_exr(folder / "undetermined.exr")
     if mask.shape[:2] != (h, w):

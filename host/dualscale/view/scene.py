@@ -62,12 +62,11 @@ def _has_uncertainty(maps: Path) -> bool:
 
 
 def _sigma_source(root: Path, source: Any) -> Path | None:
-    """The maps folder an export was written from (``export.json``'s ``source``, absolute or
-    relative to the export folder) when it holds an uncertainty folder; an untiled export only
-    (a tiled one's texels are not the maps')."""
-    if not source:
-        return None
-    for p in (Path(str(source)), root / str(source)):
+    """The maps folder holding an untiled export's uncertainty (a tiled one's texels are not
+    the maps'): its own ``maps/`` copy (written with it since issue 26's exports), else the maps
+    folder it was written from (``export.json``'s ``source``, absolute or relative to it)."""
+    candidates = [root / "maps"] + ([Path(str(source)), root / str(source)] if source else [])
+    for p in candidates:
         try:
             if p.is_dir() and _has_uncertainty(p):
                 return p
