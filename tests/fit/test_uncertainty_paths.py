@@ -108,4 +108,5 @@ def test_the_cli_fit_writes_it_unless_told_not_to(datasets, tmp_path, capsys):
     assert "median 1-sigma" in said and f"normal {med:.2g}°" in said and "not the calibration" in said
     assert main(["fit", str(ds), "-o", str(tmp_path / "on"), *common, "--no-uncertainty"]) == 0
     assert not (tmp_path / "on" / UNCERTAINTY_DIR).exists()
-    assert "median 1-sigma" not in capsys.readouterr().out
+    said = capsys.readouterr().out
+    assert "median 1-sigma" not in said and "the earlier fit's" in said and "was removed" in said

@@ -69,6 +69,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
         raise InputError(f"--cv-pixels {args.cv_pixels}: give a count >= 0 (0 = no cross-validation pass)")
     overrides = {"transmittance": _SWITCH[args.transmittance], "anisotropy": _SWITCH[args.anisotropy],
                  "tint": _SWITCH[args.tint]}
+    had_sigma = (Path(args.output) / "uncertainty" / "uncertainty.json").is_file()
     with output_folder(args, "fit", [args.dataset]):
         res, extra = fit_dataset(args.dataset, args.output, preset, overrides, cv_pixels=args.cv_pixels, cv_folds=folds,
                                  progress=want_progress(args), checkpoint_every=args.checkpoint_every,
@@ -101,6 +102,9 @@ def cmd_fit(args: argparse.Namespace) -> int:
     line = _uncertainty_line(Path(args.output))
     if line:
         print(line)
+    elif args.no_uncertainty and had_sigma:
+        print(f"uncertainty: none (--no-uncertainty); the earlier fit's {Path(args.output) / 'uncertainty'}/ was "
+              "removed with its maps")
     print(f"wrote {Path(args.output) / 'fit.json'}")
     return 0
 
