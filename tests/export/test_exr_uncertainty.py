@@ -173,3 +173,16 @@ def test_the_exports_maps_keep_their_uncertainty_for_the_viewer(tmp_path):
     big = _folder(tmp_path / "big" / "maps", "twill", n=64)
     tiled = export_material(big, tmp_path / "tiled", ["mtlx"], tile=True)
     assert not (tmp_path / "tiled" / "maps" / "uncertainty").exists() and tiled["uncertainty_sha256"]
+
+
+def test_the_export_command_says_where_sigma_went(tmp_path, capsys):
+    from dualscale.cli import main
+
+    maps = _folder(tmp_path / "twill" / "maps", "twill")
+    assert main(["export", str(maps), "-o", str(tmp_path / "out"), "--format", "exr,mtlx"]) == 0
+    said = capsys.readouterr().out
+    assert "sigma: the maps' 1-sigma uncertainty in exr/*_sigma.exr" in said and "no field for it" in said
+    plain = tmp_path / "plain" / "maps"
+    save_maps(plain, generate("twill", size=N, texel_mm=0.02, seed=1).maps, texel_mm=0.02)
+    assert main(["export", str(plain), "-o", str(tmp_path / "out2"), "--format", "mtlx"]) == 0
+    assert "sigma" not in capsys.readouterr().out

@@ -58,6 +58,8 @@ def cmd_export(args: argparse.Namespace) -> int:
         print(f"  {fmt:5s} {Path(args.output) / main}{'  (unchanged, kept)' if fmt in doc['reused'] else ''}")
     for fmt, why in doc.get("skipped", {}).items():
         print(f"  {fmt:5s} left out: {why}")
+    if doc.get("uncertainty_sha256"):
+        print(_sigma_line(doc))
     if doc["tiled"] and doc.get("tile"):
         seam = doc["tile"].get("seam", {})
         if "tile" in seam:
@@ -67,6 +69,16 @@ def cmd_export(args: argparse.Namespace) -> int:
             if worst.get("score") is not None and worst.get("map") != "albedo":
                 print(f"  its worst map, {worst['map']}: {worst['score']:.3g}")
     return 0
+
+
+def _sigma_line(doc: dict) -> str:
+    """Where the maps' per-pixel uncertainty went (issue 26; docs/EXPORT.md)."""
+    if doc["tiled"]:
+        return "  sigma: left out (a tiled export: the tile is a resampled cut of the maps; exchange.json says so)"
+    sigma = sorted(f for f in doc["formats"].get("exr", []) if f.endswith("_sigma.exr"))
+    where = f"exr/*_sigma.exr ({len(sigma)} files) and maps/uncertainty/" if sigma else "maps/uncertainty/"
+    return (f"  sigma: the maps' 1-sigma uncertainty in {where}; MaterialX, glTF and U3M have no field for it "
+            "(docs/EXPORT.md)")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
