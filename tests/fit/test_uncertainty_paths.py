@@ -110,3 +110,18 @@ def test_the_cli_fit_writes_it_unless_told_not_to(datasets, tmp_path, capsys):
     assert not (tmp_path / "on" / UNCERTAINTY_DIR).exists()
     said = capsys.readouterr().out
     assert "median 1-sigma" not in said and "the earlier fit's" in said and "was removed" in said
+
+
+def test_a_ground_truth_of_another_size_is_refused_before_the_fit(datasets, tmp_path, capsys):
+    """``fit --gt`` with maps of another size: exit 2 naming both sizes before any work (it was
+    found only after the whole fit), the output folder untouched."""
+    from dualscale.cli import main
+
+    ds = datasets("twill", 8) / "micro"
+    other = datasets("twill", 16) / "maps"
+    out = tmp_path / "fit"
+    assert main(["fit", str(ds), "-o", str(out), "--preset", "draft", "--gt", str(other), "--cv-pixels", "0",
+                 "--no-progress", "--threads", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "16 x 16" in err and "8 x 8" in err
+    assert not (out / "fit.json").exists() and not (out / "material.json").exists()

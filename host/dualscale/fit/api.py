@@ -121,6 +121,8 @@ def fit_dataset(dataset: str | Path, out: str | Path, preset: str | Preset = "st
                        "path": "out of core" if ooc is not None else "in memory"}
     else:
         memory_note = {"memory_bytes": memory, "path": "in memory (observations given)"}
+    if gt is not None:  # before any work: a ground truth of another size is refused now, not after the fit
+        _check_ground_truth(gt, tuple(obs.shape) if obs is not None else tuple(shape))
     if restart:
         remove_file(ck)
         remove_file(cv_path)
@@ -211,6 +213,17 @@ def _fit(dataset, out: Path, p: Preset, obs, ooc, overrides, cv_pixels: int, fol
     remove_file(sel_path)
     remove_file(cv_path)
     return res, extra
+
+
+def _check_ground_truth(gt: str | Path, shape: tuple[int, int]) -> None:
+    """``gt`` is a maps folder (its ``material.json``) of the dataset's size ``shape`` (H, W):
+    ``FileNotFoundError``/:class:`~dualscale.errors.FormatError` otherwise, naming ``--gt``."""
+    from dualscale.formats.maps import read_material_json
+
+    doc = read_material_json(gt)
+    if (doc["height"], doc["width"]) != tuple(shape):
+        raise FormatError(f"--gt {gt}: the ground-truth maps are {doc['height']} x {doc['width']}, the dataset "
+                          f"{shape[0]} x {shape[1]}")
 
 
 def _ground_truth(gt: str | Path, maps, comps: Components) -> dict[str, Any]:
