@@ -95,3 +95,22 @@ def test_sigma_colours_are_the_viewers():
     assert rgb[0, 0].sum() < rgb[0, 2].sum()  # viridis: dark at 0, bright at the top
     top, und = plots.sigma_display(np.dstack([s, 2 * s]), np.dstack([u, u]))
     assert und.tolist() == [[False, False, False, True]] and top[0, 2] == 2.0
+
+
+def test_a_heavy_tailed_sigma_gets_a_log_histogram():
+    """A sigma that spans decades (a noise-free fit's ~1e-8 with a fly-out fibre's 1e-3, a fresh
+    user's trial: ~980 of 1024 texels in the first linear bin) is histogrammed on a log axis and
+    the caption says so; an ordinary one keeps the linear axis."""
+    from dualscale.report.plots import sigma_figure
+
+    rng = np.random.default_rng(0)
+    heavy = np.exp(rng.uniform(np.log(1e-8), np.log(1e-6), (32, 32, 1)))
+    heavy[:2] = 1e-3  # the fibre
+    und = np.zeros((32, 32, 1), bool)
+    def hist(fig):
+        return next(a for a in fig.axes if a.get_title() == "σ over the determined texels")
+
+    fig, cap = sigma_figure("roughness", heavy, und)
+    assert hist(fig).get_xscale() == "log" and "log axis" in cap
+    fig, cap = sigma_figure("roughness", rng.uniform(0.001, 0.003, (32, 32, 1)), und)
+    assert hist(fig).get_xscale() == "linear" and "log axis" not in cap

@@ -598,6 +598,11 @@ def sigma_colours(values, undetermined, vmax: float) -> np.ndarray:
     return rgb
 
 
+#: the sigma histogram turns to a log axis when the 1st percentile of sigma is below the colour
+#: scale's top over this (a noise-free fit's sigma, or a fly-out fibre's, spans decades)
+LOG_SPAN = 100.0
+
+
 def sigma_figure(name: str, sigma, undetermined, *, units: str = "", error=None, texel_mm: float | None = None):
     """The sigma of one map: its image (largest channel per texel, :data:`SIGMA_CMAP` from 0,
     undetermined texels in :data:`UNDETERMINED_NAME`, colour bar in the map's sigma unit), the
@@ -654,7 +659,10 @@ def sigma_figure(name: str, sigma, undetermined, *, units: str = "", error=None,
     names = ("R", "G", "B") if s.shape[2] == 3 else ("",)
     medians = []
     hi = r.vmax if r.vmax > 0 else 1.0
-    bins = np.linspace(0.0, hi, 41)
+    det = s[~u & np.isfinite(s) & (s > 0)]
+    lo = float(np.percentile(det, 1)) if det.size else 0.0
+    log = det.size > 0 and 0 < lo < hi / LOG_SPAN  # a heavy tail: most texels would share the first bin
+    bins = np.geomspace(lo, hi, 41) if log else np.linspace(0.0, hi, 41)
     for c in range(s.shape[2]):
         v = s[..., c][~u[..., c] & np.isfinite(s[..., c])]
         if not v.size:
@@ -662,9 +670,11 @@ def sigma_figure(name: str, sigma, undetermined, *, units: str = "", error=None,
             continue
         med = float(np.median(v))
         medians.append(med)
-        ax.hist(np.clip(v, 0, hi), bins=bins, histtype="step", color=colours[c], lw=1.2,
+        ax.hist(np.clip(v, bins[0], hi), bins=bins, histtype="step", color=colours[c], lw=1.2,
                 label=f"{names[c]} median {fmt.number(med)}".strip())
         ax.axvline(med, color=colours[c], ls="--", lw=1.0)
+    if log:
+        ax.set_xscale("log")
     ax.set_xlabel(label)
     ax.set_ylabel("texels")
     ax.set_title("σ over the determined texels")
@@ -673,6 +683,8 @@ def sigma_figure(name: str, sigma, undetermined, *, units: str = "", error=None,
         ax.legend(loc="upper right", fontsize=7, framealpha=0.85)
         cap += (" Right: histogram of σ over the determined texels"
                 + (" per channel" if s.shape[2] > 1 else "") + ", dashed lines at the median"
+                + (f", on a log axis (σ spans {np.log10(hi / lo):.0f} decades; values below "
+                   f"{fmt.number(lo)} counted in the first bin)" if log else "")
                 + (f" (values above {fmt.number(hi)} counted in the last bin)" if r.above > 0 else "") + ".")
     else:
         ax.text(0.5, 0.5, "every texel undetermined", ha="center", va="center", transform=ax.transAxes)
