@@ -285,17 +285,19 @@ def test_a_memory_budget_below_the_fits_least_is_refused_before_the_run_folder(s
     assert not run.exists()
 
 
-def test_digitize_scores_the_fit_against_a_ground_truth(sample, tmp_path):
+def test_digitize_scores_the_fit_against_a_ground_truth(sample, tmp_path, capsys):
     """``--gt MAPS``: the fit stage is scored against the ground truth (``fit.json``'s
     ``ground_truth``, from which the report's uncertainty section shows the maps' errors beside
     their sigma and sigma's coverage, ``tests/report/test_uncertainty.py``); a folder that is no
-    maps folder is refused before the run folder is made."""
+    maps folder is refused before the run folder is made; the fit's line of sigma is printed."""
     bad = tmp_path / "not-maps"
     bad.mkdir()
     assert _digitize(sample, tmp_path / "refused", "--gt", str(bad)) == 2
     assert not (tmp_path / "refused").exists()
     run = tmp_path / "run"
+    capsys.readouterr()
     assert _digitize(sample, run, "--until", "fit", "--gt", str(sample / "maps")) == 0
+    assert "fit: uncertainty (" in capsys.readouterr().out  # the maps' sigma, as `dualscale fit` says it
     fit = json.loads((run / "fit" / "maps" / "fit.json").read_text())
     assert Path(fit["ground_truth"]["dir"]) == (sample / "maps").resolve()
     assert fit["ground_truth"]["errors"]["albedo_rmse"] < 0.05 and fit["uncertainty"]["maps"]

@@ -128,6 +128,11 @@ def cmd_digitize(a: argparse.Namespace) -> int:
         rel = s.get("heldout_relative_l1")
         print(f"fit: preset {s['preset']}, maps fitted on {s.get('train_images')} of {s.get('images')} images; "
               f"held-out relative L1 {'n/a' if rel is None else f'{rel:.3f}'}, {s.get('heldout_method', 'n/a')}")
+        from .fit import _uncertainty_line
+
+        line = _uncertainty_line(run / "fit" / "maps")  # the maps' sigma, as `dualscale fit` says it
+        if line:
+            print(f"fit: {line}")
     exp = res.record("export")
     if exp is not None:
         for scale, e in exp["summary"].get("exports", {}).items():
