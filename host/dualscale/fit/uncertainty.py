@@ -175,7 +175,8 @@ def row_noise(r: Tensor, mu: Tensor, keep: Tensor, u: np.ndarray | None = None) 
     iteratively reweighted least squares on ``r^2`` (weights ``1 / var^2``, since ``Var(r^2) = 2
     var^2`` for a Gaussian ``r``; a row beyond :data:`NOISE_CLIP` sigmas of the previous iterate
     is left out, and the truncation's bias divided out), with ``a > 0`` and ``b >= 0``.  Starts
-    from the read-noise-only mean square.  (:func:`normal_matrices` calls the kernel itself.)"""
+    from the read-noise-only mean square.  (The fit itself runs the same model inside
+    :func:`.covariance.covariance_rows`.)"""
     u = np.ones(r.shape[-1]) if u is None else np.asarray(u, np.float64)
     y = (mu.double() - r.double()).reshape(-1, r.shape[-1]).numpy()
     a, b = _noise(r.double(), y, u, keep.double())
