@@ -13,7 +13,7 @@ PKG = Path(__file__).resolve().parents[1] / "host" / "dualscale"
 # layer of each top-level part (a module may import its own layer and lower ones)
 LAYER = {"errors": 0, "formats": 1, "geometry": 1, "bsdf": 1, "protocol": 1, "progress": 1, "threads": 1, "engine": 1, "rig": 2,
          "capture": 3, "calib": 3,
-         "fit": 4, "propagate": 5, "tile": 6, "export": 6, "report": 6, "pipeline": 7, "view": 7, "batch": 7.5,
+         "fit": 4, "propagate": 5, "adaptive": 5, "tile": 6, "export": 6, "report": 6, "pipeline": 7, "view": 7, "batch": 7.5,
          "cli": 8, "sim": 9}
 
 

@@ -814,11 +814,19 @@ def _options_json(o: DigitizeOptions) -> dict[str, Any]:
     return out
 
 
-def capture_stage(run: Path, rc: RigCapture, progress: Callable[[int, int, str], None] | None = None) -> StageResult:
+def capture_stage(run: Path, rc: RigCapture, progress: Callable[[int, int, str], None] | None = None,
+                  calibration: Path | None = None, log: Callable[[str], None] | None = None) -> StageResult:
     """The stage before ``calibrate`` when digitizing from the rig (:mod:`dualscale.capture.stage`):
     the plans captured into ``RUN/capture/{micro,mid}/``; an interrupted capture resumes from its
-    journal in ``RUN/work/capture/``."""
-    inputs, params, fn = capture_spec(rc, progress)
+    journal in ``RUN/work/capture/``.  With ``rc.adaptive`` the micro plan is captured adaptively
+    (:class:`dualscale.adaptive.loop.AdaptiveCapture`, each round calibrated with ``calibration``;
+    ``log`` gets its lines)."""
+    runners = None
+    if rc.adaptive is not None:
+        from dualscale.adaptive.loop import AdaptiveCapture
+
+        runners = {"micro": lambda session: AdaptiveCapture(session, calibration, rc.adaptive, log=log).run()}
+    inputs, params, fn = capture_spec(rc, progress, runners)
     return run_stage(run, CAPTURE_STAGE, inputs, params, versions(), fn)
 
 
@@ -846,7 +854,8 @@ def digitize(opts: DigitizeOptions, on_stage: Callable[[StageResult], None] | No
             raise FileNotFoundError(f"calibration file not found: {opts.calibration}")
         check_rig_calibration(rig, opts.calibration)
         opts.run.mkdir(parents=True, exist_ok=True)
-        captured = capture_stage(opts.run, rig)
+        captured = capture_stage(opts.run, rig, calibration=opts.calibration,
+                                 log=lambda line: print(f"  adaptive capture: {line}", flush=True))
         if on_stage is not None:
             on_stage(captured)
         opts.input = opts.run / CAPTURE_STAGE / "micro"

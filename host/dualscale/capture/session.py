@@ -88,16 +88,15 @@ from dualscale.rig.events import Event
 from dualscale.rig.sequence import Step, schedule, servo_travel_us, split_words
 
 from .camera import Camera, Frame, TriggerInfo, TriggerMode, frame_metadata
+from .captureset import PARTS, _check_parts, _holder_record, read_parts, write_capture_set
 from .journal import JOURNAL, Journal
-from .plan import TARGET_PLANS, Plan, Setup, Shot
+from .plan import Plan, Setup, Shot
 
 FORMAT = "dualscale-capture"
 VERSION = 1
 METER_LOW, METER_HIGH = 0.05, 0.8  # metering and bracket targets, fractions of the white level
 METER_STEP = 8.0                   # metering: 8x shorter or longer (calib.hdr.meter's rule)
 MATCH_TOLERANCE_US = 50            # a frame's device time within this of its TRIGGER event
-PARTS = "parts"                    # a capture set's folder of calibration-target parts (module doc)
-RGB = ("R", "G", "B")
 
 
 @dataclass
@@ -347,18 +346,10 @@ class CaptureSession:
         self.journal.append("dark", role=role, exposure_us=us, file=f, meta=_jsonable(frame.metadata))
         return read_exr(self.work / f)
 
-    def _steps(self, shots: list[Shot], plans: dict[str, ShotPlan]) -> list[Step]:
-        steps, angle = [], self.rig.read_input(rm.IR.POLARIZER_NOW, 1)[0]
-        for s in shots:
-            mask = _trigger_mask(self.plan.roles_of(s))
-            p = plans[s.key]
-            settle, pol = self.opts.settle_us, None
-            if s.analyzer_cdeg is not None and s.analyzer_cdeg != angle:
-                settle = max(settle, servo_travel_us(angle, s.analyzer_cdeg) + self.opts.servo_margin_us)
-                pol, angle = s.analyzer_cdeg, s.analyzer_cdeg
-            steps.append(Step(s.source, s.index or 0, self.opts.intensity, pol, settle, p.exposure_us, 0,
-                              p.brackets, p.ev_step, mask))
-        return steps
+    def _steps(self, shots: list[Shot], plans: dict[str, ShotPlan], angle: int | None = None) -> list[Step]:
+        """The device steps of ``shots``, the servo starting from ``angle`` [cdeg] (default: where it is now)."""
+        angle = self.rig.read_input(rm.IR.POLARIZER_NOW, 1)[0] if angle is None else angle
+        return device_steps(shots, plans, self.plan, self.opts, angle)
 
     def _ready(self) -> None:
         """Leave the rig idle: a fault (the watchdog of a killed or stalled run) is cleared, a
@@ -490,7 +481,7 @@ class CaptureSession:
     # ------------------------------------------------------------------ stages
     def _metered(self) -> dict[str, ShotPlan]:
         """The bracket plans the journal holds (``meter`` entries)."""
-        return {e["key"]: ShotPlan(e["exposure_us"], e["brackets"], e["ev_step"]) for e in self.journal.of("meter")}
+        return metered_plans(self.journal)
 
     def _meter_hints(self) -> dict[tuple, float]:
         """Where to start metering a shot [s]: the exposure at which the last shot of the same light,
@@ -623,7 +614,7 @@ class CaptureSession:
         self.summary.resumed_shots += sum(s.key in done for s in shots)
         pending = [s for s in shots if s.key not in done]
         total = len(self.plan.shots)
-        self.summary.floor_s += sum(t.end - t.start for t in schedule(self._steps(shots, plans), self._gap_us())) / 1e6
+        self.summary.floor_s += floor_s(self._steps(shots, plans), self._gap_us())
         t0 = time.monotonic()
         while pending:
             batch, pending = pending[:self.opts.batch_steps], pending[self.opts.batch_steps:]
@@ -653,8 +644,11 @@ class CaptureSession:
             pending = again + pending
         self.summary.capture_wall_s += time.monotonic() - t0
 
-    def _merge(self, plans: dict[str, ShotPlan]) -> Path:
-        """Write the photometric dataset from the journal's frames (module doc, step 6)."""
+    def _merge(self, plans: dict[str, ShotPlan], taken: list[Shot] | None = None, out: Path | None = None) -> Path:
+        """Write the photometric dataset from the journal's frames (module doc, step 6): of
+        ``taken`` (default: the plan's shots), in the plan's order, into ``out`` (default: the
+        capture's folder)."""
+        keys = None if taken is None else {s.key for s in taken}
         shots = {e["key"]: e for e in self.journal.of("shot")}
         exposures = sorted({t for p in plans.values() for t in p.exposures_s()})
         dome = DomeGeometry.from_regmap()
@@ -673,10 +667,13 @@ class CaptureSession:
         rig = {"id": self.opts.rig_id or (ident.text if ident else "unknown"), "layout": dome.signature()}
         extra = {"capture": {"plan": self.plan.name, "journal": JOURNAL, "record": "capture.json"}}
         clipped = 0
-        with DatasetWriter(self.out, units="dn_normalized", colour_space=next(iter(spaces.values())), rig=rig,
+        out = self.out if out is None else Path(out)
+        with DatasetWriter(out, units="dn_normalized", colour_space=next(iter(spaces.values())), rig=rig,
                            dome={"source": dome.source, "polarizer": dome.polarizer, "radius_mm": dome.radius_mm},
                            extra=extra) as w:
             for s in self.plan.shots:
+                if keys is not None and s.key not in keys:
+                    continue
                 e = shots[s.key]
                 times = plans[s.key].exposures_s()
                 for role in self.plan.roles:
@@ -699,9 +696,9 @@ class CaptureSession:
                 for t, d in dark_files[role]:
                     w.add(d, self.geometry[role], "off", None, None, 1.0, None, False, t)
         self.summary.clipped_pixels = clipped
-        return self.out / "manifest.json"
+        return out / "manifest.json"
 
-    def _record(self, part: dict[str, Any] | None = None) -> None:
+    def _record(self, part: dict[str, Any] | None = None, adaptive: dict[str, Any] | None = None) -> None:
         ident = self.rig.identity
         rec = {"format": FORMAT, "version": VERSION,
                "date": self.journal.of("start")[0]["date"],
@@ -716,6 +713,8 @@ class CaptureSession:
             rec["summary"]["dataset"] = os.path.relpath(self.summary.dataset, self.work)
         if part is not None:
             rec["captureset"] = part
+        if adaptive is not None:
+            rec["adaptive"] = adaptive
         write_json(self.work / "capture.json", _jsonable(rec))
 
     # ------------------------------------------------------------------ calibration targets
@@ -818,127 +817,82 @@ class CaptureSession:
             if not self.journal.of("written"):
                 self.journal.append("written", captures=str(path.relative_to(self.out)))
             return self.summary
-        path = self._merge(plans)
-        self.summary.dataset = str(path)
         self.summary.total_wall_s = time.monotonic() - t0
-        self._record()
+        return self.finish(plans)
+
+    # ------------------------------------------------------------------ a plan taken in parts
+    def take(self, shots: list[Shot]) -> dict[str, ShotPlan]:
+        """Meter and capture those of ``shots`` (a subset of the plan's, in the order given) that
+        the journal does not hold yet (an adaptive capture's round, :mod:`dualscale.adaptive`);
+        returns the bracket plans of every shot metered so far.  Resumable like :meth:`run`."""
+        t0 = time.monotonic()
+        if not getattr(self, "_idle", False):
+            self._ready()
+            self._idle = True
+        plans = self._meter(shots)
+        self._capture(plans, shots)
+        self.summary.total_wall_s += time.monotonic() - t0
+        return plans
+
+    def merge(self, taken: list[Shot], out: str | Path) -> Path:
+        """The photometric dataset of the ``taken`` shots (in the journal) written into ``out``
+        (e.g. an adaptive round's), not the capture's own folder; returns its manifest."""
+        return self._merge(self._metered(), taken, Path(out))
+
+    def floor_s(self, shots: list[Shot], start_cdeg: int = rm.POL_P0_CDEG) -> float:
+        """The physical floor [s] of ``shots`` taken in that order with their metered brackets,
+        the servo starting at ``start_cdeg``: settle, servo moves, exposures and readout gaps
+        (the schedule of the device-master sequence, PROTOCOL.md §3.1); metering not included."""
+        return floor_s(self._steps(list(shots), self._metered(), angle=start_cdeg), self._gap_us())
+
+    def finish(self, plans: dict[str, ShotPlan] | None = None, taken: list[Shot] | None = None,
+               adaptive: dict[str, Any] | None = None) -> CaptureSummary:
+        """Merge the photometric dataset of ``taken`` (default: the plan's shots; all must be in the
+        journal) and write ``capture.json`` (with the ``adaptive`` record when given)."""
+        plans = self._metered() if plans is None else plans
+        entries = self.journal.of("shot")
+        keys = None if taken is None else {s.key for s in taken}
+        self.summary.shots = len({e["key"] for e in entries if keys is None or e["key"] in keys})
+        self.summary.frames = sum(len(v) for e in entries if keys is None or e["key"] in keys for v in e["files"].values())
+        path = self._merge(plans, taken)
+        self.summary.dataset = str(path)
+        self._record(adaptive=adaptive)
         if not self.journal.of("merged"):
             self.journal.append("merged", manifest="manifest.json")
         return self.summary
 
 
+def device_steps(shots: list[Shot], plans: dict[str, ShotPlan], plan: Plan, opts: CaptureOptions,
+                 angle: int) -> list[Step]:
+    """The device-master steps of ``shots`` with their bracket ``plans`` (PROTOCOL.md §3.1), the
+    servo starting at ``angle`` [cdeg]: a step that turns the analyser settles for the servo's
+    travel plus ``opts.servo_margin_us``, the others for ``opts.settle_us``."""
+    steps = []
+    for s in shots:
+        mask = _trigger_mask(plan.roles_of(s))
+        p = plans[s.key]
+        settle, pol = opts.settle_us, None
+        if s.analyzer_cdeg is not None and s.analyzer_cdeg != angle:
+            settle = max(settle, servo_travel_us(angle, s.analyzer_cdeg) + opts.servo_margin_us)
+            pol, angle = s.analyzer_cdeg, s.analyzer_cdeg
+        steps.append(Step(s.source, s.index or 0, opts.intensity, pol, settle, p.exposure_us, 0,
+                          p.brackets, p.ev_step, mask))
+    return steps
+
+
+def floor_s(steps: list[Step], gap_us: int) -> float:
+    """The physical floor [s] of ``steps``: settle, exposures and readout gaps as scheduled."""
+    return sum(t.end - t.start for t in schedule(steps, gap_us)) / 1e6 if steps else 0.0
+
+
+def metered_plans(journal: Journal) -> dict[str, ShotPlan]:
+    """The bracket plans a capture's journal holds (``meter`` entries), by shot key."""
+    return {e["key"]: ShotPlan(e["exposure_us"], e["brackets"], e["ev_step"]) for e in journal.of("meter")}
+
+
 def _light_sig(shot: Shot, plan: Plan) -> tuple:
     """What makes two shots meter alike: light, analyser and cameras (not the target's place)."""
     return (shot.kind, shot.index, shot.analyzer_cdeg, plan.roles_of(shot))
-
-
-def _holder_record(holder: dict[str, Any]) -> dict[str, dict[str, Any]]:
-    """``{"markers": {camera: [[row0, row1, col0, col1], ...]}, "chart_corners": {camera: [[x, y] x 4]}}``
-    checked (``InputError`` naming the entry)."""
-    unknown = sorted(set(holder) - {"markers", "chart_corners"})
-    if unknown:
-        raise InputError(f"holder: unknown key(s) {unknown}: markers, chart_corners")
-    out: dict[str, dict[str, Any]] = {"markers": {}, "chart_corners": {}}
-    for cam, boxes in (holder.get("markers") or {}).items():
-        try:
-            b = [[int(x) for x in box] for box in boxes]
-        except (TypeError, ValueError):
-            b = []
-        if not b or any(len(x) != 4 or x[0] >= x[1] or x[2] >= x[3] or min(x) < 0 for x in b):
-            raise InputError(f"holder: markers.{cam} must be boxes [row0, row1, col0, col1] (row0 < row1, col0 < col1)")
-        out["markers"][str(cam)] = b
-    for cam, pts in (holder.get("chart_corners") or {}).items():
-        try:
-            c = np.asarray(pts, dtype=np.float64)
-        except (TypeError, ValueError):
-            c = np.zeros(0)
-        if c.shape != (4, 2) or not np.all(np.isfinite(c)):
-            raise InputError(f"holder: chart_corners.{cam} must be 4 [x, y] pixel corners (TL, TR, BR, BL)")
-        out["chart_corners"][str(cam)] = c.tolist()
-    return out
-
-
-def read_parts(root: str | Path) -> list[dict[str, Any]]:
-    """The finished calibration-target parts of the capture set at ``root``, in
-    :data:`~dualscale.capture.plan.TARGET_PLANS` order: each ``{"plan", "date", **captureset}``
-    from ``root/parts/<plan>/capture.json`` (a part is finished when its record holds a
-    ``captureset``; an interrupted one is left out until ``--resume`` finishes it)."""
-    root = Path(root)
-    out = []
-    for name in TARGET_PLANS:
-        path = root / PARTS / name / "capture.json"
-        if not path.is_file():
-            continue
-        rec = read_capture_record(path.parent)
-        part = rec.get("captureset")
-        if isinstance(part, dict):
-            out.append({"plan": name, "date": rec.get("date"), **part})
-    return out
-
-
-def _check_parts(parts: list[dict[str, Any]], root: Path) -> None:
-    """``InputError`` unless the parts come from one rig and agree on every camera they share."""
-    seen_rig: tuple[str, dict] | None = None
-    cams: dict[str, tuple[str, dict]] = {}
-    for p in parts:
-        if seen_rig is not None and p["rig"] != seen_rig[1]:
-            raise InputError(f"{root}: the {p['plan']} part is from rig {p['rig']}, the {seen_rig[0]} part from "
-                             f"{seen_rig[1]}: one capture set holds one rig's targets (--rig-id, or another folder)")
-        seen_rig = seen_rig or (p["plan"], p["rig"])
-        for name, rec in p["cameras"].items():
-            want = {k: rec[k] for k in ("geometry", "sensitivities", "white_level")}
-            if name in cams and cams[name][1] != want:
-                raise InputError(f"{root}: camera {name!r} of the {p['plan']} part differs from the one of the "
-                                 f"{cams[name][0]} part ({want} vs {cams[name][1]}): capture the targets of one "
-                                 "capture set with the same cameras, or use another folder")
-            cams.setdefault(name, (p["plan"], want))
-
-
-def write_capture_set(root: str | Path) -> Path:
-    """Write ``root/captures.json`` and ``root/images/`` (:class:`dualscale.formats.captures.CaptureWriter`,
-    their only writer) from every finished part under ``root/parts/`` (:func:`read_parts`): each
-    part's groups with their brackets, one dark group per camera with the dark frames of every
-    part, the markers and the chart record; images no group lists any more are removed.  Returns
-    the manifest's path; ``InputError`` when the parts disagree (:func:`_check_parts`)."""
-    from dualscale.formats.captures import CaptureWriter
-
-    root = Path(root)
-    parts = read_parts(root)
-    if not parts:
-        raise InputError(f"{root}: no finished calibration-target capture under {PARTS}/")
-    _check_parts(parts, root)
-    w = CaptureWriter(root, rig=dict(parts[0]["rig"]))
-    cams: dict[str, GeometryCamera] = {}
-    for p in parts:
-        for name, rec in p["cameras"].items():
-            if name not in cams:
-                cams[name] = GeometryCamera.from_json(name, rec["geometry"], f"{root / PARTS / p['plan']}")
-                w.add_camera(cams[name], rec["sensitivities"], white_level=rec["white_level"])
-    darks: dict[str, list[tuple[float, str]]] = {}
-    for p in parts:
-        for name, pairs in p["darks"].items():
-            darks.setdefault(name, []).extend((float(t), str(f)) for t, f in pairs)
-    for name in cams:
-        pairs = sorted(darks.get(name, []))
-        if pairs:
-            w.add("dark", cams[name], "off", None, [t for t, _ in pairs], [read_exr(root / f, RGB) for _, f in pairs])
-    for p in parts:
-        w.markers.update(p.get("markers", {}))
-        if "chart" in p:
-            w.chart["layout"] = p["chart"]["layout"]
-            w.chart.setdefault("corners", {}).update(p["chart"]["corners"])
-        for g in p["groups"]:
-            w.add(g["target"], cams[g["camera"]], g["light_kind"], g["light_id"], g["exposures_s"],
-                  [read_exr(root / f, RGB) for f in g["files"]], patch=g["patch"], analyzer_deg=g["analyzer_deg"],
-                  analyzer_relative=g["analyzer_relative"])
-    w.extra["capture"] = {"parts": {p["plan"]: {"record": f"{PARTS}/{p['plan']}/capture.json", "date": p["date"]}
-                                    for p in parts}}
-    path = w.close()
-    keep = {f for g in w.groups for f in g.files}
-    for f in (root / "images").glob("*.exr"):
-        if f"images/{f.name}" not in keep:
-            f.unlink()
-    return path
 
 
 def _light_mismatch(step: Step, frames: list[Frame]) -> str | None:

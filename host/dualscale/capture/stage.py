@@ -23,15 +23,20 @@ class RigCapture:
     cameras: dict[str, Any]
     lights: str = "ALL"
     options: Any = None
+    #: ``--adaptive``: the micro plan's :class:`dualscale.adaptive.loop.AdaptiveOptions` (``None``: the fixed plan)
+    adaptive: Any = None
 
 
-def capture_spec(rc: RigCapture, progress: Callable[[int, int, str], None] | None = None
+def capture_spec(rc: RigCapture, progress: Callable[[int, int, str], None] | None = None,
+                 runners: dict[str, Callable[[Any], Any]] | None = None
                  ) -> tuple[dict[str, Any], dict[str, Any], Callable[[Path], dict[str, Any]]]:
     """``(inputs, params, fn)`` of the capture stage: the micro plan (and the mid plan when a mid
     camera is given) captured into ``WORK/{micro,mid}/`` by ``fn(WORK)``
-    (:class:`dualscale.capture.session.CaptureSession`, resumed from its journal there).  Its
-    inputs are the rig's identification and the cameras' specs and serials, its parameters the
-    plans and options; ``fn`` returns each plan's capture summary."""
+    (:class:`dualscale.capture.session.CaptureSession`, resumed from its journal there; a plan
+    named in ``runners`` is run by ``runners[name](session)`` instead of ``session.run()``: the
+    adaptive capture, which lives above this layer).  Its inputs are the rig's identification
+    and the cameras' specs and serials, its parameters the plans and options (and the adaptive
+    options); ``fn`` returns each plan's capture summary."""
     from dualscale.capture.plan import make_plan
     from dualscale.capture.session import CaptureOptions, CaptureSession, stable_spec
 
@@ -42,12 +47,16 @@ def capture_spec(rc: RigCapture, progress: Callable[[int, int, str], None] | Non
               "cameras": {r: [stable_spec(c.spec), c.serial] for r, c in sorted(rc.cameras.items())}}
     params = {"lights": rc.lights, "plans": [p.name for p in plans],
               "options": {k: v for k, v in asdict(opts).items() if k != "timeout_margin_s"}}
+    if rc.adaptive is not None:
+        params["adaptive"] = asdict(rc.adaptive)
 
     def fn(work: Path) -> dict[str, Any]:
         out = {}
         for plan in plans:
             cams = {r: rc.cameras[r] for r in plan.roles}
-            summary = CaptureSession(rc.rig, cams, plan, work / plan.name, opts, resume=True, progress=progress).run()
+            session = CaptureSession(rc.rig, cams, plan, work / plan.name, opts, resume=True, progress=progress)
+            run = (runners or {}).get(plan.name)
+            summary = session.run() if run is None else run(session)
             out[plan.name] = {k: v for k, v in asdict(summary).items() if k != "dataset"}
         return out
 
@@ -70,7 +79,7 @@ def check_rig_calibration(rc: RigCapture, calibration: Path) -> None:
     rig_id = opts.rig_id or (ident.text if ident is not None else None)
     cal = read_calibration(calibration, rig_id=rig_id, layout=DomeGeometry.from_regmap().signature())
     leds = {s.index for s in make_plan("micro", rc.lights).shots if s.kind == "led"}
-    have = _calibrated_leds(cal)
+    have = calibrated_leds(cal)
     if have is not None and not leds <= have:
         missing = sorted(leds - have)
         raise CalibrationError(f"{calibration}: no white-sheet capture for LED(s) {missing[:8]}"
@@ -80,7 +89,7 @@ def check_rig_calibration(rc: RigCapture, calibration: Path) -> None:
         rc.options = replace(opts, calibration_id=f"{calibration.name}#sha256:{file_sha256(calibration)[:12]}")
 
 
-def _calibrated_leds(cal: dict[str, Any]) -> set[int] | None:
+def calibrated_leds(cal: dict[str, Any]) -> set[int] | None:
     """The LED ids the calibration's micro camera has an ``r_c`` for, or None if it does not say."""
     rc = (cal.get("r_c") or {}).get("micro")
     if not isinstance(rc, dict):

@@ -186,6 +186,7 @@ def cmd_capture(a: argparse.Namespace) -> int:
     plan = make_plan(a.plan, a.lights)  # checks the plan and --lights before anything starts
     given = read_holder(a.holder)
     opts = capture_options(a, a.port)
+    adaptive = adaptive_options(a, plan)  # checked before the rig starts
     ident = ["calibration targets"] if targets else [f"plan:{a.plan}", f"lights:{a.lights}", *a.camera]
     with output_folder(a, "capture", ident) as out:
         if a.overwrite and not a.resume:
@@ -204,11 +205,65 @@ def cmd_capture(a: argparse.Namespace) -> int:
                     bar.update(done - seen[0], what=key)
                     seen[0] = done
 
-                summary = CaptureSession(rig, cams, plan, a.output, opts, resume=a.resume, progress=progress,
-                                         operator=operator, holder=holder).run()
+                session = CaptureSession(rig, cams, plan, a.output, opts, resume=a.resume, progress=progress,
+                                         operator=operator, holder=holder)
+                if adaptive is not None:
+                    from dualscale.adaptive.loop import AdaptiveCapture
+
+                    summary = AdaptiveCapture(session, a.calibration, adaptive, log=print).run()
+                else:
+                    summary = session.run()
     for line in summary.lines():
         print(line)
     return 0
+
+
+def adaptive_options(a: argparse.Namespace, plan):
+    """``--adaptive`` and its options as :class:`dualscale.adaptive.loop.AdaptiveOptions`, or
+    ``None`` without ``--adaptive``; ``InputError`` for a plan other than micro, a missing
+    calibration (every round is calibrated with it) or a bad option, before the rig starts."""
+    if not getattr(a, "adaptive", False):
+        return None
+    from dualscale.adaptive.loop import AdaptiveOptions, check_calibration, parse_budget, parse_targets
+
+    if plan.name != "micro":
+        raise InputError(f"--adaptive captures the micro plan, not {plan.name}")
+    if not getattr(a, "calibration", None):
+        raise InputError("--adaptive needs the rig's calibration (--calibration FILE): every round is calibrated and "
+                         "fitted to choose the next lights")
+    if not Path(a.calibration).is_file():
+        raise InputError(f"--calibration {a.calibration}: no such file")
+    check_calibration(Path(a.calibration), sorted({s.index for s in plan.shots if s.kind == "led"}))
+    shots, seconds = parse_budget(a.budget)
+    return AdaptiveOptions(initial=a.initial_leds, batch=a.batch_leds, criterion=a.criterion,
+                           targets=parse_targets(a.target), min_gain=a.min_gain, budget_shots=shots,
+                           budget_s=seconds, seed=getattr(a, "seed", 0) or 0)
+
+
+def add_adaptive_options(p: argparse.ArgumentParser) -> None:
+    """The options of ``--adaptive`` that ``capture micro`` and ``digitize --rig`` share."""
+    from dualscale.adaptive.loop import AdaptiveOptions
+
+    d = AdaptiveOptions()
+    g = p.add_argument_group("adaptive capture (docs/CAPTURE.md, \"Adaptive capture\")")
+    g.add_argument("--adaptive", action="store_true",
+                   help="micro plan: choose the lights round by round from the fit's uncertainty, among --lights, and "
+                        "stop when the maps are determined (needs --calibration)")
+    g.add_argument("--target", default=None, metavar="MAP=SIGMA,...",
+                   help="stop when every named map's median 1-sigma is at or under this (the maps' sigma units: "
+                        "normal in degrees); default: none, the gain and budget rules stop it")
+    g.add_argument("--budget", default=None, metavar="SHOTS|Ts|Tmin",
+                   help="the most shots (e.g. 80) or device time (e.g. 300s, 5min) the capture may take "
+                        "(default: no limit)")
+    g.add_argument("--initial-leds", type=int, default=d.initial, metavar="N",
+                   help=f"LEDs of the first round, spread over the dome (default {d.initial})")
+    g.add_argument("--batch-leds", type=int, default=None, metavar="N",
+                   help="LEDs per round (default: enough that the round's two servo moves are at most 10%% of its "
+                        "device time, 2-16)")
+    g.add_argument("--criterion", choices=("D", "A"), default=d.criterion,
+                   help=f"optimal-design criterion (default {d.criterion})")
+    g.add_argument("--min-gain", type=float, default=d.min_gain, metavar="NATS",
+                   help=f"stop when no light's D-gain per sample pixel reaches this (default {d.min_gain:g})")
 
 
 def restart(out: Path, plan: str) -> None:
@@ -277,6 +332,9 @@ def register(sub) -> None:
     p.add_argument("--target-ready", action="store_true",
                    help="target plans: do not wait for Enter after each instruction to the operator (the targets are "
                         "placed without one)")
+    p.add_argument("--calibration", default=None, metavar="FILE",
+                   help="--adaptive: the rig's calibration (dualscale calibrate), to fit each round")
     add_capture_options(p)
+    add_adaptive_options(p)
     add_work_options(p)
     p.set_defaults(fn=cmd_capture)

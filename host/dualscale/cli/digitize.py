@@ -98,6 +98,15 @@ def cmd_digitize(a: argparse.Namespace) -> int:
 
         raise UnitsError("digitize --rig: the rig captures camera counts: give its calibration file with "
                          "--calibration CAL (dualscale calibrate)")
+    if a.adaptive and a.rig is None:
+        raise InputError("digitize --adaptive: the adaptive capture runs on the rig (--rig PORT); a dataset is "
+                         "already captured")
+    if a.rig is not None:  # before the run folder or the rig: the adaptive options and the calibration's LEDs
+        from dualscale.capture.plan import make_plan
+
+        from .capture import adaptive_options
+
+        a.adaptive_options = adaptive_options(a, make_plan("micro", a.lights))
     inp = a.input if a.input is not None else Path(a.output) / CAPTURE_STAGE / "micro"
     opts = DigitizeOptions(input=inp, run=a.output, calibration=a.calibration, guidance=a.guidance,
                            guidance_transfer=a.transfer, guidance_texel_mm=a.guidance_texel_mm, quality=a.quality,
@@ -185,7 +194,7 @@ def _run(a, opts, start, prepared, digitize, RigCapture):
         print(f"digitize from the rig {a.rig} ({', '.join(f'{r}: {c.spec}' for r, c in cams.items())})",
               flush=True)
         return digitize(opts, on_stage=lambda st: print(_line(st), flush=True), on_start=start,
-                        rig=RigCapture(rig, cams, a.lights, capture_options(a, a.rig)))
+                        rig=RigCapture(rig, cams, a.lights, capture_options(a, a.rig), a.adaptive_options))
 
 
 
@@ -253,9 +262,10 @@ def register(sub) -> None:
                    help="ground-truth maps (e.g. a synth sample's maps/) to score the fit stage against: the report "
                         "then shows the maps' errors beside their sigma and how often |error| <= 1.96 sigma "
                         "(evaluation only; docs/FITTING.md)")
-    from .capture import add_capture_options
+    from .capture import add_adaptive_options, add_capture_options
 
     add_capture_options(d)
+    add_adaptive_options(d)
     add_work_options(d)
     g = add_engine_options(d, "run the fit stage in pixel tiles on N local Dask worker processes (the same maps; "
                               "default: one process; docs/SCALE.md)")

@@ -620,3 +620,19 @@ def median_sigmas(unc: Uncertainty) -> dict[str, float | None]:
         v = s[~unc.undetermined[n] & torch.isfinite(s)]
         out[n] = float(v.double().median()) if v.numel() else None
     return out
+
+
+def posterior(params: dict[str, Tensor], comps: Components, obs: Observations, preset: Preset
+              ) -> tuple[tuple[str, ...], Tensor, Tensor, Tensor, Tensor]:
+    """What an experimental design needs of a fit at its solution (:mod:`dualscale.adaptive`):
+    ``(names, x (H, W, P) float64, cov (H, W, P, P) float64, determined (H, W, P) bool, noise
+    (H, W, 2) float64)`` -- the joint step's free parameters (normalised units), their
+    covariance as :func:`pixel_covariance` gives it (NaN rows and columns where undetermined),
+    and each pixel's noise model ``(a, b)``, ``var = a u^2 + b u mu`` (module doc), from a pass
+    of its own at ``params``."""
+    names, parts = _separate_pass(params, comps, obs, preset)
+    point = _cat([c for _, c in parts])
+    noise = torch.cat([m["noise"] for m, _ in parts], 0)
+    x = pack(params, names).double()
+    cov, det = _finish(x, names, point)
+    return names, x, cov, det, noise
