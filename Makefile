@@ -17,11 +17,13 @@ FUZZ_SECONDS ?= 20
 # Aravis 0.8 for the genicam camera backend: its GObject introspection data, the tools with the
 # GigE Vision camera emulator the tests start (arv-fake-gv-camera-0.8), and what PyGObject
 # (pyproject extra "cameras") builds from source against: girepository-1.0, cairo, pkg-config,
-# the Python headers.
+# the Python headers; Xvfb (xvfb, xauth) for MaterialX's GLSL renderer in the export tests (Mesa's
+# llvmpipe comes with libgl1).
 APT_PKGS := gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm mbpoll libmodbus-dev \
             libcmocka-dev clang libclang-rt-14-dev make gcc g++ python3-venv libgl1 libglib2.0-0 \
             chromium nodejs \
-            gir1.2-aravis-0.8 aravis-tools libgirepository1.0-dev libcairo2-dev pkg-config python3-dev
+            gir1.2-aravis-0.8 aravis-tools libgirepository1.0-dev libcairo2-dev pkg-config python3-dev \
+            xvfb xauth
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
 .PHONY: all deps apt venv node gen gen-check firmware sim test test-fast test-slow demo bench fuzz fuzz-long clean
