@@ -92,6 +92,56 @@ def measure(src: Path, work: Path, name: str) -> dict:
             "maps": comps, "shape": maps.shape}
 
 
+def materialx_glsl(src: Path, work: Path, name: str, size: int) -> None:
+    """Print the relative L1 of MaterialX's own GLSL renderer (tests/export/mtlx_render.py:
+    Xvfb, Mesa llvmpipe, one directional light, zenith orthographic view, a pixel per texel)
+    against our model, per sun elevation (azimuth 0), both shaders, and the time per render
+    (median after the first compile).  Skipped with the reason when no GL context can be made."""
+    sys.path.insert(0, str(REPO))
+    from tests.export import mtlx_render
+
+    from dualscale.bsdf.model import evaluate
+    from dualscale.export.material import export_material
+    from dualscale.export.shading import relative_error
+    from dualscale.formats.maps import load_maps
+
+    why = mtlx_render.available()
+    if why:
+        print(f"\nMaterialX GLSL renderer: skipped ({why})")
+        return
+    maps, _ = load_maps(src)
+    out = work / f"glsl_{name}"
+    shutil.rmtree(out, ignore_errors=True)
+    export_material(src, out, ["mtlx"], name=name)
+    elevations = (90, 60, 35, 20)
+    lights = np.stack([mtlx_render.sun(e) for e in elevations])
+    ours = evaluate(maps, torch.as_tensor(lights, dtype=torch.float32),
+                    torch.tensor([0.0, 0.0, 1.0], dtype=torch.float32)).double().numpy()
+    rows, times = {}, []
+    for shader in mtlx_render.SHADERS:
+        r = mtlx_render.MtlxRenderer(out / "mtlx" / f"{name}.mtlx", (size, size))
+        errs = []
+        for i, _ in enumerate(elevations):
+            t0 = time.perf_counter()
+            img = r.render(shader, lights[i])
+            times.append(time.perf_counter() - t0)
+            errs.append(float(relative_error(img[None], ours[i:i + 1])[0]))
+        rows[shader] = errs
+    print(f"\n**MaterialX's GLSL renderer** ({name}, {size}×{size} px, materialx {mx_version()}, Mesa llvmpipe "
+          f"under Xvfb): mean relative L1 against our renderer, sun at azimuth 0\n")
+    print("| shader | " + " | ".join(f"{e}°" for e in elevations) + " |")
+    print("|---|" + "---|" * len(elevations))
+    for shader, errs in rows.items():
+        print(f"| `{shader}` | " + " | ".join(f"{100 * e:.1f} %" for e in errs) + " |")
+    print(f"\nfirst render (compile) {times[0]:.2f} s; then median {float(np.median(times[1:])):.3f} s per render")
+
+
+def mx_version() -> str:
+    import MaterialX
+
+    return MaterialX.__version__
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--size", type=int, default=96)
@@ -134,6 +184,9 @@ def main() -> None:
         t = float(np.median([r["times"][fmt] for r in results.values()]))
         s = float(np.median([r["sizes"][fmt] for r in results.values()]))
         print(f"| {fmt} | {t:.2f} s | {s / 1024:.0f} KiB |")
+    twill = dict(sources).get("twill")
+    if twill is not None:
+        materialx_glsl(twill, a.work / "out", "twill", a.size)
 
 
 if __name__ == "__main__":
