@@ -62,19 +62,48 @@ f 1/1/1 3/3/1 4/4/1
 def available() -> str | None:
     """``None`` when a GL context can be made (starting Xvfb on a free display if ``DISPLAY`` is
     unset), else the reason why not (for ``pytest.skip``).  Cached per process."""
-    global _XVFB, _WHY_NOT
-    if _WHY_NOT is not None or _XVFB is not None or os.environ.get("DISPLAY"):
-        return _WHY_NOT
+    global _WHY_NOT
+    if _WHY_NOT is None and not _PROBED:
+        try:
+            import MaterialX.PyMaterialXRenderGlsl  # noqa: F401
+            import OpenImageIO  # noqa: F401
+        except ImportError as e:
+            _WHY_NOT = f"MaterialX's GLSL renderer or OpenImageIO is not importable: {e}"
+            return _WHY_NOT
+        _WHY_NOT = _start_display() or _probe()
+    return _WHY_NOT
+
+
+_PROBED = False
+
+
+def _probe() -> str | None:
+    """Make a 4 x 4 GLSL renderer in a child process (a display that cannot be opened ends the
+    process, with no exception to catch): the GL context works, or why not."""
+    global _PROBED
+    _PROBED = True
+    import sys
+
+    code = ("import MaterialX.PyMaterialXRender as r, MaterialX.PyMaterialXRenderGlsl as g; "
+            "g.GlslRenderer.create(4, 4, r.BaseType.FLOAT).initialize()")
     try:
-        import MaterialX.PyMaterialXRenderGlsl  # noqa: F401
-        import OpenImageIO  # noqa: F401
-    except ImportError as e:
-        _WHY_NOT = f"MaterialX's GLSL renderer or OpenImageIO is not importable: {e}"
-        return _WHY_NOT
+        proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    except subprocess.TimeoutExpired:
+        return "MaterialX's GLSL renderer did not initialise within 60 s"
+    if proc.returncode != 0:
+        tail = (proc.stderr or proc.stdout).strip().splitlines()[-1:] or [f"exit status {proc.returncode}"]
+        return f"no OpenGL context for MaterialX's GLSL renderer on DISPLAY={os.environ.get('DISPLAY')}: {tail[0]}"
+    return None
+
+
+def _start_display() -> str | None:
+    """Start Xvfb on the first free display :90..:119 unless ``DISPLAY`` is set; why not, or None."""
+    global _XVFB
+    if os.environ.get("DISPLAY"):
+        return None
     exe = shutil.which("Xvfb")
     if exe is None:
-        _WHY_NOT = "Xvfb is not installed (`make apt` installs Debian's xvfb and xauth)"
-        return _WHY_NOT
+        return "Xvfb is not installed (`make apt` installs Debian's xvfb and xauth)"
     for disp in range(90, 120):
         if Path(f"/tmp/.X{disp}-lock").exists():
             continue
@@ -91,8 +120,7 @@ def available() -> str | None:
 
             atexit.register(proc.terminate)
             return None
-    _WHY_NOT = "Xvfb did not start on any display :90-:119"
-    return _WHY_NOT
+    return "Xvfb did not start on any display :90-:119"
 
 
 def _black_image():
