@@ -24,10 +24,18 @@ What it takes to make the renderer work here (found for issue 28; docs/EXPORT.md
    and every texture reads as zero.
 5. ``captureImage`` needs an ``Image`` argument (``captureImage(None)`` fails), and the
    framebuffer's rows come bottom-up: they are flipped here.
+6. ``GLTextureHandler`` sets a maximum anisotropy of 16, and llvmpipe's anisotropic filter then
+   blurs even a texture drawn one texel per pixel (a lone bright texel keeps about half its
+   value at its own centre, whatever ``filtertype`` says).  :func:`available` therefore sets
+   ``MESA_EXTENSION_OVERRIDE`` to hide ``GL_{EXT,ARB}_texture_filter_anisotropic`` before the first
+   context: textures then filter bilinearly (a random-albedo diffuse swatch matches to 0.2 %),
+   and MaterialX's refused ``glTexParameterf`` (``GL_INVALID_ENUM``, 1280) is dropped from its
+   console output here.
 """
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import logging
 import os
@@ -70,8 +78,39 @@ def available() -> str | None:
         except ImportError as e:
             _WHY_NOT = f"MaterialX's GLSL renderer or OpenImageIO is not importable: {e}"
             return _WHY_NOT
+        no_aniso = "-GL_EXT_texture_filter_anisotropic -GL_ARB_texture_filter_anisotropic"
+        os.environ["MESA_EXTENSION_OVERRIDE"] = f"{os.environ.get('MESA_EXTENSION_OVERRIDE', '')} {no_aniso}".strip()
         _WHY_NOT = _start_display() or _probe()
     return _WHY_NOT
+
+
+_GL_ANISO_NOISE = "OpenGL error after program bind"
+
+
+@contextlib.contextmanager
+def _console_filtered():
+    """Run with the process's stdout/stderr (fds 1, 2) caught; re-emit all but the
+    ``GL_INVALID_ENUM`` lines that hiding the anisotropy extension makes MaterialX print."""
+    import sys
+
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = [os.dup(1), os.dup(2)]
+    with tempfile.TemporaryFile("w+b") as tmp:
+        os.dup2(tmp.fileno(), 1)
+        os.dup2(tmp.fileno(), 2)
+        try:
+            yield
+        finally:
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            for fd in saved:
+                os.close(fd)
+            tmp.seek(0)
+            keep = [ln for ln in tmp.read().decode(errors="replace").splitlines()
+                    if not (ln.startswith(_GL_ANISO_NOISE) and ln.rstrip().endswith(": 1280"))]
+            if keep:
+                print("\n".join(keep), file=sys.stderr)
 
 
 _PROBED = False
@@ -233,9 +272,11 @@ class MtlxRenderer:
         try:
             self.renderer.createProgram(hw)
             self.renderer.validateInputs()
-        except mx_render.ExceptionRenderError as e:
-            raise RuntimeError(f"MaterialX GLSL {shader}: {e}: {'; '.join(e.errorLog)}") from e
-        self.renderer.render()
+        except Exception as e:  # ExceptionRenderError reaches Python as LookupError, with the GL log
+            log = "; ".join(getattr(e, "errorLog", []) or [])
+            raise RuntimeError(f"MaterialX GLSL {shader}: {e} {log}".strip()) from e
+        with _console_filtered():
+            self.renderer.render()
         w, h = self.size
         img = mx_render.Image.create(w, h, 4, mx_render.BaseType.FLOAT)
         img.createResourceBuffer()

@@ -31,20 +31,19 @@ SIZE = 64
 TEXEL_MM = 0.01
 VIEW = np.array([0.0, 0.0, 1.0])
 ELEVATIONS = (90, 60, 35, 20)
-# Measured here (2026-12-03, x86_64 2 cores, Mesa 22.3.6 llvmpipe, materialx 1.39.5) on
-# generate("twill", 64, 10 um, seed=2): standard_surface 9.59 / 11.48 / 13.76 / 16.83 %,
-# open_pbr_surface 9.59 / 11.48 / 13.75 / 16.78 %.  Issue 28 measured 5.6 / 5.0 / 6.4 / 7.2 %
-# on a fitted (smoother) twill; on this synthetic one most of the gap is the GPU's texture
-# filtering of texel-scale detail (a random-albedo diffuse swatch alone scores 30 %), not the
-# shading.  Tolerance: the measured value plus 1.5 points.
-TOLERANCE = {90: 0.111, 60: 0.130, 35: 0.153, 20: 0.184}
+# Measured here (2026-12-03, x86_64 2 cores, Mesa 22.3.6 llvmpipe with its anisotropic filter
+# hidden, materialx 1.39.5) on generate("twill", 64, 10 um, seed=2): both shaders 7.58 / 9.75 /
+# 10.79 / 12.83 %.  Issue 28 measured 5.6 / 5.0 / 6.4 / 7.2 % on a fitted twill (setup not
+# recorded); our own Standard Surface scores 3.2-4.2 % on this twill.  Tolerance: the measured
+# value plus 1.5 points.
+TOLERANCE = {90: 0.091, 60: 0.113, 35: 0.123, 20: 0.143}
 # each wrong alternative scores at least this factor worse than the export as written (mean over
-# the elevations at ORIENT_AZIMUTH).  Measured (same run as above): normal green negated 5.0x,
-# rows flipped 5.3x, sRGB read as linear 6.8x, tangent mirrored 1.20x (the zenith view sees
-# little of the anisotropy's direction on this twill: 9.9 / 11.0 / 15.2 / 20.1 % against ours
-# 9.6 / 9.7 / 12.7 / 15.0 %)
+# the elevations at ORIENT_AZIMUTH).  Measured (same run as above): normal green negated 7.1x,
+# rows flipped 7.7x, sRGB read as linear 9.2x, tangent mirrored 1.33x (the zenith view sees
+# little of the anisotropy's direction on this twill: 8.0 / 9.0 / 12.2 / 15.1 % against ours
+# 7.6 / 7.4 / 9.0 / 9.2 %)
 WORSE_BY = {"normal_green_negated": 1.5, "rows_flipped": 1.5, "srgb_read_as_linear": 1.5,
-            "tangent_mirrored": 1.12}
+            "tangent_mirrored": 1.2}
 # the orientation checks light from 120 degrees CCW of image right: a light in the xz plane
 # cannot see a negated normal y (or a mirrored tangent on a symmetric weave)
 ORIENT_AZIMUTH = 120
