@@ -1,0 +1,133 @@
+"""Our exports rendered by Blender's Cycles (issue 28): the GLB through Blender's own glTF importer,
+and the ``.blend`` of ``--format blend``, each against our renderer (``bsdf.model.evaluate``) by
+the relative L1 of :func:`dualscale.export.shading.relative_error`, per sun elevation.
+
+Cycles runs in a subprocess (tests/export/blender_render.py) under the Python of
+:func:`dualscale.export.blend.blender_python` (``make blender``'s ``.venv-blender``); without one
+the tests skip and say so.  The renders are 64 x 64 px, 8 samples, of a 64 x 64 texel synthetic
+twill (and sheer) at 10 um per texel: about a second per material for the four suns."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from dualscale.bsdf.model import evaluate
+from dualscale.errors import ToolError
+from dualscale.export import ExportContext, exchange
+from dualscale.export.gltf import write_glb
+from dualscale.export.shading import relative_error
+from dualscale.formats.exr import read_exr
+from dualscale.sim.materials import generate
+
+RENDER = Path(__file__).resolve().with_name("blender_render.py")
+SIZE, TEXEL_MM, SEED = 64, 0.01, 2
+ELEVATIONS = (90, 60, 35, 20)
+SUNS = [(90, 0)] + [(e, 30) for e in ELEVATIONS[1:]]   # azimuth 30 deg: off the weave's axes
+VIEW = np.array([0.0, 0.0, 1.0])
+
+# The GLB as Blender 5.0's importer reads it (anisotropy misread, bump correction on).  Issue 28
+# measured 4.6 / 8.4 / 10.4 / 18.0 % on a fitted twill; this synthetic twill (64 px, seed 2, 8
+# samples) measures 10.9 / 12.6 / 12.2 / 15.5 % (3 Dec 2026): the bound is the larger of the two
+# plus 1.5 points (the render noise at 8 samples moves it by < 0.2 points).
+GLB_BOUND = {90: 0.124, 60: 0.141, 35: 0.137, 20: 0.195}
+
+
+@pytest.fixture(scope="module")
+def bpy_python() -> str:
+    from dualscale.export.blend import blender_python
+
+    try:
+        return blender_python()
+    except ToolError as e:
+        pytest.skip(f"no Python with Blender's bpy (`make blender`): {e}")
+
+
+def _dirs() -> np.ndarray:
+    return np.array([[math.cos(math.radians(e)) * math.cos(math.radians(a)),
+                      math.cos(math.radians(e)) * math.sin(math.radians(a)), math.sin(math.radians(e))]
+                     for e, a in SUNS])
+
+
+def cycles(python: str, src: Path, out: Path, swatch_mm: tuple[float, float], bump_correction=None) -> np.ndarray:
+    """Cycles' renders of ``src`` (.glb or .blend) under :data:`SUNS`, ``(L, H, W, 3)`` [1/sr]."""
+    spec = {"input": str(src), "out": str(out), "size": SIZE, "samples": 8, "sun": SUNS,
+            "bump_correction": bump_correction, "swatch_m": [swatch_mm[0] * 1e-3, swatch_mm[1] * 1e-3]}
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "spec.json").write_text(json.dumps(spec))
+    proc = subprocess.run([python, str(RENDER), str(out / "spec.json")], capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return np.stack([read_exr(out / f"sun_{i}.exr")[..., :3] for i in range(len(SUNS))]).astype(np.float64)
+
+
+@pytest.fixture(scope="module")
+def materials():
+    """name -> (maps, Exchange, ExportContext, our render (L, H, W, 3))."""
+    import dataclasses
+
+    out = {}
+    for kind in ("twill", "sheer", "twill30"):
+        maps = generate(kind.removesuffix("30"), size=SIZE, texel_mm=TEXEL_MM, seed=SEED).maps
+        if kind == "twill30":  # the twill's tangents lie near 0 and 90 deg, where -phi = phi: turn them 30 deg
+            maps = dataclasses.replace(maps, tangent=torch.remainder(maps.tangent + 1 / 6, 1.0))
+        ex = exchange(maps, TEXEL_MM)
+        ours = evaluate(maps, torch.as_tensor(_dirs(), dtype=torch.float32),
+                        torch.as_tensor(VIEW, dtype=torch.float32)).double().numpy()
+        out[kind] = (maps, ex, ExportContext(kind, ex.size_mm), ours)
+    return out
+
+
+def _glb_error(bpy_python, tmp_path, ex, ctx, ours) -> np.ndarray:
+    glb = write_glb(ex, ctx, tmp_path)[0]
+    return relative_error(cycles(bpy_python, glb, tmp_path / "render", ctx.swatch()), ours)
+
+
+def test_glb_as_blender_imports_it(bpy_python, materials, tmp_path):
+    _, ex, ctx, ours = materials["twill"]
+    err = _glb_error(bpy_python, tmp_path, ex, ctx, ours)
+    for e, x in zip(ELEVATIONS, err):
+        assert x < GLB_BOUND[e], f"GLB in Cycles at {e} deg: {100 * x:.1f} % (bound {100 * GLB_BOUND[e]:.1f} %)"
+
+
+def _damaged(ex, damage: str):
+    import copy
+
+    import colour
+
+    ex = copy.deepcopy(ex)
+    if damage == "normal_green_negated":
+        ex.normal = ex.normal * np.float32([1, -1, 1])
+    elif damage == "rows_flipped":
+        for name in ("base_color", "roughness", "anisotropy", "tangent_angle", "normal", "ior",
+                     "specular_color", "transmittance", "opacity"):
+            a = getattr(ex, name)
+            if a is not None:
+                setattr(ex, name, np.ascontiguousarray(a[::-1]))
+    elif damage == "tangent_mirrored":
+        ex.tangent_angle = np.remainder(-ex.tangent_angle, np.pi).astype(np.float32)
+    elif damage == "srgb_read_as_linear":
+        ex.base_color = colour.models.eotf_inverse_sRGB(ex.base_color).astype(np.float32)
+    else:
+        raise KeyError(damage)
+    return ex
+
+
+@pytest.mark.parametrize("damage", ["normal_green_negated", "rows_flipped", "tangent_mirrored",
+                                    "srgb_read_as_linear"])
+def test_a_wrong_orientation_scores_clearly_worse(bpy_python, materials, tmp_path, damage):
+    """The measurement sees each convention error a writer or reader could make: the GLB with
+    the error scores worse than the right one by more than a third at some elevation, and
+    is never better at any (the right GLB: test above).  On the twill with its tangents turned
+    30 deg (the synthetic twill's lie near 0 and 90 deg, where a mirrored tangent is the same)."""
+    _, ex, ctx, ours = materials["twill30"]
+    right = _glb_error(bpy_python, tmp_path / "right", ex, ctx, ours)
+    wrong = _glb_error(bpy_python, tmp_path / "wrong", _damaged(ex, damage), ctx, ours)
+    assert (wrong > right).all(), f"{damage}: {np.round(100 * wrong, 1)} vs {np.round(100 * right, 1)} %"
+    assert (wrong / right).max() > 1.33, f"{damage}: {np.round(100 * wrong, 1)} vs {np.round(100 * right, 1)} %"
