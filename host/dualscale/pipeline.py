@@ -139,11 +139,11 @@ class DigitizeOptions:
         if self.quality not in QUALITIES:
             raise InputError(f"--quality {self.quality!r}: choose one of {', '.join(QUALITIES)}")
         self.export = tuple(self.export)
-        from dualscale.export.material import ALL_FORMATS
+        from dualscale.export.material import ALL_FORMATS, OPTIONAL_FORMATS
 
-        bad = [f for f in self.export if f not in ALL_FORMATS]
+        bad = [f for f in self.export if f not in ALL_FORMATS + OPTIONAL_FORMATS]
         if bad:
-            raise InputError(f"--export {','.join(bad)}: choose from {', '.join(ALL_FORMATS)}")
+            raise InputError(f"--export {','.join(bad)}: choose from {', '.join(ALL_FORMATS + OPTIONAL_FORMATS)}")
         if self.name is not None:
             from dualscale.export.material import check_name
 

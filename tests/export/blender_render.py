@@ -9,7 +9,7 @@ It imports nothing of dualscale.
 
     {"input": "x.glb" | "x.blend", "out": "folder", "size": 64, "samples": 8,
      "sun": [[elevation_deg, azimuth_deg], ...], "bump_correction": null | true | false,
-     "swatch_m": [w, h]}
+     "swatch_m": [w, h], "interpolation": null | "Closest" | "Linear"}
 
 Writes ``out/sun_<i>.exr`` (RGB float32, linear, rows top to bottom) per sun, and
 ``out/scene.json`` (what the scene held: materials, their nodes, custom properties).
@@ -18,7 +18,10 @@ The setup (docs/EXPORT.md, "Blender"): Cycles on the CPU, ``Standard`` view tran
 pixel filter of one pixel, a black world, ``max_bounces = 0`` (a flat sheet sees nothing but the
 sun), one SUN of strength 1 W/m^2 and angle 0 (so a pixel is ``f cos(theta_l)`` in 1/sr, our
 renderer's unit), an orthographic camera straight above the swatch whose frame is the swatch
-(image up = +Y, the glTF importer's and our .blend's bitangent), OPEN_EXR at 32 bits.
+(image up = +Y, the glTF importer's and our .blend's bitangent), OPEN_EXR at 32 bits.  ``interpolation`` (``"Closest"`` in the tests) sets every image
+texture's lookup: with one pixel per texel, a pixel then shades its texel's parameters alone, as
+our renderer does; with ``Linear`` (what a user renders) the box filter also averages the
+bilinear blend of neighbouring texels, which the comparison would count as error.
 
 A glTF import puts the swatch in Blender's Z-up frame: glTF +X -> +X, glTF -Z (image up) -> +Y,
 glTF +Y (the normal) -> +Z, so Blender's world (X, Y, Z) is our tangent frame (right, up, out).
@@ -98,10 +101,14 @@ def _scene(spec: dict):
     sun_data.angle = 0.0
     sun = bpy.data.objects.new("sun", sun_data)
     scene.collection.objects.link(sun)
-    bc = spec.get("bump_correction")
+    bc, interp = spec.get("bump_correction"), spec.get("interpolation")
     for mat in bpy.data.materials:
         if bc is not None:
             mat.cycles.use_bump_map_correction = bool(bc)
+        if interp is not None and mat.node_tree is not None:
+            for node in mat.node_tree.nodes:
+                if node.type == "TEX_IMAGE":
+                    node.interpolation = interp
     return scene, sun
 
 

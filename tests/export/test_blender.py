@@ -34,9 +34,12 @@ VIEW = np.array([0.0, 0.0, 1.0])
 
 # The GLB as Blender 5.0's importer reads it (anisotropy misread, bump correction on).  Issue 28
 # measured 4.6 / 8.4 / 10.4 / 18.0 % on a fitted twill; this synthetic twill (64 px, seed 2, 8
-# samples) measures 10.9 / 12.6 / 12.2 / 15.5 % (3 Dec 2026): the bound is the larger of the two
-# plus 1.5 points (the render noise at 8 samples moves it by < 0.2 points).
-GLB_BOUND = {90: 0.124, 60: 0.141, 35: 0.137, 20: 0.195}
+# samples, nearest-texel lookups) measures 10.8 / 12.5 / 11.5 / 14.8 % (3 Dec 2026): the bound is
+# the larger of the two plus 1.5 points (8 vs 64 samples moves it by < 0.2 points).
+GLB_BOUND = {90: 0.123, 60: 0.140, 35: 0.130, 20: 0.195}
+# The .blend (--format blend): the goal of issue 28, 5 % at every elevation, opaque and sheer
+# (measured 1.0 / 1.4 / 2.3 / 2.8 % twill, 2.2 / 2.9 / 3.5 / 4.3 % sheer, 3 Dec 2026).
+BLEND_GOAL = 0.05
 
 
 @pytest.fixture(scope="module")
@@ -58,7 +61,7 @@ def _dirs() -> np.ndarray:
 def cycles(python: str, src: Path, out: Path, swatch_mm: tuple[float, float], bump_correction=None) -> np.ndarray:
     """Cycles' renders of ``src`` (.glb or .blend) under :data:`SUNS`, ``(L, H, W, 3)`` [1/sr]."""
     spec = {"input": str(src), "out": str(out), "size": SIZE, "samples": 8, "sun": SUNS,
-            "bump_correction": bump_correction, "swatch_m": [swatch_mm[0] * 1e-3, swatch_mm[1] * 1e-3]}
+            "bump_correction": bump_correction, "interpolation": "Closest", "swatch_m": [swatch_mm[0] * 1e-3, swatch_mm[1] * 1e-3]}
     out.mkdir(parents=True, exist_ok=True)
     (out / "spec.json").write_text(json.dumps(spec))
     proc = subprocess.run([python, str(RENDER), str(out / "spec.json")], capture_output=True, text=True,
@@ -131,3 +134,87 @@ def test_a_wrong_orientation_scores_clearly_worse(bpy_python, materials, tmp_pat
     wrong = _glb_error(bpy_python, tmp_path / "wrong", _damaged(ex, damage), ctx, ours)
     assert (wrong > right).all(), f"{damage}: {np.round(100 * wrong, 1)} vs {np.round(100 * right, 1)} %"
     assert (wrong / right).max() > 1.33, f"{damage}: {np.round(100 * wrong, 1)} vs {np.round(100 * right, 1)} %"
+
+
+@pytest.fixture(scope="module")
+def blends(bpy_python, materials, tmp_path_factory):
+    """kind -> the .blend of ``materials[kind]``, written once for the module's tests."""
+    from dualscale.export.blend import write
+
+    cache: dict[str, Path] = {}
+
+    def get(kind: str) -> Path:
+        if kind not in cache:
+            _, ex, ctx, _ = materials[kind]
+            cache[kind] = write(ex, ctx, tmp_path_factory.mktemp(f"blend_{kind}"))[0]
+        return cache[kind]
+
+    return get
+
+
+@pytest.mark.parametrize("kind", ["twill", "sheer"])
+def test_blend_renders_within_5_percent_of_ours(bpy_python, materials, blends, tmp_path, kind):
+    _, ex, ctx, ours = materials[kind]
+    path = blends(kind)
+    err = relative_error(cycles(bpy_python, path, tmp_path / "render", ctx.swatch()), ours)
+    for e, x in zip(ELEVATIONS, err):
+        assert x < BLEND_GOAL, f"{kind} .blend in Cycles at {e} deg: {100 * x:.2f} % (goal 5 %)"
+
+
+def test_blend_holds_the_swatch_the_material_and_the_properties(bpy_python, materials, blends, tmp_path):
+    _, ex, ctx, ours = materials["sheer"]
+    path = blends("sheer")
+    assert sorted(p.name for p in path.parent.iterdir()) == ["sheer.blend"]   # no temp, no .blend1
+    cycles(bpy_python, path, tmp_path / "render", ctx.swatch())
+    scene = json.loads((tmp_path / "render" / "scene.json").read_text())
+    ob = scene["objects"]["sheer"]
+    assert ob["dimensions"][:2] == pytest.approx([SIZE * TEXEL_MM * 1e-3] * 2, rel=1e-6)   # metres
+    mat = scene["materials"]["sheer"]
+    assert mat["bump_map_correction"] is False
+    types = {n["type"] for n in mat["nodes"]}
+    assert {"ShaderNodeBsdfPrincipled", "ShaderNodeBsdfTranslucent", "ShaderNodeAddShader",
+            "ShaderNodeBsdfTransparent", "ShaderNodeNormalMap", "ShaderNodeTangent"} <= types
+    assert "ShaderNodeBsdfRefraction" not in types and "ShaderNodeBsdfGlass" not in types
+    assert [n["distribution"] for n in mat["nodes"] if "distribution" in n] == ["GGX"]
+    for props in (mat["props"]["dualscale"], ob["props"]["dualscale"]):
+        assert props["repeat_mm"] == pytest.approx([SIZE * TEXEL_MM] * 2)
+        assert props["texel_mm"] == pytest.approx(TEXEL_MM) and props["repeats"] == [1.0, 1.0]
+        assert props["scale_known"] == 1 and props["tiled"] == 0
+
+
+def test_blend_without_bpy_is_a_clear_error_and_writes_nothing(materials, tmp_path, monkeypatch):
+    from dualscale.export import blend
+
+    _, ex, ctx, _ = materials["twill"]
+    monkeypatch.setenv(blend.ENV_PYTHON, str(tmp_path / "no-such-python"))
+    with pytest.raises(ToolError, match="not an executable Python"):
+        blend.write(ex, ctx, tmp_path)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_blender_failure_is_a_tool_error_and_leaves_no_file(materials, tmp_path, monkeypatch):
+    from dualscale.export import blend
+
+    _, ex, ctx, _ = materials["twill"]
+    monkeypatch.setenv(blend.ENV_PYTHON, "/bin/false")
+    with pytest.raises(ToolError, match="failed with status 1"):
+        blend.write(ex, ctx, tmp_path)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_cli_export_format_blend(bpy_python, tmp_path, capsys):
+    """``dualscale export MAPS --format blend`` writes OUT/blend/<name>.blend; ``all`` leaves it out."""
+    from dualscale.cli import main
+    from dualscale.cli.export import parse_formats
+    from dualscale.export.material import read_export
+    from dualscale.formats.maps import save_maps
+
+    maps = tmp_path / "maps"
+    save_maps(maps, generate("twill", size=16, texel_mm=0.02, seed=1).maps, {}, texel_mm=0.02, previews=False)
+    out = tmp_path / "out"
+    assert main(["export", str(maps), "-o", str(out), "--name", "tw", "--format", "blend"]) == 0
+    assert read_export(out)["formats"]["blend"] == ["blend/tw.blend"]
+    head = (out / "blend" / "tw.blend").read_bytes()[:7]
+    assert head == b"BLENDER" or head[:4] == b"\x28\xb5\x2f\xfd"   # plain, or zstd-compressed (Blender 5)
+    assert str(out / "blend" / "tw.blend") in capsys.readouterr().out
+    assert "blend" not in parse_formats("all") and parse_formats("glb,blend") == ["glb", "blend"]

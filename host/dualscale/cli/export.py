@@ -9,18 +9,20 @@ from dualscale.errors import InputError
 
 from .common import add_output, output_folder
 
-FORMATS_HELP = "exr (Standard Surface inputs, float), mtlx (MaterialX), gltf, glb, u3m (.u3ma)"
+FORMATS_HELP = ("exr (Standard Surface inputs, float), mtlx (MaterialX), gltf, glb, u3m (.u3ma); "
+                "blend (Blender .blend for Cycles, needs bpy: `make blender`; not in 'all')")
 
 
 def parse_formats(text: str, option: str = "--format") -> list[str]:
     """``"gltf,mtlx"`` or ``"all"`` -> the list of format names (order kept, duplicates dropped);
     ``option`` names the command's option in the error."""
-    from dualscale.export.material import ALL_FORMATS
+    from dualscale.export.material import ALL_FORMATS, OPTIONAL_FORMATS
 
+    known = ALL_FORMATS + OPTIONAL_FORMATS
     names = list(ALL_FORMATS) if text.strip() == "all" else [t.strip() for t in text.split(",") if t.strip()]
-    bad = [n for n in names if n not in ALL_FORMATS]
+    bad = [n for n in names if n not in known]
     if bad or not names:
-        raise InputError(f"{option} {text!r}: choose from {', '.join(ALL_FORMATS)} or 'all' (comma-separated)")
+        raise InputError(f"{option} {text!r}: choose from {', '.join(known)} or 'all' (comma-separated)")
     return list(dict.fromkeys(names))
 
 
@@ -54,7 +56,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     where = f"{size[0]:.3g} x {size[1]:.3g} mm" if size else "physical size unknown (no texel size)"
     print(f"exported {doc['name']} ({'seamless tile, ' if doc['tiled'] else ''}{where}):")
     for fmt, files in doc["formats"].items():
-        main = next((f for f in files if Path(f).suffix in (".mtlx", ".gltf", ".glb", ".u3ma", ".json")), files[0])
+        main = next((f for f in files if Path(f).suffix in (".mtlx", ".gltf", ".glb", ".u3ma", ".blend", ".json")), files[0])
         print(f"  {fmt:5s} {Path(args.output) / main}{'  (unchanged, kept)' if fmt in doc['reused'] else ''}")
     for fmt, why in doc.get("skipped", {}).items():
         print(f"  {fmt:5s} left out: {why}")

@@ -9,6 +9,8 @@ colour-science-style ``method=`` registry::
     gltf  glTF 2.0 swatch (.gltf + .bin + textures) at real-world size (:mod:`.gltf`)
     glb   the same as one binary .glb
     u3m   U3M 1.1 material, zipped as .u3ma (:mod:`.u3m`)
+    blend Blender .blend, a Cycles material (:mod:`.blend`; needs bpy: ``make blender``;
+          not part of ``all``)
 
 Every writer has the signature ``write(ex: Exchange, ctx: ExportContext, out: Path) ->
 list[Path]``: ``out`` is the format's own folder (created by :func:`export_material`, written
@@ -78,13 +80,14 @@ Writer = Callable[[Exchange, ExportContext, Path], list[Path]]
 def _registry() -> dict[str, Writer]:
     """The writers by format name (imported on first use: pygltflib and MaterialX load only when
     an export runs)."""
+    from . import blend as _blend
     from . import exr as _exr
     from . import gltf as _gltf
     from . import mtlx as _mtlx
     from . import u3m as _u3m
 
     return {"exr": _exr.write, "mtlx": _mtlx.write, "gltf": _gltf.write_gltf, "glb": _gltf.write_glb,
-            "u3m": _u3m.write}
+            "u3m": _u3m.write, "blend": _blend.write}
 
 
 __all__ = ["Exchange", "ExportContext", "exchange"]

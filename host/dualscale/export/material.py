@@ -11,6 +11,7 @@ Layout of an export folder ``OUT``::
     OUT/gltf/<name>.gltf     + <name>.bin + textures
     OUT/glb/<name>.glb
     OUT/u3m/<name>.u3ma
+    OUT/blend/<name>.blend   (only when asked for by name: needs bpy)
 
 Each format folder is written in a temporary folder and renamed (:func:`atomic_dir`), so a
 rerun after an interruption redoes only what is missing; a format whose folder is complete
@@ -45,6 +46,9 @@ from .exchange import exchange
 FORMAT = "dualscale-export"
 VERSION = 1
 ALL_FORMATS = ("exr", "mtlx", "gltf", "glb", "u3m")
+# formats given by name only, not part of "all": they need a tool outside the project's venv
+# (blend: Blender's bpy, `make blender`)
+OPTIONAL_FORMATS = ("blend",)
 
 
 def formats_available() -> dict[str, Callable]:
@@ -121,6 +125,10 @@ def export_material(maps_dir: str | Path, out: str | Path, formats: Sequence[str
     if not formats:
         raise InputError("no export format given")
     check_output(maps_dir, out)
+    if "blend" in formats:
+        from .blend import blender_python
+
+        blender_python()  # ToolError now, not after the other formats are written
     src = maps_dir.resolve()
     if name is None:
         stem = src.parent.name if src.name == "maps" else src.name
