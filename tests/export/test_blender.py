@@ -218,3 +218,17 @@ def test_cli_export_format_blend(bpy_python, tmp_path, capsys):
     assert head == b"BLENDER" or head[:4] == b"\x28\xb5\x2f\xfd"   # plain, or zstd-compressed (Blender 5)
     assert str(out / "blend" / "tw.blend") in capsys.readouterr().out
     assert "blend" not in parse_formats("all") and parse_formats("glb,blend") == ["glb", "blend"]
+
+
+def test_cli_without_bpy_refuses_before_writing_any_format(tmp_path, monkeypatch, capsys):
+    from dualscale.cli import main
+    from dualscale.export import blend
+    from dualscale.formats.maps import save_maps
+
+    maps = tmp_path / "maps"
+    save_maps(maps, generate("twill", size=16, texel_mm=0.02, seed=1).maps, {}, texel_mm=0.02, previews=False)
+    monkeypatch.setenv(blend.ENV_PYTHON, str(tmp_path / "no-such-python"))
+    out = tmp_path / "out"
+    assert main(["export", str(maps), "-o", str(out), "--format", "glb,blend"]) == 4   # ToolError
+    assert not (out / "glb").exists() and not (out / "blend").exists()
+    assert blend.ENV_PYTHON in capsys.readouterr().err

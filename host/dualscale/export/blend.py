@@ -24,8 +24,9 @@ metres, so 1 texel = ``texel_mm`` mm):
   Principled (our model adds the two lobes: reflection ``b``, transmission ``t``), not a
   glass BTDF; the opacity as a mix with a Transparent BSDF;
 * ``material.cycles.use_bump_map_correction = False``: our model shades the normal-mapped
-  microfacet frame without Cycles' grazing-light correction (which darkens the cloth by up
-  to 6 points of relative L1 at 20 deg elevation, issue 28);
+  microfacet frame without Cycles' grazing-light correction (left on, it darkens the cloth:
+  at 20 deg elevation 6.6 % instead of 2.8 % relative L1 on the twill, 11.5 % instead of 4.3 %
+  on the sheer; docs/EXPORT.md);
 * ID property ``dualscale`` on the material and on the object: ``repeat_mm``, ``swatch_mm``,
   ``repeats``, ``texel_mm`` (-1 when unknown), ``tiled``, ``scale_known``, ``generator`` and
   ``provenance`` (JSON text).
@@ -76,7 +77,7 @@ def blender_python() -> str:
         return str(local)
     if importlib.util.find_spec("bpy") is not None:
         return sys.executable
-    raise ToolError("--format blend needs Blender's Python module (PyPI bpy==5.0.1, Python 3.11, "
+    raise ToolError(f"--format blend needs Blender's Python module (PyPI bpy=={BPY_VERSION}, Python 3.11, "
                     "numpy < 2): run `make blender` in the source tree (it makes .venv-blender), or set "
                     f"{ENV_PYTHON} to a Python that imports bpy")
 
@@ -95,8 +96,8 @@ def diffuse_base(ex: Exchange) -> np.ndarray:
     ``E`` here is our specular lobe's albedo (:func:`.shading._dir_albedo`: GGX, Smith, the
     exact Fresnel of the texel's IOR, times the tint) for the swatch's head-on view, per texel
     (through its normal): exact there, and for oblique views the attenuation Cycles applies grows
-    a little (E rises towards grazing).  Measured on the twill, 64 px: without it Cycles renders
-    3-4 % darker at every elevation (docs/EXPORT.md, "Blender")."""
+    a little (E rises towards grazing).  Measured on the twill and the sheer, 64 px: without it
+    Cycles renders 4-6 % darker at every elevation (docs/EXPORT.md, "Blender")."""
     import torch
 
     from .exchange import standard_surface_anisotropy
