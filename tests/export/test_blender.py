@@ -192,10 +192,11 @@ def test_blend_without_bpy_is_a_clear_error_and_writes_nothing(materials, tmp_pa
     assert list(tmp_path.iterdir()) == []
 
 
-def test_blender_failure_is_a_tool_error_and_leaves_no_file(materials, tmp_path, monkeypatch):
+def test_blender_failure_is_a_tool_error_and_leaves_no_file(tmp_path, monkeypatch):
     from dualscale.export import blend
 
-    _, ex, ctx, _ = materials["twill"]
+    ex = exchange(generate("twill", size=16, texel_mm=TEXEL_MM, seed=1).maps, TEXEL_MM)
+    ctx = ExportContext("small", ex.size_mm)
     monkeypatch.setenv(blend.ENV_PYTHON, "/bin/false")
     with pytest.raises(ToolError, match="failed with status 1"):
         blend.write(ex, ctx, tmp_path)
