@@ -1,30 +1,33 @@
 """Optimal experimental design for the micro capture: which LEDs would teach the fit the most
 (issue 27; the light subsets of supplementary Sec. 6, chosen per sample instead of fixed).
 
-From a fit of the lights taken so far, on a sample of pixels, every pixel has a posterior
-covariance ``Sigma`` of its free parameters (normalised units, :func:`dualscale.fit.uncertainty.posterior`)
-and a noise model ``var = a u^2 + b u mu``.  A candidate LED ``l``, taken at P0 and P90, adds six
-rows (two analyser modes x RGB) whose Jacobian ``J_l (6, P)`` at the current maps and predicted
-noise ``S_l = diag(s)`` give the information
+From a fit of the lights taken so far, on a sample of pixels, every pixel has the parts of its
+covariance (:func:`dualscale.fit.uncertainty.posterior`): the fit minimises an unweighted
+least-absolute-deviations cost, so its data covariance is the sandwich ``Sigma = c H^-1 G
+H^-1`` (``H = J^T S^-1 J``, ``G = J^T J``, ``c = pi / 2``, with ``S`` the rows' noise sigmas of
+the pixel's noise model ``var = a u^2 + b u mu``; for ``l2``: ``H = J^T J``, ``G = J^T S^2 J``,
+``c = 1``), and the posterior's information is ``F = H G^-1 H / c + P`` with the priors' ``P``.
+A candidate LED ``l``, taken at P0 and P90, adds six rows (two analyser modes x RGB) whose
+Jacobian ``J_l (6, P)`` at the current maps and predicted noise ``S_l`` add ``H_l`` and ``G_l``
+(the same weightings) to ``H`` and ``G``: the estimator's own covariance after the light, not
+the Gaussian optimum's (an L1 fit does not weigh a row by its noise, so a low-noise light
+helps it less than ``J^T S^-2 J`` says).  The criteria, per pixel then summed over the sample
+(the pixels are independent, so the sum is the criterion of the whole map's joint posterior,
+and the worst-determined pixels, whose gains are largest, weigh most):
 
-    ``M_l = e J_l^T S_l^-2 J_l``,
+* ``D``: ``log det F' - log det F`` -- the log of the factor by which the posterior ellipsoid's
+  volume shrinks;
+* ``A``: ``sum_j (1 - Sigma'_jj / Sigma_jj)``, ``Sigma = F^-1`` -- the parameters' variance
+  reductions, each on its own scale (the maps' units differ, so a plain trace would weigh them
+  arbitrarily).
 
-``e = 2 / pi`` for the fit's least-absolute-deviations loss (its efficiency under Gaussian
-noise; 1 for ``l2``).  The posterior after it is ``(Sigma^-1 + M_l)^-1`` (Laplace, the noise
-model and the maps held at their current values).  The criteria, per pixel then summed over the
-sample (the pixels are independent, so the sum is the criterion of the whole map's joint
-posterior, and the worst-determined pixels, whose gains are largest, weigh most):
-
-* ``D``: ``log det(I + L^T M_l L)``, ``Sigma = L L^T`` -- the log of the factor by which the
-  posterior ellipsoid's volume shrinks (the determinant lemma);
-* ``A``: ``sum_j (1 - Sigma'_jj / Sigma_jj)`` -- the parameters' variance reductions, each on its
-  own scale (the maps' units differ, so a plain trace would weigh them arbitrarily).
-
-A parameter the fit leaves undetermined (at a bound, unseen) enters with the prior variance of
-a uniform over its box, ``(hi - lo)^2 / 12``, uncorrelated: a light that would determine it has
-a large gain.  A batch is chosen greedily (:func:`choose_batch`), each pick updating every
-pixel's ``Sigma`` before the next is scored (the standard greedy for batch D-optimality, within
-``1 - 1/e`` of the best batch for this submodular criterion), by gain per second of device time.
+A parameter the fit leaves undetermined (at a bound, unseen, the tangent of an isotropic
+pixel) is held at its value: it is left out (its rows and columns of every ``H``, ``G`` are
+those of the identity, of every ``H_l``, ``G_l`` zero), so it adds no gain.  (Letting such a
+parameter count made the tangent of near-isotropic pixels, which no light determines, dominate
+the choice.)  A batch is chosen greedily (:func:`choose_batch`), each pick adding its ``H_l``,
+``G_l`` to every pixel's before the next is scored (the standard greedy for batch
+D-optimality), by gain per second of device time.
 
 The predicted noise of a candidate: ``mu`` its render at the current maps, ``u`` (the image's
 signal scale, which metering sets) ``kappa x peak(mu)``: metering exposes every image so that
@@ -34,7 +37,6 @@ peak radiance; ``kappa`` is the median over the images taken (per channel).
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -45,7 +47,6 @@ from dualscale.bsdf import Components
 from dualscale.fit import lm
 from dualscale.fit.loop import step_data
 from dualscale.fit.observations import Observations, analyzer_weights
-from dualscale.fit.params import BOX
 from dualscale.fit.presets import Preset
 from dualscale.fit.uncertainty import posterior
 
@@ -55,47 +56,50 @@ CRITERIA = ("D", "A")
 
 @dataclass
 class DesignState:
-    """A fit's posterior on a pixel sample: ``names`` of the free parameters, ``x (n, P)``,
-    ``cov (n, P, P)`` float64 with undetermined parameters at their box's uniform prior
-    (module doc), ``noise (n, 2)`` ``(a, b)``, ``kappa (3,)`` the signal scale per unit peak
-    radiance (module doc; ``None``: one scale for every image), ``u_max`` the largest signal
-    scale the noise model's ``u`` is relative to, and ``efficiency`` (``2 / pi`` or 1)."""
+    """A fit's posterior on a pixel sample (module doc): ``names`` of the free parameters, ``x (n,
+    P)``, the sandwich's ``bread`` and ``meat`` ``(n, P, P)`` float64 (undetermined parameters
+    replaced by the identity's rows, module doc), ``c``, ``prior (n, P)``, ``determined (n, P)``,
+    ``noise (n, 2)`` ``(a, b)``, ``l1`` (the loss), ``kappa (3,)`` the signal scale per unit peak
+    radiance (module doc; ``None``: one scale for every image) and ``u_max`` the largest signal
+    scale, which the noise model's ``u`` is relative to."""
 
     names: tuple[str, ...]
     x: Tensor
-    cov: Tensor
+    bread: Tensor
+    meat: Tensor
+    c: float
+    prior: Tensor
+    determined: Tensor
     noise: Tensor
+    l1: bool
     kappa: np.ndarray | None
     u_max: float
-    efficiency: float
 
 
-def _box_variance(names: tuple[str, ...], params: dict[str, Tensor]) -> Tensor:
-    """``(P,)``: the variance of a uniform over each free parameter's box (the tangent: its period)."""
-    out = []
-    for n in names:
-        lo, hi = BOX.get(n, (0.0, 1.0))
-        out.extend([(hi - lo) ** 2 / 12.0] * params[n].shape[-1])
-    return torch.tensor(out, dtype=torch.float64)
+def _held(m: Tensor, det: Tensor) -> Tensor:
+    """``m (n, P, P)`` with the rows and columns of the undetermined parameters those of the identity."""
+    both = det.unsqueeze(-1) & det.unsqueeze(-2)
+    eye = torch.eye(m.shape[-1], dtype=m.dtype).expand_as(m)
+    return torch.where(both, m, eye)
 
 
 def design_state(params: dict[str, Tensor], comps: Components, obs: Observations, preset: Preset) -> DesignState:
     """The :class:`DesignState` of ``params`` fitted to ``obs`` (a ``1 x n`` pixel sample, as
     :meth:`~dualscale.fit.observations.Observations.pixels` lays it out) with ``preset``."""
-    names, x, cov, det, noise = posterior(params, comps, obs, preset)
+    post = posterior(params, comps, obs, preset)
+    x = post["x"]
     n, p = x.shape[0] * x.shape[1], x.shape[-1]
-    cov, det = cov.reshape(n, p, p), det.reshape(n, p)
-    prior = torch.diag_embed(_box_variance(names, params).expand(n, p))
-    both = det.unsqueeze(-1) & det.unsqueeze(-2)
-    cov = torch.where(both, torch.nan_to_num(cov), prior)
+    det = post["determined"].reshape(n, p)
     kappa, u_max = None, 1.0
     if obs.signal_scale is not None:
         u = obs.signal_scale.double().numpy()  # (K, 3)
         peak = obs.images.double().reshape(obs.n, -1).quantile(0.99, dim=1).clamp(min=1e-12).numpy()
         kappa = np.median(u / peak[:, None], axis=0)
         u_max = float(max(u.max(), 0.0 if obs.back_signal_scale is None else float(obs.back_signal_scale.max())))
-    eff = 2.0 / math.pi if lm.preset_loss(preset).kind == "l1" else 1.0
-    return DesignState(names, x.reshape(n, p), cov, noise.reshape(n, 2), kappa, u_max, eff)
+    return DesignState(post["names"], x.reshape(n, p), _held(post["bread"].reshape(n, p, p), det),
+                       _held(post["meat"].reshape(n, p, p), det), float(post["c"]),
+                       post["prior"].reshape(n, p).double() * det, det, post["noise"].reshape(n, 2).double(),
+                       bool(post["l1"]), kappa, u_max)
 
 
 def candidate_observations(sample: Observations, dirs: np.ndarray, ids: list[int]) -> Observations:
@@ -119,8 +123,8 @@ def candidate_observations(sample: Observations, dirs: np.ndarray, ids: list[int
 
 def candidate_information(state: DesignState, params: dict[str, Tensor], comps: Components,
                           cand: Observations) -> Tensor:
-    """``(n, C, P, P)`` float64: each sample pixel's information ``M_l`` from each candidate LED
-    (module doc) of :func:`candidate_observations`' ``cand``."""
+    """``(n, C, 2, P, P)`` float64: each sample pixel's ``(H_l, G_l)`` from each candidate LED
+    (module doc) of :func:`candidate_observations`' ``cand``; zero on undetermined parameters."""
     d = step_data(cand, "joint", "fused")
     prob = lm._problem(d, comps)
     fixed = {k: v for k, v in params.items() if k not in state.names}
@@ -135,61 +139,70 @@ def candidate_information(state: DesignState, params: dict[str, Tensor], comps: 
         u = (peak[:, None] * torch.from_numpy(state.kappa)[None, :]).reshape(1, k3) / state.u_max
         u = u.expand(n, k3)
     a, b = state.noise[:, :1], state.noise[:, 1:]
-    var = (a * u ** 2 + b * u * mu[0]).clamp(min=1e-30)
-    sw = var.rsqrt().reshape(1, n, k3)
-    out = torch.empty(n, c, state.x.shape[-1], state.x.shape[-1], dtype=torch.float64)
-    r = torch.zeros_like(mu)
-    for j in range(c):  # one candidate's six rows at a time: its own J^T S^-2 J
+    s2 = (a * u ** 2 + b * u * mu[0]).clamp(min=1e-30)
+    # sqrt of the rows' weights in H and in G (module doc)
+    w_h, w_g = (s2 ** -0.25, torch.ones_like(s2)) if state.l1 else (torch.ones_like(s2), s2.sqrt())
+    p = state.x.shape[-1]
+    out = torch.empty(n, c, 2, p, p, dtype=torch.float64)
+    r = torch.zeros_like(mu).to(xb.dtype)
+    for j in range(c):  # one candidate's six rows at a time
         mask = torch.zeros(k3, dtype=torch.float64)
         mask[6 * j:6 * j + 6] = 1.0
-        jtj, _ = prob.normal_equations(xb, state.names, fixed, r.to(xb.dtype), (sw * mask).to(xb.dtype))
-        out[:, j] = state.efficiency * jtj.reshape(n, *jtj.shape[-2:])
-    return out
+        for q, w in enumerate((w_h, w_g)):
+            jtj, _ = prob.normal_equations(xb, state.names, fixed, r, (w * mask).reshape(1, n, k3).to(xb.dtype))
+            out[:, j, q] = jtj.reshape(n, p, p)
+    both = (state.determined.unsqueeze(-1) & state.determined.unsqueeze(-2))[:, None, None]
+    return torch.where(both, out, torch.zeros((), dtype=out.dtype))  # undetermined: held (module doc)
 
 
-def gains(cov: Tensor, info: Tensor, criterion: str = "D") -> Tensor:
-    """``(n, C)``: each pixel's gain from each candidate (module doc) for ``cov (n, P, P)`` and
-    ``info (n, C, P, P)``."""
+def _information(bread: Tensor, meat: Tensor, c: float, prior: Tensor) -> Tensor:
+    """``F = H G^-1 H / c + diag(prior)`` for ``(..., P, P)`` bread ``H`` and meat ``G``."""
+    f = bread @ torch.linalg.solve(meat, bread) / c
+    f = 0.5 * (f + f.transpose(-1, -2))
+    return f + torch.diag_embed(prior.expand(f.shape[:-1]))
+
+
+def gains(state_h: Tensor, state_g: Tensor, c: float, prior: Tensor, info: Tensor, criterion: str = "D",
+          chunk: int = 16) -> Tensor:
+    """``(n, C)``: each pixel's gain from each candidate (module doc) for the current bread
+    ``state_h`` and meat ``state_g`` ``(n, P, P)``, ``prior (n, P)`` and the candidates' ``info
+    (n, C, 2, P, P)`` (:func:`candidate_information`), ``chunk`` candidates at a time."""
     if criterion not in CRITERIA:
         raise ValueError(f"criterion {criterion!r}: one of {', '.join(CRITERIA)}")
-    p = cov.shape[-1]
-    L = torch.linalg.cholesky(cov + 1e-15 * torch.eye(p, dtype=cov.dtype))
-    inner = L.transpose(-1, -2).unsqueeze(1) @ info @ L.unsqueeze(1)  # (n, C, P, P)
-    eye = torch.eye(p, dtype=cov.dtype)
-    if criterion == "D":
-        return torch.linalg.cholesky(eye + inner).diagonal(dim1=-2, dim2=-1).log().sum(-1) * 2.0
-    post = L.unsqueeze(1) @ torch.linalg.solve(eye + inner, L.transpose(-1, -2).unsqueeze(1).expand_as(inner))
-    var0 = cov.diagonal(dim1=-2, dim2=-1).unsqueeze(1)
-    return (1.0 - post.diagonal(dim1=-2, dim2=-1) / var0).sum(-1)
+    f0 = _information(state_h, state_g, c, prior)
+    l0 = torch.linalg.cholesky(f0)
+    out = []
+    for j0 in range(0, info.shape[1], chunk):
+        blk = info[:, j0:j0 + chunk]
+        f1 = _information(state_h.unsqueeze(1) + blk[:, :, 0], state_g.unsqueeze(1) + blk[:, :, 1], c,
+                          prior.unsqueeze(1))
+        if criterion == "D":
+            ld1 = torch.linalg.cholesky(f1).diagonal(dim1=-2, dim2=-1).log().sum(-1)
+            out.append(2.0 * (ld1 - l0.diagonal(dim1=-2, dim2=-1).log().sum(-1).unsqueeze(1)))
+        else:
+            v0 = torch.cholesky_inverse(l0).diagonal(dim1=-2, dim2=-1).unsqueeze(1)
+            v1 = torch.cholesky_inverse(torch.linalg.cholesky(f1)).diagonal(dim1=-2, dim2=-1)
+            out.append((1.0 - v1 / v0).sum(-1))
+    return torch.cat(out, 1)
 
 
-def update(cov: Tensor, info: Tensor) -> Tensor:
-    """``(n, P, P)``: the posterior covariance after information ``info (n, P, P)``:
-    ``L (I + L^T M L)^-1 L^T``."""
-    p = cov.shape[-1]
-    L = torch.linalg.cholesky(cov + 1e-15 * torch.eye(p, dtype=cov.dtype))
-    inner = torch.eye(p, dtype=cov.dtype) + L.transpose(-1, -2) @ info @ L
-    out = L @ torch.linalg.solve(inner, L.transpose(-1, -2))
-    return 0.5 * (out + out.transpose(-1, -2))
-
-
-def choose_batch(cov: Tensor, info: Tensor, cost_s: np.ndarray, size: int, criterion: str = "D"
+def choose_batch(state: DesignState, info: Tensor, cost_s: np.ndarray, size: int, criterion: str = "D"
                  ) -> tuple[list[int], list[float], np.ndarray]:
     """Greedy batch (module doc): ``(picked candidate indices, their gains when picked (summed
     over pixels), every candidate's first-pick gain (C,))``.  ``cost_s (C,)``: each candidate's
     device time; the pick maximises gain per second.  Ties go to the lower index (deterministic)."""
-    first = gains(cov, info, criterion).sum(0).numpy()
+    h, g = state.bread.clone(), state.meat.clone()
+    first = gains(h, g, state.c, state.prior, info, criterion).sum(0).numpy()
     picked: list[int] = []
     got: list[float] = []
-    cov = cov.clone()
-    g = first.copy()
+    gsum = first.copy()
     for _ in range(min(size, info.shape[1])):
-        score = g / np.asarray(cost_s, np.float64)
+        score = gsum / np.asarray(cost_s, np.float64)
         score[picked] = -np.inf
         j = int(np.argmax(score))
         picked.append(j)
-        got.append(float(g[j]))
-        cov = update(cov, info[:, j])
+        got.append(float(gsum[j]))
+        h, g = h + info[:, j, 0], g + info[:, j, 1]
         if len(picked) < size:
-            g = gains(cov, info, criterion).sum(0).numpy()
+            gsum = gains(h, g, state.c, state.prior, info, criterion).sum(0).numpy()
     return picked, got, first

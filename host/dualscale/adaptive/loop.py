@@ -70,7 +70,7 @@ class AdaptiveOptions:
     batch: int | None = None
     criterion: str = "D"
     targets: dict[str, float] = field(default_factory=lambda: dict(DEFAULT_TARGETS))
-    min_gain: float = 0.05
+    min_gain: float = 0.1
     budget_shots: int | None = None
     budget_s: float | None = None
     sample_pixels: int = 1024
@@ -295,7 +295,7 @@ class AdaptiveCapture:
         st = design_state(params, comps, sample, preset)
         info = candidate_information(st, params, comps,
                                      candidate_observations(sample, self.dirs[cands], cands))
-        picked, got, first = choose_batch(st.cov, info, costs, size, self.opts.criterion)
+        picked, got, first = choose_batch(st, info, costs, size, self.opts.criterion)
         npx = st.x.shape[0]
         best = float(first.max()) / npx
         scores = {str(c): [round(float(first[j]) / npx, 6), round(float(costs[j]), 6)] for j, c in enumerate(cands)}

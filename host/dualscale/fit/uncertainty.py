@@ -623,16 +623,22 @@ def median_sigmas(unc: Uncertainty) -> dict[str, float | None]:
 
 
 def posterior(params: dict[str, Tensor], comps: Components, obs: Observations, preset: Preset
-              ) -> tuple[tuple[str, ...], Tensor, Tensor, Tensor, Tensor]:
-    """What an experimental design needs of a fit at its solution (:mod:`dualscale.adaptive`):
-    ``(names, x (H, W, P) float64, cov (H, W, P, P) float64, determined (H, W, P) bool, noise
-    (H, W, 2) float64)`` -- the joint step's free parameters (normalised units), their
-    covariance as :func:`pixel_covariance` gives it (NaN rows and columns where undetermined),
-    and each pixel's noise model ``(a, b)``, ``var = a u^2 + b u mu`` (module doc), from a pass
-    of its own at ``params``."""
+              ) -> dict[str, "Tensor | tuple[str, ...]"]:
+    """What an experimental design needs of a fit at its solution (:mod:`dualscale.adaptive`), from
+    a pass of its own at ``params``: ``names`` (the joint step's free parameters), ``x (H, W, P)``
+    float64 (normalised units), ``determined (H, W, P)``, ``noise (H, W, 2)`` (each pixel's
+    ``(a, b)``, ``var = a u^2 + b u mu``, module doc), and the sandwich's parts: ``bread`` and
+    ``meat`` ``(H, W, P, P)`` with ``Sigma_data = c bread^-1 meat bread^-1`` (``l1``: ``N``, ``B``,
+    ``c = pi / 2``; ``l2``: ``A``, ``N``, ``c = 1``), ``c`` and ``prior (H, W, P)``, the priors'
+    information ``1 / sd^2`` per channel."""
     names, parts = _separate_pass(params, comps, obs, preset)
     point = _cat([c for _, c in parts])
-    noise = torch.cat([m["noise"] for m, _ in parts], 0)
+    m = _cat([mm for mm, _ in parts])
     x = pack(params, names).double()
-    cov, det = _finish(x, names, point)
-    return names, x, cov, det, noise
+    _, det = _finish(x, names, point)
+    loss = lm.preset_loss(preset)
+    _, _, prior = loss.prior_terms(x, names, torch.ones(x.shape[:-1], dtype=x.dtype))
+    l1 = loss.kind == "l1"
+    return {"names": names, "x": x, "determined": det, "noise": m["noise"], "prior": prior,
+            "bread": (m["N"] if l1 else m["A"]).double(), "meat": (m["B"] if l1 else m["N"]).double(),
+            "c": math.pi / 2 if l1 else 1.0, "l1": l1}
