@@ -228,9 +228,11 @@ def test_an_interrupted_fit_resumes_from_its_finished_bands(datasets, tmp_path, 
 def test_what_the_fit_out_of_core_cannot_run_is_refused_before_any_work(datasets, tmp_path, capsys):
     from dualscale.cli import main
 
+    from dualscale.engine import EngineSpec
+
     root = datasets("twill", 16) / "micro"
-    with pytest.raises(InputError, match="coarse level"):
-        api.fit_dataset(root, tmp_path / "c", "coarse-to-fine", memory=budget(root, 64))
+    with pytest.raises(InputError, match="coarse level on a cluster"):  # the tiles' coarse start is whole-map
+        api.fit_dataset(root, tmp_path / "c", "coarse-to-fine", memory=budget(root, 64), engine=EngineSpec(workers=2))
     assert not (tmp_path / "c").exists()
     assert main(["fit", str(root), "-o", str(tmp_path / "d"), "--memory", "lots"]) == 2
     assert "--memory 'lots'" in capsys.readouterr().err
@@ -341,3 +343,42 @@ def test_out_of_core_on_a_cluster_survives_a_worker_killed_mid_tile(datasets, tm
         assert out["killed"] is not None, "no worker was seen fitting a tile"
         assert "error" not in out, out.get("error")
     _equal_maps(tmp_path / "whole", tmp_path / "tiles")
+
+
+def test_coarse_to_fine_out_of_core_equals_the_whole_map_fit_and_resumes(masked, tmp_path, monkeypatch):
+    """The coarse level band by band (``fit.stream_coarse``): bands of a multiple of 2 rows, each
+    downsampled and fitted, each fine band started from its rows' coarse maps and a one-cell
+    halo: the whole-map coarse-to-fine maps bit for bit; the coarse maps are saved and reused by
+    a rerun."""
+    from dualscale.fit import stream_coarse
+
+    p = get_preset("coarse-to-fine").scaled(0.34)
+    kw = dict(cv_pixels=0, previews=False, seed=1)
+    api.fit_dataset(masked, tmp_path / "whole", p, memory=None, **kw)
+    mem = budget(masked, 70)  # 3 rows, rounded down to 2: ten bands of 2 rows
+    assert [b[1] - b[0] for b in band_boxes((20, 20), fit_layout(masked)[3], mem, 2)] == [2] * 10
+    calls = []
+    real = stream.fit_observations
+
+    def stop_at_the_fourth_band(*a, **k):
+        calls.append(1)
+        if len(calls) == 4:
+            raise KeyboardInterrupt
+        return real(*a, **k)
+
+    monkeypatch.setattr(stream, "fit_observations", stop_at_the_fourth_band)
+    with pytest.raises(KeyboardInterrupt):
+        api.fit_dataset(masked, tmp_path / "bands", p, memory=mem, **kw)
+    state = tmp_path / "bands" / "tiles"
+    assert len(list(state.glob("coarse_*.pt"))) == 10 and len(list(state.glob("0*.pt"))) == 3
+    monkeypatch.setattr(stream, "fit_observations", real)
+    coarse_fits = []
+    real_coarse = stream_coarse.coarse_part
+    monkeypatch.setattr(stream_coarse, "coarse_part", lambda *a, **k: coarse_fits.append(1) or real_coarse(*a, **k))
+    res, ex = api.fit_dataset(masked, tmp_path / "bands", p, memory=mem, **kw)
+    assert coarse_fits == [] and ex["out_of_core"]["resumed_parts"] == 3 and ex["out_of_core"]["parts"] == 10
+    _equal_maps(tmp_path / "whole", tmp_path / "bands")
+    assert not state.exists()
+    with pytest.raises(InputError, match="bands of 2 rows at least"):  # one row: no whole block
+        api.fit_dataset(masked, tmp_path / "c", p, memory=budget(masked, 25), **kw)
+    assert not (tmp_path / "c").exists()

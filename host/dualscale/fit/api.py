@@ -26,8 +26,9 @@ from .observations import DatasetOrigin, Observations, fit_layout, load_observat
 from .presets import Preset, get_preset
 from .select import PIXELS as SELECT_PIXELS
 from .select import choose_components, preset_for, select_components, selection_pixels
-from .stream import (DEFAULT_MEMORY, band_boxes, estimate_bytes, fit_parts, fit_parts_refusal, gather, memory_record,
+from .stream import (DEFAULT_MEMORY, band_boxes, estimate_bytes, fit_parts, gather, memory_record,
                      reader, result, survey, uncertainty_rows, warn_albedo, write_rows)
+from .stream_coarse import cluster_refusal
 from .tiled import TILE, check_tile, check_tileable, clear_state, fit_tiled
 
 
@@ -110,9 +111,9 @@ def fit_dataset(dataset: str | Path, out: str | Path, preset: str | Preset = "st
     ooc = None
     if obs is None:
         root, camera, shape, images = fit_layout(dataset)
-        banded = len(band_boxes(shape, images, memory)) > 1
-        if banded and p.coarse_factor > 1:
-            fit_parts_refusal(p)
+        banded = len(band_boxes(shape, images, memory, p.coarse_factor)) > 1  # (refuses a budget under f rows)
+        if banded and p.coarse_factor > 1 and engine is not None:
+            cluster_refusal(p)
         if banded or (engine is not None and p.coarse_factor <= 1):
             ooc = _OutOfCore(root, camera, shape, images, memory)
         else:  # (a coarse level within the budget on a cluster: the driver's whole-map coarse start, fit.tiled)

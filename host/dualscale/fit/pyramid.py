@@ -69,28 +69,31 @@ def _pool_valid(x: Tensor, valid: Tensor | None, factor: int) -> tuple[Tensor, T
     return torch.where(den > 0, num / den.clamp(min=1e-12), torch.zeros_like(num)), den[..., 0] > 0
 
 
-def _bilinear(x: Tensor, factor: int, shape: tuple[int, int]) -> Tensor:
+def _bilinear(x: Tensor, factor: int, shape: tuple[int, int], skip: int = 0) -> Tensor:
     """``(h, w, C)`` -> ``(H, W, C)``: coarse cell ``i`` covers fine pixels ``[i f, (i + 1) f)``;
-    bilinear with edge clamping, cropped to ``shape``."""
+    bilinear with edge clamping, the fine rows ``skip .. skip + H - 1`` and columns ``0 .. W - 1``
+    of the ``(h f, w f)`` result."""
     y = x.permute(2, 0, 1).unsqueeze(0)
     y = F.interpolate(y, scale_factor=factor, mode="bilinear", align_corners=False)
-    return y[0, :, :shape[0], :shape[1]].permute(1, 2, 0).contiguous()
+    return y[0, :, skip:skip + shape[0], :shape[1]].permute(1, 2, 0).contiguous()
 
 
-def upsample_params(params: dict[str, Tensor], factor: int, shape: tuple[int, int]) -> dict[str, Tensor]:
-    """Fit parameters (normalised maps, normal as a square point) upsampled to ``shape``."""
+def upsample_params(params: dict[str, Tensor], factor: int, shape: tuple[int, int],
+                    skip: int = 0) -> dict[str, Tensor]:
+    """Fit parameters (normalised maps, normal as a square point) upsampled to ``shape``; with
+    ``skip``, the fine rows from ``skip`` on (a band of the map: :func:`start_from_coarse`)."""
     out: dict[str, Tensor] = {}
     for name, t in params.items():
         if name == "normal":
-            n = _bilinear(normal_from_square(t), factor, shape)
+            n = _bilinear(normal_from_square(t), factor, shape, skip)
             n = torch.cat([n[..., :2], n[..., 2:].clamp(min=0.0)], -1)  # mixes of upper normals stay upper
             out[name] = square_from_normal(n).clamp(*BOX["normal"])
         elif name == "tangent":
             a = 2.0 * math.pi * t
-            v = _bilinear(torch.cat([torch.cos(a), torch.sin(a)], -1), factor, shape)
+            v = _bilinear(torch.cat([torch.cos(a), torch.sin(a)], -1), factor, shape, skip)
             out[name] = torch.remainder(torch.atan2(v[..., 1:], v[..., :1]) / (2.0 * math.pi), 1.0)
         else:
-            out[name] = _bilinear(t, factor, shape).clamp(*BOX.get(name, (0.0, 1.0)))
+            out[name] = _bilinear(t, factor, shape, skip).clamp(*BOX.get(name, (0.0, 1.0)))
     return out
 
 
@@ -109,23 +112,45 @@ def fine_preset(preset: Preset) -> Preset:
     return replace(preset, grid_init=False, coarse_factor=1)
 
 
-def start_from_coarse(coarse_maps, obs: Observations, preset: Preset, comps: Components) -> dict[str, Tensor]:
+def start_from_coarse(coarse_maps, obs: Observations, preset: Preset, comps: Components,
+                      rows: tuple[int, int] = (0, 0), base: dict[str, Tensor] | None = None) -> dict[str, Tensor]:
     """Starting parameters for the full-resolution fit from the maps of the coarse fit
     (``fit_observations(downsample(obs, f), coarse_preset(preset), ...)``; see the module
-    docstring)."""
+    docstring).  ``base``: the usual start of ``obs`` (default :func:`.init.initial_params`,
+    which warns about the albedo range).
+
+    A band of full rows (the fit out of core, :mod:`.stream_coarse`): ``obs`` holds the map's
+    rows from ``rows[0]`` (a multiple of ``f``), ``coarse_maps`` the coarse rows from
+    ``rows[1]`` on, at least those the band's bilinear and nearest cells read (its coarse rows
+    and one cell above and below, where the map has them: :func:`coarse_rows`).  Each fine pixel
+    then gets the whole map's values: the same cells, and the same interpolation weights, which
+    depend on the pixel's row within its ``f``-block only (exact for ``f`` a power of two)."""
     f = preset.coarse_factor
+    y0, c0 = rows
     cp = params_from_maps(coarse_maps, comps)
-    base = initial_params(obs, comps)
-    cands = [upsample_params(cp, f, obs.shape)] + [_nearest(cp, f, obs.shape, dy, dx) for dy in (0, 1) for dx in (0, 1)]
+    base = initial_params(obs, comps) if base is None else base
+    skip = y0 - c0 * f
+    cands = [upsample_params(cp, f, obs.shape, skip)] + [_nearest(cp, f, obs.shape, dy, dx, y0, c0)
+                                                         for dy in (0, 1) for dx in (0, 1)]
     cands = [{k: (c[k] if k in STEP_FITS["specular"] else base[k]) for k in base} for c in cands]
     return best_per_pixel(cands, obs, comps, preset)
 
 
-def _nearest(params: dict[str, Tensor], factor: int, shape: tuple[int, int], dy: int, dx: int) -> dict[str, Tensor]:
+def coarse_rows(y0: int, y1: int, factor: int, coarse_h: int) -> tuple[int, int]:
+    """``(c0, c1)``: the coarse rows (``c1`` excluded) of a ``coarse_h``-row coarse map that the
+    fine rows ``y0 .. y1 - 1`` read in :func:`start_from_coarse` (bilinear corners and nearest
+    cells): their own and a one-cell halo above and below, within the map."""
+    return max(0, y0 // factor - 1), min(coarse_h, -(-y1 // factor) + 1)
+
+
+def _nearest(params: dict[str, Tensor], factor: int, shape: tuple[int, int], dy: int, dx: int,
+             y0: int = 0, c0: int = 0) -> dict[str, Tensor]:
     """Each fine pixel takes the values of one of the four coarse cells around its centre
-    (the bilinear corners: ``dy, dx`` in {0, 1})."""
+    (the bilinear corners: ``dy, dx`` in {0, 1}); ``y0``, ``c0``: the map rows of the first fine
+    row and coarse row given (a band, :func:`start_from_coarse`)."""
     h, w = next(iter(params.values())).shape[:2]
-    iy = (torch.floor((torch.arange(shape[0]) + 0.5) / factor - 0.5).long() + dy).clamp(0, h - 1)
+    iy = ((torch.floor((torch.arange(y0, y0 + shape[0]) + 0.5) / factor - 0.5).long() + dy).clamp(min=0) - c0)
+    iy = iy.clamp(0, h - 1)
     ix = (torch.floor((torch.arange(shape[1]) + 0.5) / factor - 0.5).long() + dx).clamp(0, w - 1)
     return {k: v[iy][:, ix].clone() for k, v in params.items()}
 

@@ -131,13 +131,16 @@ def memory_text(n: float) -> str:
     return f"{n / 2 ** 20:.0f} MiB" if n >= 2 ** 20 else f"{n / 2 ** 10:.1f} KiB" if n >= 1024 else f"{n:.0f} bytes"
 
 
-def band_boxes(shape: tuple[int, int], images: int, memory: int | None) -> list[tuple[int, int, int, int]]:
+def band_boxes(shape: tuple[int, int], images: int, memory: int | None,
+               multiple: int = 1) -> list[tuple[int, int, int, int]]:
     """``(y0, y1, x0, x1)`` parts of a ``(H, W)`` map of ``images`` LED images whose estimated
     fit stays within ``memory`` bytes (module doc): bands of full rows, their height rounded
-    down to a multiple of 64 (or 16) rows, the EXR chunks' heights, when there are that many;
-    a single row split into runs of columns when even one row is over the budget.  ``memory``
-    ``None``: one part, the whole map.  Raises :class:`~dualscale.errors.InputError` when the
-    budget is below :func:`minimum_memory`."""
+    down to a multiple of 64 (or 16) rows, the EXR chunks' heights, when there are that many,
+    and to a multiple of ``multiple`` (a coarse level's factor: :mod:`.stream_coarse`); a
+    single row split into runs of columns when even one row is over the budget (not with a
+    ``multiple``: refused).  ``memory`` ``None``: one part, the whole map.  Raises
+    :class:`~dualscale.errors.InputError` when the budget is below :func:`minimum_memory`, or
+    holds fewer than ``multiple`` rows."""
     h, w = shape
     if memory is None:
         return [(0, h, 0, w)]
@@ -146,11 +149,17 @@ def band_boxes(shape: tuple[int, int], images: int, memory: int | None) -> list[
     if pixels >= h * w:
         return [(0, h, 0, w)]
     rows = pixels // w
+    if multiple > 1 and rows < multiple:
+        need = RESERVE + multiple * w * max(1, images) * BYTES_PER_SAMPLE
+        raise InputError(f"--memory {memory_text(memory)} holds {rows} row(s) of this {h} x {w} map; a coarse level "
+                         f"of {multiple} x {multiple} blocks fits bands of {multiple} rows at least: give "
+                         f"--memory {memory_text(need)} or more")
     if rows >= 1:
         for align in (64, 16):
             if rows >= align:
                 rows -= rows % align
                 break
+        rows -= rows % multiple
         return [(y, min(y + rows, h), 0, w) for y in range(0, h, rows)]
     cols = int(pixels)
     return [(y, y + 1, x, min(x + cols, w)) for y in range(h) for x in range(0, w, cols)]
@@ -393,14 +402,6 @@ class Parts:
         return {f"train_{k}": v for k, v in losses_from_sums(a, q, n).items()}
 
 
-def fit_parts_refusal(preset: Preset) -> None:
-    """Raise the :class:`~dualscale.errors.InputError` of a preset with a coarse level, which
-    the fit out of core does not run (module doc)."""
-    raise InputError(f"the {preset.name} preset's coarse level fits the whole downsampled map, which the fit out of "
-                     "core does not hold; give --memory unlimited (the whole map in memory) or use the standard "
-                     "preset (docs/SCALE.md)")
-
-
 def fit_parts(read: Reader, origin: DatasetOrigin, sv: Survey, preset: Preset, comps: Components, *,
               memory: int | None, state: Path, seed: int = 0, client=None, tile: int = 64, threads: int = 1,
               progress: Progress = None, uncertainty: bool = False) -> Parts:
@@ -416,13 +417,15 @@ def fit_parts(read: Reader, origin: DatasetOrigin, sv: Survey, preset: Preset, c
     :class:`~dualscale.errors.FormatError` for a saved part of another fit."""
     from .tiled import check_tileable, tiles
 
-    if preset.coarse_factor > 1:
-        fit_parts_refusal(preset)
+    from .stream_coarse import cluster_refusal, coarse_pass, start_of
+
+    if preset.coarse_factor > 1 and client is not None:
+        cluster_refusal(preset)
     t0 = time.perf_counter()
     adam = preset.optimizer == "adam"
     whole = sv.whole
     if client is None:
-        boxes = band_boxes(sv.shape, sv.head.n, memory)
+        boxes = band_boxes(sv.shape, sv.head.n, memory, preset.coarse_factor)
         kind = {"kind": "bands", "memory": memory}
     else:
         check_tileable(preset)
@@ -440,6 +443,9 @@ def fit_parts(read: Reader, origin: DatasetOrigin, sv: Survey, preset: Preset, c
 
     unit = "band" if client is None else "tile"
     workers = None
+    coarse = None
+    if preset.coarse_factor > 1 and todo:  # the coarse level, band by band (.stream_coarse)
+        coarse = coarse_pass(read, boxes, todo, preset, comps, seed, state, key, sv.shape, progress, release_memory)
     with tracker(progress, len(boxes), f"fit[{preset.name}] {unit}s", unit=unit) as bar:
         if resumed:
             bar.update(resumed, f"{resumed} {unit}(s) done before")
@@ -451,6 +457,7 @@ def fit_parts(read: Reader, origin: DatasetOrigin, sv: Survey, preset: Preset, c
                 # the start of the whole-map fit, and its albedo counts (the map's share is warned about once)
                 fitted = stride_leds(band, preset.led_stride)
                 init, counts = start_params(fitted, comps)
+                init = start_of(fitted, box, coarse, preset, comps, init)
                 res = fit_observations(band, preset, comps, seed=seed, init=init, uncertainty=uncertainty)
                 finish(box, {"maps": dict(res.maps.items()), "history": list(res.history),
                              "uncertainty": uncertainty_record(res.uncertainty),
@@ -610,5 +617,5 @@ def memory_record(memory: int | None, parts: Parts, passes: dict[str, float], sh
 
 
 __all__ = ["DEFAULT_MEMORY", "BYTES_PER_SAMPLE", "RESERVE", "parse_memory", "band_boxes", "Survey", "survey",
-           "gather", "survey_part", "survey_task", "gather_part", "gather_task", "Parts", "fit_parts", "fit_parts_refusal", "write_rows", "uncertainty_rows", "UncertaintyRows", "result", "reader", "peak_rss_mb", "release_memory", "warn_albedo",
+           "gather", "survey_part", "survey_task", "gather_part", "gather_task", "Parts", "fit_parts", "write_rows", "uncertainty_rows", "UncertaintyRows", "result", "reader", "peak_rss_mb", "release_memory", "warn_albedo",
            "memory_record", "memory_text", "estimate_bytes", "minimum_memory", "check_memory", "MIN_PART_PIXELS"]
