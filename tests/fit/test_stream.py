@@ -382,3 +382,34 @@ def test_coarse_to_fine_out_of_core_equals_the_whole_map_fit_and_resumes(masked,
     with pytest.raises(InputError, match="bands of 2 rows at least"):  # one row: no whole block
         api.fit_dataset(masked, tmp_path / "c", p, memory=budget(masked, 25), **kw)
     assert not (tmp_path / "c").exists()
+
+
+def test_gt_out_of_core_scores_by_rows_with_the_in_memory_numbers(datasets, masked, tmp_path, monkeypatch):
+    """``--gt`` out of core (``fit.score``): both maps read by bands of rows, never whole, the
+    terms spilled to memory-mapped files: the in-memory scoring's numbers, exactly (means and
+    the normal angle's 95th percentile), on a translucent ground truth (every term)."""
+    import dualscale.formats.maps as maps_mod
+    from dualscale.fit import score
+    from dualscale.fit.metrics import map_errors
+
+    gt = datasets("sheer", 20) / "maps"
+    p = get_preset("standard").scaled(0.2)
+    kw = dict(cv_pixels=0, previews=False, gt=gt)
+    _, wx = api.fit_dataset(masked, tmp_path / "whole", p, memory=None, **kw)
+    load = maps_mod.load_maps
+
+    def by_rows(root, dtype=torch.float32, box=None):
+        assert box is not None and box[1] - box[0] in (2, 3), "maps read whole"
+        return load(root, dtype, box)
+
+    monkeypatch.setattr(score, "BAND_PIXELS", 60)  # bands of 3 rows of 20 (the last one 2)
+    monkeypatch.setattr(maps_mod, "load_maps", by_rows)
+    _, ex = api.fit_dataset(masked, tmp_path / "bands", p, memory=budget(masked, 60), **kw)
+    monkeypatch.setattr(maps_mod, "load_maps", load)
+    got = ex["ground_truth"]["errors"]
+    assert set(got) >= {"transmittance_rmse", "albedo_opacity_rmse", "normal_p95_deg"}
+    assert got == wx["ground_truth"]["errors"]  # the same maps (bit for bit), the same numbers
+    ior = json.loads((tmp_path / "bands" / "fit.json").read_text())["selection"]["components"]["ior"]
+    assert got == map_errors(load(tmp_path / "bands")[0], load(gt)[0], ior)
+    assert json.loads((tmp_path / "bands" / "fit.json").read_text())["ground_truth"]["errors"] == got
+    assert not list((tmp_path / "bands").glob("score-*"))

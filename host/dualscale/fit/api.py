@@ -204,10 +204,10 @@ def _fit(dataset, out: Path, p: Preset, obs, ooc, overrides, cv_pixels: int, fol
         names, rows = write_rows(ooc.parts)
         save_fit_rows(out, res, ooc.shape, names, rows, sel, extra, previews, texel_mm=head.pixel_mm,
                       uncertainty=uncertainty_rows(ooc.parts) if uncertainty else None)
-        if gt is not None:  # scored on the maps read back whole (module doc of .stream)
-            from dualscale.formats.maps import load_maps
+        if gt is not None:  # scored on the maps read back by rows (.score)
+            from .score import score_by_rows
 
-            extra["ground_truth"] = _ground_truth(gt, load_maps(out)[0], comps)
+            extra["ground_truth"] = {"dir": str(gt), "errors": score_by_rows(out, gt, comps.ior, out)}
             write_json(out / "fit.json", {**read_json(out / "fit.json"), "ground_truth": extra["ground_truth"]})
     remove_file(ck)
     clear_state(state)

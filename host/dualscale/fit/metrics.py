@@ -34,33 +34,58 @@ def _scalar(maps: MaterialMaps, name: str, neutral: float) -> Tensor:
 def map_errors(fit: MaterialMaps, gt: MaterialMaps, fit_ior: float = 1.5) -> dict[str, float]:
     """``albedo_rmse``, ``normal_mean_deg``, ``normal_p95_deg``, ``roughness_mae``,
     ``anisotropy_mae``, ``ior_mae`` (and ``transmittance_rmse`` and ``albedo_opacity_rmse``, the
-    reflected ``opacity x albedo``, for translucent ground truth)."""
+    reflected ``opacity x albedo``, for translucent ground truth), over the ground truth's
+    opaque texels (opacity > 0.5; all without an opacity map): :func:`error_values` reduced by
+    :func:`reduce_errors`."""
     if fit.shape != gt.shape:
         raise ValueError(f"fit is {fit.shape}, ground truth {gt.shape}")
+    return reduce_errors(error_values(fit, gt, fit_ior))
+
+
+def error_values(fit: MaterialMaps, gt: MaterialMaps, fit_ior: float = 1.5) -> dict[str, Tensor]:
+    """The per-texel terms of :func:`map_errors`, each a flat float64 tensor in row-major texel
+    (then channel) order over the scored texels: ``albedo_sq``, ``normal_deg``,
+    ``roughness_abs``, ``anisotropy_abs``, ``ior_abs`` (and ``transmittance_sq``,
+    ``albedo_opacity_sq``).  A band of rows gives the rows' share of the whole map's, in order,
+    so the bands' terms joined are the whole map's (:mod:`.score`)."""
     f = fit.to(torch.float64)
     g = gt.to(torch.float64)
     mask = (g.opacity[..., 0] > 0.5) if g.opacity is not None else torch.ones(g.shape, dtype=torch.bool)
-    out = {"albedo_rmse": float(((f.albedo - g.albedo)[mask] ** 2).mean().sqrt())}
+    out = {"albedo_sq": ((f.albedo - g.albedo)[mask] ** 2).reshape(-1)}
     up = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
     nf = f.normal if f.normal is not None else up.expand(*f.shape, 3)
     ng = g.normal if g.normal is not None else up.expand(*g.shape, 3)
-    ang = normal_angle_deg(nf, ng)[mask]
-    out["normal_mean_deg"] = float(ang.mean())
-    out["normal_p95_deg"] = float(torch.quantile(ang, 0.95))
-    out["roughness_mae"] = float((f.roughness - g.roughness)[mask].abs().mean())
-    out["anisotropy_mae"] = float((_scalar(f, "anisotropy", 0.0) - _scalar(g, "anisotropy", 0.0))[mask].abs().mean())
+    out["normal_deg"] = normal_angle_deg(nf, ng)[mask].reshape(-1)
+    out["roughness_abs"] = (f.roughness - g.roughness)[mask].abs().reshape(-1)
+    out["anisotropy_abs"] = (_scalar(f, "anisotropy", 0.0) - _scalar(g, "anisotropy", 0.0))[mask].abs().reshape(-1)
     ior_f = _scalar(f, "ior", float(map_from_ior(fit_ior)))
     ior_g = _scalar(g, "ior", float(map_from_ior(1.5)))
-    out["ior_mae"] = float((ior_f - ior_g)[mask].abs().mean())
+    out["ior_abs"] = (ior_f - ior_g)[mask].abs().reshape(-1)
     if g.transmittance is not None:
         tf = f.transmittance if f.transmittance is not None else torch.zeros_like(g.transmittance)
-        out["transmittance_rmse"] = float(((tf - g.transmittance)[mask] ** 2).mean().sqrt())
+        out["transmittance_sq"] = ((tf - g.transmittance)[mask] ** 2).reshape(-1)
     if g.opacity is not None:
         # a translucent texel reflects opacity x albedo; the split between the two is barely
         # observable (a lower opacity with a higher albedo and transmittance fits nearly as
         # well), so this product is the identifiable quantity
         of = f.opacity if f.opacity is not None else torch.ones_like(g.opacity)
-        out["albedo_opacity_rmse"] = float(((of * f.albedo - g.opacity * g.albedo)[mask] ** 2).mean().sqrt())
+        out["albedo_opacity_sq"] = ((of * f.albedo - g.opacity * g.albedo)[mask] ** 2).reshape(-1)
+    return out
+
+
+def reduce_errors(values: dict[str, Tensor]) -> dict[str, float]:
+    """:func:`map_errors` from the terms of :func:`error_values` (flat float64 tensors; a memory
+    map's will do): root means of the squares, means of the rest, and the normal angle's 95th
+    percentile (``torch.quantile``, linear)."""
+    v = values
+    out = {"albedo_rmse": float(v["albedo_sq"].mean().sqrt()), "normal_mean_deg": float(v["normal_deg"].mean()),
+           "normal_p95_deg": float(torch.quantile(v["normal_deg"], 0.95)),
+           "roughness_mae": float(v["roughness_abs"].mean()), "anisotropy_mae": float(v["anisotropy_abs"].mean()),
+           "ior_mae": float(v["ior_abs"].mean())}
+    if "transmittance_sq" in v:
+        out["transmittance_rmse"] = float(v["transmittance_sq"].mean().sqrt())
+    if "albedo_opacity_sq" in v:
+        out["albedo_opacity_rmse"] = float(v["albedo_opacity_sq"].mean().sqrt())
     return out
 
 
