@@ -30,10 +30,10 @@ that its worker reads, so the driver reads no pixel):
 decision, the cross-validation and the albedo check (the same pixels, the same counts).  The
 report's ``train_l1`` and ``train_rmse`` are summed in float64 over the parts, where the
 whole-map fit takes a float32 mean: they may differ in the last digits (measured in
-``tests/fit/test_stream.py``: relative 1e-6 at most).  Not out of core: a preset with a coarse
-level (``coarse-to-fine``, whose coarse fit needs the whole downsampled map: refused, use
-``--memory unlimited``), ``--gt`` (the maps are read back whole to be scored) and the in-band
-checkpoint (a part is the unit of resuming).
+``tests/fit/test_stream.py``: relative 1e-6 at most).  A preset with a coarse level
+(``coarse-to-fine``) runs it band by band first (:mod:`.stream_coarse`, the same maps; refused
+on a cluster over the budget), and ``--gt`` scores the maps by rows (:mod:`.score`).  Not out
+of core: the in-band checkpoint (a part is the unit of resuming).
 
 **Memory.**  A band holds ``rows x W`` pixels of every LED image, plus the fit's work:
 :data:`BYTES_PER_SAMPLE` per pixel and image, measured on this machine (docs/SCALE.md), on top
