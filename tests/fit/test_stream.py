@@ -228,11 +228,9 @@ def test_an_interrupted_fit_resumes_from_its_finished_bands(datasets, tmp_path, 
 def test_what_the_fit_out_of_core_cannot_run_is_refused_before_any_work(datasets, tmp_path, capsys):
     from dualscale.cli import main
 
-    from dualscale.engine import EngineSpec
-
     root = datasets("twill", 16) / "micro"
-    with pytest.raises(InputError, match="coarse level on a cluster"):  # the tiles' coarse start is whole-map
-        api.fit_dataset(root, tmp_path / "c", "coarse-to-fine", memory=budget(root, 64), engine=EngineSpec(workers=2))
+    with pytest.raises(InputError, match="bands of 2 rows at least"):  # a coarse level needs whole 2 x 2 blocks
+        api.fit_dataset(root, tmp_path / "c", "coarse-to-fine", memory=budget(root, 12))
     assert not (tmp_path / "c").exists()
     assert main(["fit", str(root), "-o", str(tmp_path / "d"), "--memory", "lots"]) == 2
     assert "--memory 'lots'" in capsys.readouterr().err
@@ -413,3 +411,52 @@ def test_gt_out_of_core_scores_by_rows_with_the_in_memory_numbers(datasets, mask
     assert got == map_errors(load(tmp_path / "bands")[0], load(gt)[0], ior)
     assert json.loads((tmp_path / "bands" / "fit.json").read_text())["ground_truth"]["errors"] == got
     assert not list((tmp_path / "bands").glob("score-*"))
+
+
+def test_coarse_to_fine_on_a_cluster_over_the_budget_runs_in_bands_read_by_the_workers(masked, tmp_path, monkeypatch):
+    """With ``engine`` over the budget, the coarse level and the fine bands are tasks that read
+    their bands themselves; the driver reads no pixel, sends each fine band its coarse rows only,
+    and the maps are the in-memory coarse-to-fine fit's bit for bit."""
+    pytest.importorskip("distributed", reason="the dask extra is not installed (pip install 'dualscale[dask]')")
+    import contextlib
+
+    import cloudpickle
+
+    from dualscale.engine import EngineSpec, connect
+    from dualscale.formats.dataset import Dataset
+
+    p = get_preset("coarse-to-fine").scaled(0.34)
+    kw = dict(cv_pixels=0, previews=False, seed=1)
+    api.fit_dataset(masked, tmp_path / "whole", p, memory=None, **kw)
+    sent = []
+
+    @contextlib.contextmanager
+    def counting(spec):
+        with connect(spec) as client:
+            real = client.submit
+
+            def submit(fn, *args, **k):
+                sent.append((fn.__name__, len(cloudpickle.dumps((fn, args)))))
+                return real(fn, *args, **k)
+
+            client.submit = submit
+            yield client
+
+    monkeypatch.setattr(api, "connect", counting)
+    load = Dataset.load
+    driver = []
+
+    def only_regions(self, index, box=None):  # (this process only: the workers are other processes)
+        driver.append(box)
+        return load(self, index, box)
+
+    monkeypatch.setattr(Dataset, "load", only_regions)
+    res, ex = api.fit_dataset(masked, tmp_path / "bands", p, engine=EngineSpec(workers=2), memory=budget(masked, 90),
+                              **kw)  # 4 rows: five bands
+    assert driver == [] and ex["out_of_core"]["part_kind"] == "bands" and ex["out_of_core"]["parts"] == 5
+    assert ex["tiled"]["tile_px"] is None and ex["tiled"]["part_kind"] == "bands"
+    names = [n for n, _ in sent]
+    assert names.count("coarse_task") == 5 and names.count("fine_task") == 5, names
+    band_images = 4 * 20 * fit_layout(masked)[3] * 3 * 4
+    assert max(size for _, size in sent) < band_images / 4, sent
+    _equal_maps(tmp_path / "whole", tmp_path / "bands")

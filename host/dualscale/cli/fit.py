@@ -85,7 +85,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
           f"{'tinted' if c.tinted else 'untinted'}")
     if "tiled" in extra:
         t = extra["tiled"]
-        print(f"tiles: {t['tiles']} of {t['tile_px']} px on {t['workers']} worker{'' if t['workers'] == 1 else 's'}"
+        parts = f"tiles: {t['tiles']} of {t['tile_px']} px" if t.get("tile_px") else f"bands: {t['tiles']} of full rows"
+        print(f"{parts} on {t['workers']} worker{'' if t['workers'] == 1 else 's'}"
               + (f" ({t['resumed_tiles']} done before)" if t["resumed_tiles"] else ""))
     print(_memory_line(extra))
     lights = extra["lights"]

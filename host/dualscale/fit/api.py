@@ -28,7 +28,6 @@ from .select import PIXELS as SELECT_PIXELS
 from .select import choose_components, preset_for, select_components, selection_pixels
 from .stream import (DEFAULT_MEMORY, band_boxes, estimate_bytes, fit_parts, gather, memory_record,
                      reader, result, survey, uncertainty_rows, warn_albedo, write_rows)
-from .stream_coarse import cluster_refusal
 from .tiled import TILE, check_tile, check_tileable, clear_state, fit_tiled
 
 
@@ -112,9 +111,7 @@ def fit_dataset(dataset: str | Path, out: str | Path, preset: str | Preset = "st
     if obs is None:
         root, camera, shape, images = fit_layout(dataset)
         banded = len(band_boxes(shape, images, memory, p.coarse_factor)) > 1  # (refuses a budget under f rows)
-        if banded and p.coarse_factor > 1 and engine is not None:
-            cluster_refusal(p)
-        if banded or (engine is not None and p.coarse_factor <= 1):
+        if banded or (engine is not None and p.coarse_factor <= 1):  # (a coarse level over it: .stream_coarse)
             ooc = _OutOfCore(root, camera, shape, images, memory)
         else:  # (a coarse level within the budget on a cluster: the driver's whole-map coarse start, fit.tiled)
             obs = load_observations(dataset)
@@ -295,7 +292,8 @@ class _OutOfCore:
                                seed=seed, client=self.client, tile=tile_px, threads=self.threads, progress=progress,
                                uncertainty=uncertainty)
         if self.engine is not None:
-            tiled = {"tile_px": tile_px, "tiles": len(self.parts.boxes), "resumed_tiles": self.parts.resumed,
+            tiled = {"tile_px": tile_px if self.parts.unit == "tile" else None, "part_kind": self.parts.unit + "s",
+                     "tiles": len(self.parts.boxes), "resumed_tiles": self.parts.resumed,
                      "workers": self.parts.workers, "engine": self.engine.describe,
                      "tile_data": "read by the workers from " + self.origin.root}
         self.passes["fit"] = round(self.parts.seconds, 2)

@@ -385,6 +385,7 @@ class Parts:
     resumed: int
     seconds: float
     workers: int | None = None
+    unit: str = "band"
 
     @property
     def albedo_share(self) -> float:
@@ -412,23 +413,26 @@ def fit_parts(read: Reader, origin: DatasetOrigin, sv: Survey, preset: Preset, c
     loss history, pixels and loss sums, with the fit's fingerprint); parts already there from
     an earlier run of the same fit are not fitted again.  ``uncertainty``: each part computes
     its pixels' uncertainty too, saved with it (:func:`.tiled.uncertainty_record`; written by
-    rows, :func:`uncertainty_rows`); a part saved without one is then fitted again.  Raises
-    :class:`~dualscale.errors.InputError` for a preset with a coarse level (module doc) and
-    :class:`~dualscale.errors.FormatError` for a saved part of another fit."""
+    rows, :func:`uncertainty_rows`); a part saved without one is then fitted again.  A preset
+    with a coarse level runs it band by band first (:mod:`.stream_coarse`; the bands' height a
+    multiple of its factor; on a cluster too, in bands of the budget, :data:`DEFAULT_MEMORY`
+    when unlimited).  Raises :class:`~dualscale.errors.InputError` for a budget under the
+    factor's rows and :class:`~dualscale.errors.FormatError` for a saved part of another fit."""
     from .tiled import check_tileable, tiles
 
-    from .stream_coarse import cluster_refusal, coarse_pass, start_of
+    from .stream_coarse import bands_on_cluster, coarse_pass, start_of
 
-    if preset.coarse_factor > 1 and client is not None:
-        cluster_refusal(preset)
     t0 = time.perf_counter()
     adam = preset.optimizer == "adam"
     whole = sv.whole
-    if client is None:
-        boxes = band_boxes(sv.shape, sv.head.n, memory, preset.coarse_factor)
-        kind = {"kind": "bands", "memory": memory}
-    else:
+    if client is not None:
         check_tileable(preset)
+    coarse_level = preset.coarse_factor > 1
+    if client is None or coarse_level:  # a coarse level runs in bands on a cluster too (.stream_coarse)
+        budget = memory if client is None or memory is not None else DEFAULT_MEMORY
+        boxes = band_boxes(sv.shape, sv.head.n, budget, preset.coarse_factor)
+        kind = {"kind": "bands", "memory": budget}
+    else:
         boxes = tiles(sv.shape, tile)
         kind = {"kind": "tiles", "tile": tile}
     key = fingerprint(part="fit part", preset=repr(preset), comps=repr(comps), seed=seed, data=sv.key, **kind)
@@ -441,11 +445,12 @@ def fit_parts(read: Reader, origin: DatasetOrigin, sv: Survey, preset: Preset, c
         save_torch(_tile_path(state, box), {**rec, "box": box, "fingerprint": key})
         records[box] = {k: rec[k] for k in RECORD}
 
-    unit = "band" if client is None else "tile"
+    unit = "tile" if client is not None and not coarse_level else "band"
     workers = None
     coarse = None
-    if preset.coarse_factor > 1 and todo:  # the coarse level, band by band (.stream_coarse)
-        coarse = coarse_pass(read, boxes, todo, preset, comps, seed, state, key, sv.shape, progress, release_memory)
+    if coarse_level and todo:  # the coarse level, band by band (.stream_coarse)
+        coarse = coarse_pass(read, boxes, todo, preset, comps, seed, state, key, sv.shape, progress, release_memory,
+                             client, origin, threads)
     with tracker(progress, len(boxes), f"fit[{preset.name}] {unit}s", unit=unit) as bar:
         if resumed:
             bar.update(resumed, f"{resumed} {unit}(s) done before")
@@ -466,9 +471,14 @@ def fit_parts(read: Reader, origin: DatasetOrigin, sv: Survey, preset: Preset, c
                 del band, res, fitted, init
                 release_memory()
                 bar.update(1, f"rows {box[0]}..{box[1] - 1}")
+        elif coarse is not None:
+            workers = bands_on_cluster(client, todo, origin, coarse, preset, comps, seed, threads, finish, bar,
+                                       uncertainty)
         else:
             workers = _on_cluster(client, todo, origin, sv, preset, comps, seed, threads, finish, bar, uncertainty)
-    return Parts(boxes, records, state, resumed, time.perf_counter() - t0, workers)
+    if client is not None and workers is None:  # every part done before
+        workers = max(1, len(client.scheduler_info(n_workers=-1).get("workers", {})))
+    return Parts(boxes, records, state, resumed, time.perf_counter() - t0, workers, unit)
 
 
 def _on_cluster(client, todo, origin, sv: Survey, preset: Preset, comps: Components, seed: int, threads: int,
@@ -608,10 +618,11 @@ def memory_record(memory: int | None, parts: Parts, passes: dict[str, float], sh
                   images: int) -> dict[str, Any]:
     """``fit.json``'s ``out_of_core`` record: the budget, the whole map's estimated need, the
     parts (``bands`` of ``part_rows`` rows fitted here, or ``tiles`` on a cluster), the passes'
-    times, and this process's peak resident memory in MiB (the driver's, on a cluster)."""
+    times, and this process's peak resident memory in MiB (the driver's, on a cluster); a coarse
+    level on a cluster runs in ``bands`` too (:mod:`.stream_coarse`)."""
     b = parts.boxes[0]
     return {"memory_bytes": memory, "estimate_bytes": estimate_bytes(shape, images),
-            "part_kind": "bands" if parts.workers is None else "tiles", "parts": len(parts.boxes),
+            "part_kind": parts.unit + "s", "parts": len(parts.boxes),
             "part_rows": b[1] - b[0], "part_columns": b[3] - b[2], "resumed_parts": parts.resumed,
             "workers": parts.workers, "pass_seconds": passes, "peak_rss_mib": round(peak_rss_mb(), 1)}
 

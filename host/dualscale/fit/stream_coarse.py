@@ -24,27 +24,34 @@ bands' 64- or 16-row rounding, the EXR chunks' heights, is already a multiple of
 The maps equal the in-memory ``coarse-to-fine`` fit's bit for bit (``tests/fit/test_stream.py``).
 The one difference: the coarse level's own bright-albedo warning (on the downsampled map, in
 memory) is not given; the full-resolution one, on the whole map's counts, is.  Memory: a band's
-fit within the budget as for ``standard``, plus the coarse maps of three bands.  Not on a
-Dask cluster over the budget (refused, :func:`cluster_refusal`).
+fit within the budget as for ``standard``, plus the coarse maps of three bands.
+
+**On a Dask cluster** over the budget the same two passes run as tasks on bands (not
+``--tile-px`` tiles: a band spans the full width, so only rows need a halo), each worker reading
+its band from the dataset (:func:`coarse_task`, :func:`fine_task`); the driver saves the coarse
+maps and sends each fine band its coarse rows (``1/f^2`` of the band's pixels, a few maps), no
+observation.  (Within the budget, a cluster keeps the whole-map coarse start of
+:func:`.tiled.fit_tiled`: the driver holds the map.)
 """
 
 from __future__ import annotations
 
 import warnings
 from pathlib import Path
-from typing import Callable
+from dataclasses import replace
+from typing import Any, Callable
 
 import torch
 from torch import Tensor
 
 from dualscale.bsdf import Components, MaterialMaps
-from dualscale.errors import FormatError, InputError
+from dualscale.errors import FormatError
 from dualscale.formats.torchfile import load_torch, save_torch
 from dualscale.progress import Progress, tracker
 
 from .checkpoint import fingerprint
 from .core import fit_observations
-from .observations import Observations, stride_leds
+from .observations import DatasetOrigin, Observations, read_tile, stride_leds
 from .presets import Preset
 from .pyramid import coarse_preset, coarse_rows, downsample
 
@@ -116,21 +123,41 @@ class CoarseMaps:
         return {k: torch.cat([p[k] for p in pieces], 0) for k in pieces[0]}, c0
 
 
+def coarse_task(origin: DatasetOrigin, box: tuple[int, int, int, int], preset: Preset, comps: Components,
+                seed: int, threads: int) -> dict[str, Tensor]:
+    """:func:`coarse_part` of the band ``box`` a worker reads itself from ``origin`` (a Dask task)."""
+    from dualscale.engine import in_worker
+
+    in_worker(threads)
+    return coarse_part(read_tile(origin, box), box, preset, comps, seed)
+
+
 def coarse_pass(read: Callable[[tuple], Observations], boxes: list[tuple[int, int, int, int]], todo: list[tuple],
                 preset: Preset, comps: Components, seed: int, state: Path, key: str, shape: tuple[int, int],
-                progress: Progress = None, release: Callable[[], None] = lambda: None) -> CoarseMaps:
+                progress: Progress = None, release: Callable[[], None] = lambda: None, client=None,
+                origin: DatasetOrigin | None = None, threads: int = 1) -> CoarseMaps:
     """The coarse level of the bands ``boxes`` (module doc): the bands that the fine bands
     ``todo`` read (their own and their neighbours), each fitted and saved unless an earlier run
-    of the same fit (``key``) saved it; returns the :class:`CoarseMaps` to start from."""
+    of the same fit (``key``) saved it, here (each band read by ``read``) or on the Dask
+    ``client`` (each band read by its worker from ``origin``, :func:`coarse_task`); returns the
+    :class:`CoarseMaps` to start from."""
     maps = CoarseMaps(state, boxes, preset.coarse_factor, fingerprint(part="coarse", fit=key), shape)
     need = set()
     for k, b in enumerate(boxes):
         if b in todo:
             need.update(boxes[max(0, k - 1):k + 2])
     wanted = [b for b in boxes if b in need and maps.load(b) is None]
+    if client is None:
+        results = ((b, coarse_part(read(b), b, preset, comps, seed)) for b in wanted)
+    else:
+        from dualscale.engine import bounded
+
+        from .tiled import INFLIGHT_PER_WORKER
+
+        results = bounded(client, wanted, lambda b: client.submit(coarse_task, origin, b, preset, comps, seed, threads,
+                                                                 pure=False), INFLIGHT_PER_WORKER)
     with tracker(progress, len(wanted), f"fit[{preset.name}] coarse bands", unit="band") as bar:
-        for b in wanted:
-            got = coarse_part(read(b), b, preset, comps, seed)
+        for b, got in results:
             save_torch(coarse_path(state, b), {"maps": got, "box": b, "fingerprint": maps.key})
             del got
             release()
@@ -138,13 +165,46 @@ def coarse_pass(read: Callable[[tuple], Observations], boxes: list[tuple[int, in
     return maps
 
 
-def cluster_refusal(preset: Preset) -> None:
-    """Raise the :class:`~dualscale.errors.InputError` of a preset with a coarse level on a Dask
-    cluster over the memory budget (the tiles' coarse start is the driver's, on the whole map)."""
-    raise InputError(f"the {preset.name} preset's coarse level on a cluster (--workers) starts every tile from "
-                     "the driver's whole-map coarse fit, which does not fit in the memory budget; fit it in this "
-                     "process (without --workers: the coarse level runs band by band), give --memory unlimited, "
-                     "or use the standard preset (docs/SCALE.md)")
+def fine_task(origin: DatasetOrigin, box: tuple[int, int, int, int], preset: Preset, comps: Components,
+              crop: dict[str, Tensor], c0: int, seed: int, threads: int, uncertainty: bool) -> dict[str, Any]:
+    """A fine band on a Dask worker: the ``box`` it reads itself from ``origin``, strided to the
+    preset's LEDs, started from its coarse rows ``crop`` (from row ``c0``, :meth:`CoarseMaps.crop`)
+    and fitted (:func:`.tiled.fit_tile`, with its loss sums and its start's albedo counts)."""
+    from dualscale.engine import in_worker
+
+    from .init import start_params
+    from .pyramid import start_from_coarse
+    from .tiled import fit_tile
+
+    in_worker(threads)
+    band = stride_leds(read_tile(origin, box), preset.led_stride)
+    base, counts = start_params(band, comps)
+    init = start_from_coarse(MaterialMaps(**crop), band, preset, comps, rows=(box[0], c0), base=base)
+    rec = fit_tile(band, replace(preset, led_stride=1), comps, init, seed, threads, sums=True, uncertainty=uncertainty)
+    rec["albedo"] = counts
+    return rec
+
+
+def bands_on_cluster(client, todo: list[tuple], origin: DatasetOrigin, coarse: CoarseMaps, preset: Preset,
+                     comps: Components, seed: int, threads: int, finish, bar, uncertainty: bool) -> int:
+    """The fine bands ``todo`` as Dask tasks (:func:`fine_task`), each carrying its coarse rows
+    (``1/f^2`` of its pixels, a few maps) and reading its pixels itself; ``finish(box, record)``
+    as each one ends; returns the number of workers."""
+    from dualscale.engine import bounded
+
+    from .tiled import INFLIGHT_PER_WORKER
+
+    def submit(box):
+        crop, c0 = coarse.crop(box)
+        return client.submit(fine_task, origin, box, preset, comps, crop, c0, seed, threads, uncertainty,
+                             key=f"dualscale-fit-band-{coarse.key[:16]}-{box[0]}{'-u' if uncertainty else ''}",
+                             pure=False)
+
+    for box, rec in bounded(client, todo, submit, INFLIGHT_PER_WORKER):
+        finish(box, rec)
+        del rec
+        bar.update(1, f"rows {box[0]}..{box[1] - 1}")
+    return max(1, len(client.scheduler_info(n_workers=-1).get("workers", {})))
 
 
 def start_of(band: Observations, box: tuple[int, int, int, int], coarse: CoarseMaps | None, preset: Preset,
@@ -159,4 +219,5 @@ def start_of(band: Observations, box: tuple[int, int, int, int], coarse: CoarseM
     return start_from_coarse(MaterialMaps(**crop), band, preset, comps, rows=(box[0], c0), base=base)
 
 
-__all__ = ["coarse_part", "coarse_pass", "CoarseMaps", "coarse_path", "cluster_refusal", "start_of"]
+__all__ = ["coarse_part", "coarse_task", "coarse_pass", "CoarseMaps", "coarse_path", "fine_task", "bands_on_cluster",
+           "start_of"]
