@@ -11,6 +11,8 @@
   (``heldout.json``: the cross-validated error of every light and the re-rendered lights, and
   their capture/render EXR pairs; the maps are fitted on every light, so those pairs are
   re-renders of training lights and are labelled so);
+* ``capture/micro/capture.json`` when ``digitize --rig ... --adaptive`` captured the input: its
+  ``"adaptive"`` record gives the "Adaptive capture" section (:mod:`dualscale.report.adaptive`);
 * ``flyouts/`` and ``propagate/`` when those stages ran (a skipped stage says why in its summary);
 * ``export/`` (the exports of its summary: per scale, the files of each format, each with its own
   size).
@@ -49,6 +51,7 @@ from dualscale.formats.run import CAPTURE_STAGE, STAGES
 
 from . import format as fmt
 from . import plots
+from .adaptive import section as adaptive_section
 from .checks import run_checks
 from .html import Assets, write_page
 
@@ -183,7 +186,8 @@ def _stage_rows(st: Stage) -> dict[str, Any]:
                  ("warnings", fmt.number(len(st.warnings)))],
         "params": fmt.rows(r.get("params") or {}),
         "versions": [(fmt.label(k), fmt.value(v)) for k, v in (r.get("versions") or {}).items()],
-        "inputs": [(k, fmt.short_hash(v, 16)) for k, v in (r.get("inputs") or {}).items()],
+        "inputs": [(k, fmt.short_hash(v, 16) if isinstance(v, str) else fmt.value(v))  # the capture's: cameras
+                   for k, v in (r.get("inputs") or {}).items()],
         "outputs": [str(o) for o in (r.get("outputs") or [])],
         "summary": _summary_rows(st.summary),
         "warnings": st.warnings,
@@ -375,6 +379,7 @@ def write_run_report(run_dir: str | Path, out: str | Path | None = None) -> Path
     heldout = _heldout(run, _json(run, "fit/heldout/heldout.json", required=True, writer="fit stage"), assets,
                        texel_fit)
     uncertainty = _uncertainty(run, fit_json or {}, maps, assets, texel_fit, note)
+    adaptive = adaptive_section(run, fig, note)
 
     # -- fly-outs
     fly: dict[str, Any] = {"note": "", "fig": None, "rows": [], "resolution": None}
@@ -483,7 +488,8 @@ def write_run_report(run_dir: str | Path, out: str | Path | None = None) -> Path
          fmt.duration(sum(s.seconds or 0.0 for s in timed))),
         ("warnings", fmt.number(len(all_warnings))),
     ]
-    sections = [("checks", "Checks"), ("warnings", "Warnings"), ("inputs", "Inputs and calibration"), ("selection", "Components"),
+    sections = [("checks", "Checks"), ("warnings", "Warnings"), ("inputs", "Inputs and calibration")] + (
+                [("adaptive", "Adaptive capture")] if adaptive else []) + [("selection", "Components"),
                 ("maps", "Maps")] + ([("uncertainty", "Uncertainty")] if uncertainty else []) + [
                 ("residual", "Fit residual"), ("heldout", "Held-out error"),
                 ("flyouts", "Fly-outs"), ("propagation", "Propagation"), ("export", "Export"),
@@ -499,7 +505,7 @@ def write_run_report(run_dir: str | Path, out: str | Path | None = None) -> Path
         subtitle=f"{run.resolve()} · {len(order)} stages · report written {now}",
         toc=sections, footer=f"dualscale {__version__} · written {now} · this folder is self-contained and opens offline",
         headline=headline, checks=check_table, checks_failed=bool(failed), warnings=all_warnings, stage_warn=stage_warn, inputs=inputs, selection=selection,
-        fit_rows=fit_rows, maps=map_figs, uncertainty=uncertainty, residual=res_fig, heldout=heldout, flyouts=fly, propagation=prop,
+        fit_rows=fit_rows, maps=map_figs, uncertainty=uncertainty, adaptive=adaptive, residual=res_fig, heldout=heldout, flyouts=fly, propagation=prop,
         export=exp, timing=timing, records=[_stage_rows(stages[n]) for n in order],
         timing_table=Table(["stage", "time"], [[s.name, fmt.duration(s.seconds)] for s in timed], {1}),
     )
