@@ -340,7 +340,7 @@ class AdaptiveCapture:
             rounds = journal.of("round")
         taken = self._taken([x for x in rounds if not x.get("stop")])
         record = {"options": _jsonable(asdict(self.opts)), "stop": stop["stop"], "reason": stop["reason"],
-                  "rounds": [{**{k: v for k, v in x.items() if k not in ("kind", "t", "scores")},
+                  "rounds": [{**{k: v for k, v in x.items() if k != "kind"},
                               **({"fit": fits.get(x["round"])} if x["round"] in fits else {})} for x in rounds],
                   "shots": len(taken), "floor_s": round(self.s.floor_s(taken), 6)}
         self.log(f"stopped: {stop['reason']} ({record['shots']} shots, device time {record['floor_s']:.1f} s)")

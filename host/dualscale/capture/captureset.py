@@ -4,17 +4,19 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from dualscale.errors import InputError
+from dualscale.errors import FormatError, InputError
 from dualscale.formats.exr import read_exr
 from dualscale.geometry.cameras import Camera as GeometryCamera
 
 from .plan import TARGET_PLANS
 
+FORMAT = "dualscale-capture"        # capture.json's format
 PARTS = "parts"                    # a capture set's folder of calibration-target parts
 RGB = ("R", "G", "B")
 
@@ -56,8 +58,6 @@ def read_parts(root: str | Path) -> list[dict[str, Any]]:
         path = root / PARTS / name / "capture.json"
         if not path.is_file():
             continue
-        from .session import read_capture_record
-
         rec = read_capture_record(path.parent)
         part = rec.get("captureset")
         if isinstance(part, dict):
@@ -128,3 +128,15 @@ def write_capture_set(root: str | Path) -> Path:
         if f"images/{f.name}" not in keep:
             f.unlink()
     return path
+
+
+def read_capture_record(root: str | Path) -> dict[str, Any]:
+    """``DATASET/capture.json`` (module doc); ``FormatError`` if missing or not a capture record."""
+    path = Path(root) / "capture.json"
+    try:
+        rec = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise FormatError(f"{path}: not a capture record ({e})") from e
+    if rec.get("format") != FORMAT:
+        raise FormatError(f"{path}: format is {rec.get('format')!r}, not {FORMAT!r}")
+    return rec

@@ -88,11 +88,10 @@ from dualscale.rig.events import Event
 from dualscale.rig.sequence import Step, schedule, servo_travel_us, split_words
 
 from .camera import Camera, Frame, TriggerInfo, TriggerMode, frame_metadata
-from .captureset import PARTS, _check_parts, _holder_record, read_parts, write_capture_set
+from .captureset import FORMAT, PARTS, _check_parts, _holder_record, read_capture_record, read_parts, write_capture_set  # noqa: F401
 from .journal import JOURNAL, Journal
 from .plan import Plan, Setup, Shot
 
-FORMAT = "dualscale-capture"
 VERSION = 1
 METER_LOW, METER_HIGH = 0.05, 0.8  # metering and bracket targets, fractions of the white level
 METER_STEP = 8.0                   # metering: 8x shorter or longer (calib.hdr.meter's rule)
@@ -923,15 +922,3 @@ def stable_spec(spec: str) -> str:
 
 def _jsonable(obj: Any) -> Any:
     return json.loads(json.dumps(obj, default=str))
-
-
-def read_capture_record(root: str | Path) -> dict[str, Any]:
-    """``DATASET/capture.json`` (module doc); ``FormatError`` if missing or not a capture record."""
-    path = Path(root) / "capture.json"
-    try:
-        rec = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as e:
-        raise FormatError(f"{path}: not a capture record ({e})") from e
-    if rec.get("format") != FORMAT:
-        raise FormatError(f"{path}: format is {rec.get('format')!r}, not {FORMAT!r}")
-    return rec

@@ -1,0 +1,192 @@
+"""Adaptive capture on the simulated rig (issue 27, "Done when"): every fourth LED as candidates,
+the firmware simulator (the real C core) and a simulated micro camera; the decisions journaled,
+resumed identically after a kill -9, and the dataset a normal photometric dataset."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from dualscale.rig.launcher import sim_binary
+
+pytestmark = pytest.mark.skipif(not sim_binary().exists(), reason="POSIX simulator not built (make -C firmware posix)")
+
+CAM = "sim:micro?material=twill&size=12&texel_um=9&readout_ms=1"
+ARGS = ["--lights", "MOD4", "--rig-id", "virtual-dome-0", "--sim-speed", "0", "--no-progress", "--threads", "1",
+        "--adaptive", "--initial-leds", "6", "--batch-leds", "3"]
+
+
+@pytest.fixture(scope="module")
+def cal(tmp_path_factory) -> Path:
+    """A calibration of every fourth LED (the candidates)."""
+    from tests.units.rawrig import calibration_session
+
+    return calibration_session(tmp_path_factory.mktemp("rig"), led_step=4)
+
+
+def _capture(out: Path, cal: Path, *extra: str) -> int:
+    from dualscale.cli import main
+
+    return main(["capture", "micro", "-o", str(out), "--port", "sim", "--camera", CAM, "--calibration", str(cal),
+                 *ARGS, *extra])
+
+
+def _journal(out: Path) -> list[dict]:
+    return [json.loads(ln) for ln in (out / "journal.jsonl").read_text().splitlines() if ln.strip()]
+
+
+@pytest.fixture(scope="module")
+def run(cal, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("adaptive") / "cap"
+    assert _capture(out, cal, "--budget", "26") == 0
+    return out
+
+
+def test_an_adaptive_capture_chooses_rounds_and_stops_on_its_budget(run):
+    """Round 0 spreads 6 LEDs, later rounds take 3 by the criterion; the decisions are journaled
+    before their shots; the capture stops on the shot budget; capture.json records the rounds."""
+    rec = json.loads((run / "capture.json").read_text())["adaptive"]
+    rounds = rec["rounds"]
+    assert rec["stop"] == "budget" and rounds[-1]["leds"] == [] and rounds[-1]["stop"] == "budget"
+    taken = [r["leds"] for r in rounds[:-1]]
+    assert len(taken[0]) == 6 and all(len(t) <= 3 for t in taken[1:]) and len(taken) >= 3
+    flat = [i for t in taken for i in t]
+    assert len(flat) == len(set(flat)) and all(i % 4 == 0 for i in flat)  # candidates only, none twice
+    assert rec["shots"] == 2 * len(flat) + 2 <= 26
+    for r in rounds[1:-1]:  # every candidate scored, the picks among the best by gain per second
+        assert set(r["leds"]) == {p[0] for p in r["picks"]}
+        assert all(str(i) in r["scores"] for i in r["leds"])
+        assert len(r["scores"]) == 32 - sum(len(t) for t in taken[:r["round"]])
+    # journal order: a round's decision precedes its shots, its fit follows them
+    j = _journal(run)
+    pos = {(e["kind"], e.get("round")): k for k, e in enumerate(j) if e["kind"] in ("round", "fit")}
+    shot_at = {e["key"]: k for k, e in enumerate(j) if e["kind"] == "shot"}
+    for r in rounds[:-1]:
+        for i in r["leds"]:
+            for pol in ("p00000", "p09000"):
+                assert pos[("round", r["round"])] < shot_at[f"led{i:03d}_{pol}"] < pos[("fit", r["round"])]
+    # sigma falls as lights are added (the first round's fit has 6 LEDs, the last 6 + 3 k)
+    s0, s1 = rounds[0]["fit"]["sigma"], rounds[-2]["fit"]["sigma"]
+    assert s1["normal"] < s0["normal"] and s1["roughness"] < s0["roughness"]
+    assert rec["floor_s"] > 0 and rounds[-2]["fit"]["floor_s"] == pytest.approx(rec["floor_s"])
+
+
+def test_the_adaptive_dataset_is_a_normal_photometric_dataset(run, cal, tmp_path):
+    """Nothing is lost for later: calibrate and fit read it as any other; it holds exactly the
+    LEDs taken (both analyser modes) and the back light."""
+    from dualscale.calib.apply import to_radiance
+    from dualscale.fit.observations import load_observations
+
+    rec = json.loads((run / "capture.json").read_text())["adaptive"]
+    leds = sorted(i for r in rec["rounds"] for i in r["leds"])
+    to_radiance(run, tmp_path / "rad", cal)
+    obs = load_observations(tmp_path / "rad")
+    assert sorted(set(obs.led_ids.tolist())) == leds and obs.n == 2 * len(leds) and obs.backlight is not None
+    assert obs.has_polarisation
+
+
+def test_targets_and_gain_stop_an_adaptive_capture(cal, tmp_path):
+    """A target every map meets at once stops after the first round; so does an unreachable
+    minimum gain (each with its reason)."""
+    assert _capture(tmp_path / "t", cal, "--target", "albedo=1,normal=90") == 0
+    rec = json.loads((tmp_path / "t" / "capture.json").read_text())["adaptive"]
+    assert rec["stop"] == "targets" and len(rec["rounds"]) == 2 and rec["shots"] == 14
+    assert _capture(tmp_path / "g", cal, "--min-gain", "1e9") == 0
+    rec = json.loads((tmp_path / "g" / "capture.json").read_text())["adaptive"]
+    assert rec["stop"] == "gain" and "under 1e+09" in rec["reason"] and len(rec["rounds"]) == 2
+
+
+def test_kill_9_in_the_middle_resumes_with_identical_decisions(run, cal, tmp_path):
+    """Done when: a kill -9 in the middle of an adaptive capture, then --resume, gives the same
+    decisions and the same dataset as the uninterrupted capture (the module's ``run``)."""
+    from dualscale.formats.dataset import read_dataset
+
+    out = tmp_path / "k"
+    cmd = [sys.executable, "-m", "dualscale.cli", "capture", "micro", "-o", str(out), "--port", "sim", "--camera",
+           CAM, "--calibration", str(cal), *ARGS, "--budget", "26"]
+    p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:  # kill once round 1 has been decided (its shots or its fit in flight)
+        if (out / "journal.jsonl").is_file() and any(e["kind"] == "round" and e.get("round") == 1
+                                                     for e in _journal(out)):
+            break
+        time.sleep(0.05)
+    os.killpg(p.pid, signal.SIGKILL)
+    p.wait()
+    assert not (out / "capture.json").exists()  # killed before the end
+    r = subprocess.run(cmd + ["--resume"], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    want = json.loads((run / "capture.json").read_text())["adaptive"]
+    got = json.loads((out / "capture.json").read_text())["adaptive"]
+    assert [x["leds"] for x in got["rounds"]] == [x["leds"] for x in want["rounds"]]
+    assert [x.get("picks") for x in got["rounds"]] == [x.get("picks") for x in want["rounds"]]
+    a, b = read_dataset(run), read_dataset(out)
+    assert [x.file for x in a.records] == [x.file for x in b.records]
+    for i in range(len(a.records)):
+        np.testing.assert_array_equal(a.load(i), b.load(i))
+    rounds = [e["round"] for e in _journal(out) if e["kind"] == "round"]
+    assert rounds == sorted(set(rounds))  # no decision taken twice
+
+
+def test_adaptive_refusals_come_before_the_rig(cal, tmp_path, capsys):
+    """Bad adaptive input is refused (exit 2) before the simulator starts or the folder is made."""
+    from dualscale.cli import main
+
+    base = ["capture", "micro", "--port", "sim", "--camera", CAM, "--rig-id", "virtual-dome-0", "--no-progress"]
+    cases = [
+        (["--adaptive"], "needs the rig's calibration"),
+        (["--adaptive", "--calibration", str(tmp_path / "none.json")], "no such file"),
+        (["--adaptive", "--calibration", str(cal), "--lights", "MOD2"], "no white-sheet capture for LED(s) [2, 6"),
+        (["--adaptive", "--calibration", str(cal), "--lights", "MOD4", "--target", "gloss=1"], "MAP=SIGMA"),
+        (["--adaptive", "--calibration", str(cal), "--lights", "MOD4", "--budget", "lots"], "a shot count"),
+        (["--adaptive", "--calibration", str(cal), "--lights", "MOD4", "--budget", "10"], "the first round alone"),
+        (["--adaptive", "--calibration", str(cal), "--lights", "MOD4", "--criterion", "E"], "invalid choice"),
+    ]
+    for k, (extra, why) in enumerate(cases):
+        out = tmp_path / f"o{k}"
+        assert main([*base, "-o", str(out), *extra]) == 2
+        assert why in capsys.readouterr().err
+        assert not out.exists()
+    assert main(["capture", "mid", "-o", str(tmp_path / "m"), "--port", "sim", "--camera", CAM, "--adaptive",
+                 "--calibration", str(cal), "--no-progress"]) == 2
+    assert "micro plan" in capsys.readouterr().err
+
+
+def test_the_design_criteria_on_known_matrices():
+    """The D-gain is the log-determinant ratio of the information after and before, the A-gain
+    the relative variance reductions; the greedy batch picks the best first and rescoring after
+    a pick lowers a similar candidate's gain (diminishing returns)."""
+    from dualscale.adaptive.design import DesignState, _information, choose_batch, gains
+
+    torch.manual_seed(0)
+    n, p, c = 5, 3, 4
+    j = torch.randn(n, c, 6, p, dtype=torch.float64)
+    info = torch.stack([j.transpose(-1, -2) @ j, 2.0 * j.transpose(-1, -2) @ j], 2)  # H_l, G_l
+    info[:, 3] = info[:, 2]  # candidate 3 repeats candidate 2
+    h0 = torch.eye(p, dtype=torch.float64).expand(n, p, p).clone() * 3
+    g0 = torch.eye(p, dtype=torch.float64).expand(n, p, p).clone() * 5
+    prior = torch.zeros(n, p, dtype=torch.float64)
+    f0 = _information(h0, g0, 1.5, prior)
+    for k in range(c):
+        f1 = _information(h0 + info[:, k, 0], g0 + info[:, k, 1], 1.5, prior)
+        want = torch.logdet(f1) - torch.logdet(f0)
+        torch.testing.assert_close(gains(h0, g0, 1.5, prior, info, "D")[:, k], want)
+        va = torch.linalg.inv(f1).diagonal(dim1=-2, dim2=-1) / torch.linalg.inv(f0).diagonal(dim1=-2, dim2=-1)
+        torch.testing.assert_close(gains(h0, g0, 1.5, prior, info, "A")[:, k], (1 - va).sum(-1))
+    st = DesignState(("x",), torch.zeros(n, p, dtype=torch.float64), h0, g0, 1.5, prior,
+                     torch.ones(n, p, dtype=torch.bool), torch.zeros(n, 2, dtype=torch.float64), True, None, 1.0)
+    picked, got, first = choose_batch(st, info, np.ones(c), 2)
+    assert picked[0] == int(np.argmax(first)) and got[0] == pytest.approx(float(first.max()))
+    if picked[0] in (2, 3):  # its twin is worth less once it is taken
+        twin = 5 - picked[0]
+        assert got[1] < first[twin] or picked[1] != twin
+    assert all(g > 0 for g in got)
