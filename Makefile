@@ -115,6 +115,7 @@ test-slow: deps blender
 # docs/DIGITIZE.md measures it.
 DEMO ?= $(BUILD)/demo
 DEMO_SIZE ?= 128
+DEMO_ADAPTIVE_SIZE ?= 48
 DEMO_TEXEL_UM ?= 7.2
 DEMO_LED_STEP ?= 4
 DEMO_MID_SIZE ?= 512
@@ -135,6 +136,11 @@ demo: deps
 	    --camera 'sim:mid?material=twill&size=$(DEMO_MID_SIZE)&field_mm=$(DEMO_MID_FIELD_MM)' \
 	    -o $(DEMO)/run --calibration $(DEMO)/calibration.json --name twill \
 	    --quality $(DEMO_QUALITY) --tile --threads $(DEMO_THREADS)
+	@# the adaptive capture (docs/CAPTURE.md): the same rig and calibration, the demo's LEDs as candidates
+	@test -f $(DEMO)/adaptive/capture.json || $(DS) capture micro --adaptive --port sim --sim-speed $(DEMO_SIM_SPEED) \
+	    --rig-id virtual-dome-0 --lights MOD$(DEMO_LED_STEP) --calibration $(DEMO)/calibration.json \
+	    --camera 'sim:micro?material=twill&size=$(DEMO_ADAPTIVE_SIZE)&texel_um=$(DEMO_TEXEL_UM)' \
+	    -o $(DEMO)/adaptive --resume --budget 40 --threads $(DEMO_THREADS) --no-progress
 
 # Every benchmark prints a markdown table for the doc it belongs to (see each script's docstring).
 bench: deps

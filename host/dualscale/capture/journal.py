@@ -10,7 +10,10 @@ line.
 Entry kinds (``"kind"``): ``start`` (the plan, cameras, rig), ``dark`` (a dark frame),
 ``meter`` (a shot's metered bracket plan), ``shot`` (a shot's frames, matched to their device
 events), ``retake`` (a frame refused, with the reason), ``merged`` (a sample plan's dataset was
-written), ``written`` (a calibration-target plan's part of the capture set was written).
+written), ``written`` (a calibration-target plan's part of the capture set was written); an
+adaptive capture (:mod:`dualscale.adaptive.loop`) adds ``adaptive`` (its options), ``round`` (a
+decision: the LEDs to take and why, every candidate's score, or the stop and its reason; written
+before its shots) and ``fit`` (a round's fit: shots, device time, the median sigma per map).
 """
 
 from __future__ import annotations

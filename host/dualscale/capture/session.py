@@ -825,9 +825,7 @@ class CaptureSession:
         the journal does not hold yet (an adaptive capture's round, :mod:`dualscale.adaptive`);
         returns the bracket plans of every shot metered so far.  Resumable like :meth:`run`."""
         t0 = time.monotonic()
-        if not getattr(self, "_idle", False):
-            self._ready()
-            self._idle = True
+        self._ready()  # the host's work between two rounds may have let the watchdog fault the rig
         plans = self._meter(shots)
         self._capture(plans, shots)
         self.summary.total_wall_s += time.monotonic() - t0
