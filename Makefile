@@ -131,16 +131,16 @@ demo: deps
 	@test -f $(DEMO)/targets/captures.json || $(DS) synth-targets -o $(DEMO)/targets --led-step $(DEMO_LED_STEP) \
 	    --threads $(DEMO_THREADS)
 	@test -f $(DEMO)/calibration.json || $(DS) calibrate $(DEMO)/targets -o $(DEMO)/calibration.json --threads $(DEMO_THREADS)
-	$(DS) digitize --rig sim --sim-speed $(DEMO_SIM_SPEED) --rig-id virtual-dome-0 --lights MOD$(DEMO_LED_STEP) \
-	    --camera 'sim:micro?material=twill&size=$(DEMO_SIZE)&texel_um=$(DEMO_TEXEL_UM)' \
-	    --camera 'sim:mid?material=twill&size=$(DEMO_MID_SIZE)&field_mm=$(DEMO_MID_FIELD_MM)' \
-	    -o $(DEMO)/run --calibration $(DEMO)/calibration.json --name twill \
-	    --quality $(DEMO_QUALITY) --tile --threads $(DEMO_THREADS)
 	@# the adaptive capture (docs/CAPTURE.md): the same rig and calibration, the demo's LEDs as candidates
 	@test -f $(DEMO)/adaptive/capture.json || $(DS) capture micro --adaptive --port sim --sim-speed $(DEMO_SIM_SPEED) \
 	    --rig-id virtual-dome-0 --lights MOD$(DEMO_LED_STEP) --calibration $(DEMO)/calibration.json \
 	    --camera 'sim:micro?material=twill&size=$(DEMO_ADAPTIVE_SIZE)&texel_um=$(DEMO_TEXEL_UM)' \
 	    -o $(DEMO)/adaptive --resume --budget 40 --threads $(DEMO_THREADS) --no-progress
+	$(DS) digitize --rig sim --sim-speed $(DEMO_SIM_SPEED) --rig-id virtual-dome-0 --lights MOD$(DEMO_LED_STEP) \
+	    --camera 'sim:micro?material=twill&size=$(DEMO_SIZE)&texel_um=$(DEMO_TEXEL_UM)' \
+	    --camera 'sim:mid?material=twill&size=$(DEMO_MID_SIZE)&field_mm=$(DEMO_MID_FIELD_MM)' \
+	    -o $(DEMO)/run --calibration $(DEMO)/calibration.json --name twill \
+	    --quality $(DEMO_QUALITY) --tile --threads $(DEMO_THREADS)
 
 # Every benchmark prints a markdown table for the doc it belongs to (see each script's docstring).
 bench: deps
