@@ -20,6 +20,7 @@ conversion from our parameters happens once, in :mod:`.exchange`; docs/EXPORT.md
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -65,6 +66,23 @@ class ExportContext:
             return DEFAULT_SWATCH_MM, DEFAULT_SWATCH_MM
         k = 2.0 if self.tiled else 1.0
         return k * self.repeat_mm[0], k * self.repeat_mm[1]
+
+    def checked_sizes(self, what: str) -> tuple[tuple[float, float], tuple[float, float] | None]:
+        """``(swatch_mm, repeat_mm)``, refused with :class:`~dualscale.errors.UnitsError` naming
+        ``what`` (e.g. ``"glTF export"``) unless each is two finite sizes > 0 mm (the repeat may
+        be ``None``): a format that places the material at real size checks before any file."""
+        from dualscale.errors import UnitsError
+
+        def ok(v) -> bool:
+            return (v is not None and len(v) == 2
+                    and all(isinstance(x, (int, float)) and math.isfinite(x) and x > 0 for x in v))
+
+        if self.repeat_mm is not None and not ok(self.repeat_mm):
+            raise UnitsError(f"{what} {self.name!r}: repeat_mm must be two finite sizes > 0 mm, got {self.repeat_mm!r}")
+        sw = self.swatch()
+        if not ok(sw):
+            raise UnitsError(f"{what} {self.name!r}: swatch_mm must be two finite sizes > 0 mm, got {sw!r}")
+        return (float(sw[0]), float(sw[1])), self.repeat_mm
 
     def repeats(self) -> tuple[float, float]:
         """How many texture repeats cover the swatch along (u, v)."""

@@ -43,7 +43,6 @@ from __future__ import annotations
 
 import importlib.util
 import json
-import math
 import os
 import subprocess
 import sys
@@ -80,11 +79,6 @@ def blender_python() -> str:
     raise ToolError(f"--format blend needs Blender's Python module (PyPI bpy=={BPY_VERSION}, Python 3.11, "
                     "numpy < 2): run `make blender` in the source tree (it makes .venv-blender), or set "
                     f"{ENV_PYTHON} to a Python that imports bpy")
-
-
-def _size_ok(v) -> bool:
-    return (v is not None and len(v) == 2
-            and all(isinstance(x, (int, float)) and math.isfinite(x) and x > 0 for x in v))
 
 
 def diffuse_base(ex: Exchange) -> np.ndarray:
@@ -148,12 +142,7 @@ def _textures(ex: Exchange, folder: Path) -> dict[str, str]:
 def write(ex: Exchange, ctx, out: Path) -> list[Path]:
     """Write ``<name>.blend`` into ``out`` (module docstring); returns ``[path]``."""
     out = Path(out)
-    if ctx.repeat_mm is not None and not _size_ok(ctx.repeat_mm):
-        raise UnitsError(f"Blender export {ctx.name!r}: repeat_mm must be two finite sizes > 0 mm, "
-                         f"got {ctx.repeat_mm!r}")
-    sw = ctx.swatch()
-    if not _size_ok(sw):
-        raise UnitsError(f"Blender export {ctx.name!r}: swatch_mm must be two finite sizes > 0 mm, got {sw!r}")
+    sw, _ = ctx.checked_sizes("Blender export")
     python = blender_python()
     props = {"repeat_mm": list(ctx.repeat_mm) if ctx.repeat_mm else [-1.0, -1.0],
              "swatch_mm": [float(sw[0]), float(sw[1])], "repeats": [float(r) for r in ctx.repeats()],

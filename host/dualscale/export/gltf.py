@@ -47,7 +47,6 @@ size; ``ValueError`` from :mod:`.textures` for values outside [0, 1].
 
 from __future__ import annotations
 
-import math
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -56,7 +55,7 @@ import numpy as np
 import pygltflib as g
 
 from dualscale import __version__
-from dualscale.errors import InputError, UnitsError
+from dualscale.errors import InputError
 from dualscale.formats.atomic import write_bytes, write_text
 
 from .exchange import Exchange, gltf_anisotropy, gltf_transmission, specular_f0_color
@@ -121,17 +120,7 @@ def _textures(ex: Exchange) -> tuple[list[_Tex], dict]:
 
 
 def _check_sizes(ctx) -> tuple[tuple[float, float], tuple[float, float] | None]:
-    def ok(v) -> bool:
-        return (v is not None and len(v) == 2
-                and all(isinstance(x, (int, float)) and math.isfinite(x) and x > 0 for x in v))
-
-    if ctx.repeat_mm is not None and not ok(ctx.repeat_mm):
-        raise UnitsError(f"glTF export {ctx.name!r}: repeat_mm must be two finite sizes > 0 mm, "
-                         f"got {ctx.repeat_mm!r}")
-    sw = ctx.swatch()
-    if not ok(sw):
-        raise UnitsError(f"glTF export {ctx.name!r}: swatch_mm must be two finite sizes > 0 mm, got {sw!r}")
-    return (float(sw[0]), float(sw[1])), ctx.repeat_mm
+    return ctx.checked_sizes("glTF export")
 
 
 class _Builder:
