@@ -150,6 +150,11 @@ def test_adaptive_refusals_come_before_the_rig(cal, tmp_path, capsys):
         (["--adaptive", "--calibration", str(cal), "--lights", "MOD4", "--budget", "lots"], "a shot count"),
         (["--adaptive", "--calibration", str(cal), "--lights", "MOD4", "--budget", "10"], "the first round alone"),
         (["--adaptive", "--calibration", str(cal), "--lights", "MOD4", "--criterion", "E"], "invalid choice"),
+        (["--adaptive", "--calibration", str(cal), "--lights", "MOD4", "--budget", "-5"], "a positive shot count"),
+        (["--adaptive", "--calibration", str(cal), "--lights", "MOD4", "--target", "normal=1,normal=2"],
+         "normal is named twice"),
+        (["--adaptive", "--calibration", str(cal), "--lights", "MOD4", "--initial-leds", "2"], "--initial-leds 2"),
+        (["--lights", "MOD4", "--budget", "40", "--criterion", "A"], "--budget, --criterion: options of the adaptive"),
     ]
     for k, (extra, why) in enumerate(cases):
         out = tmp_path / f"o{k}"
@@ -159,6 +164,33 @@ def test_adaptive_refusals_come_before_the_rig(cal, tmp_path, capsys):
     assert main(["capture", "mid", "-o", str(tmp_path / "m"), "--port", "sim", "--camera", CAM, "--adaptive",
                  "--calibration", str(cal), "--no-progress"]) == 2
     assert "micro plan" in capsys.readouterr().err
+
+
+def test_resume_keeps_the_adaptive_capture_and_its_options(run, cal, tmp_path, capsys):
+    """``--resume`` without ``--adaptive`` (which would take every candidate as a fixed plan),
+    with other adaptive options (named, there and given), or ``--adaptive`` on a fixed plan's
+    capture: refused (exit 2) before the rig, the journal untouched."""
+    import shutil
+
+    from dualscale.cli import main
+
+    before = (run / "journal.jsonl").read_bytes()
+    fixed = ["capture", "micro", "-o", str(run), "--port", "sim", "--camera", CAM, "--resume",
+             *[x for x in ARGS if x not in ("--adaptive", "--initial-leds", "6", "--batch-leds", "3")]]
+    assert main(fixed) == 2
+    err = capsys.readouterr().err
+    assert "holds an adaptive capture: continue it with --adaptive" in err and "--budget 26" in err, err
+    assert _capture(run, cal, "--resume", "--budget", "30", "--criterion", "A") == 2
+    err = capsys.readouterr().err
+    assert "--budget: 26 there, 30 given" in err and "--criterion: D there, A given" in err, err
+    assert (run / "journal.jsonl").read_bytes() == before
+    plain = tmp_path / "fixed"  # the same capture's journal without its adaptive entries: a fixed plan's
+    shutil.copytree(run, plain)
+    keep = [ln for ln in before.decode().splitlines(keepends=True)
+            if json.loads(ln)["kind"] not in ("adaptive", "round", "fit")]
+    (plain / "journal.jsonl").write_text("".join(keep))
+    assert _capture(plain, cal, "--resume", "--budget", "26") == 2
+    assert "holds a capture of a fixed plan" in capsys.readouterr().err
 
 
 def test_the_design_criteria_on_known_matrices():

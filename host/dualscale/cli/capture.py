@@ -188,6 +188,10 @@ def cmd_capture(a: argparse.Namespace) -> int:
     opts = capture_options(a, a.port)
     adaptive = adaptive_options(a, plan)  # checked before the rig starts
     ident = ["calibration targets"] if targets else [f"plan:{a.plan}", f"lights:{a.lights}", *a.camera]
+    if a.resume and not targets:
+        from dualscale.adaptive.loop import check_resume
+
+        check_resume(a.output, adaptive)  # an adaptive capture resumed as one, with its options
     with output_folder(a, "capture", ident) as out:
         if a.overwrite and not a.resume:
             restart(out, a.plan)
@@ -223,6 +227,16 @@ def adaptive_options(a: argparse.Namespace, plan):
     ``None`` without ``--adaptive``; ``InputError`` for a plan other than micro, a missing
     calibration (every round is calibrated with it) or a bad option, before the rig starts."""
     if not getattr(a, "adaptive", False):
+        from dualscale.adaptive.loop import AdaptiveOptions
+
+        d = AdaptiveOptions()
+        only = (("--target", "target", None), ("--budget", "budget", None), ("--initial-leds", "initial_leds", d.initial),
+                ("--batch-leds", "batch_leds", None), ("--criterion", "criterion", d.criterion),
+                ("--min-gain", "min_gain", d.min_gain))
+        given = [flag for flag, dest, default in only if getattr(a, dest, default) != default]
+        if given:
+            raise InputError(f"{', '.join(given)}: options of the adaptive capture; add --adaptive (and "
+                             f"--calibration), or leave them out for the fixed plan")
         return None
     from dualscale.adaptive.loop import AdaptiveOptions, check_calibration, parse_budget, parse_targets
 
@@ -259,7 +273,7 @@ def add_adaptive_options(p: argparse.ArgumentParser) -> None:
                    help=f"LEDs of the first round, spread over the dome (default {d.initial})")
     g.add_argument("--batch-leds", type=int, default=None, metavar="N",
                    help="LEDs per round (default: enough that the round's two servo moves are at most 10%% of its "
-                        "device time, 2-16)")
+                        "device time, 4-16)")
     g.add_argument("--criterion", choices=("D", "A"), default=d.criterion,
                    help=f"optimal-design criterion (default {d.criterion})")
     g.add_argument("--min-gain", type=float, default=d.min_gain, metavar="NATS",
