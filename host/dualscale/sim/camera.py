@@ -761,9 +761,14 @@ class SimCamera:
                 return
             try:
                 raw = self.scene.raw(job.lights, job.polarizer_cdeg)
-                # the noise is drawn per shot identity, so a resumed capture equals an uninterrupted one
+                # the noise is drawn per shot identity, so a resumed capture equals an uninterrupted one;
+                # a dark frame's (no light on) does not depend on where the analyser happens to be
+                # (after a resume the servo starts elsewhere: issue 27's adaptive capture takes darks
+                # between rounds)
+                dark = not any(int(v) > 0 for _k, _i, v in job.lights)
                 image = self.scene.expose(raw, job.exposure_s, (self.scene.identity(), job.lights,
-                                                                job.polarizer_cdeg, round(job.exposure_s, 9)))
+                                                                None if dark else job.polarizer_cdeg,
+                                                                round(job.exposure_s, 9)))
                 error = None
             except Exception as e:  # noqa: BLE001 - reported through collect(), never lost silently
                 image, error = None, f"{type(e).__name__}: {e}"
