@@ -65,6 +65,7 @@ def test_an_adaptive_capture_chooses_rounds_and_stops_on_its_budget(run):
     for r in rounds[1:-1]:  # every candidate scored, the picks among the best by gain per second
         assert set(r["leds"]) == {p[0] for p in r["picks"]}
         assert all(str(i) in r["scores"] for i in r["leds"])
+        assert all(set(v) == {"gain", "cost_s"} and v["cost_s"] > 0 for v in r["scores"].values())
         assert len(r["scores"]) == 32 - sum(len(t) for t in taken[:r["round"]])
     # journal order: a round's decision precedes its shots, its fit follows them
     j = _journal(run)
@@ -94,13 +95,16 @@ def test_the_adaptive_dataset_is_a_normal_photometric_dataset(run, cal, tmp_path
     assert obs.has_polarisation
 
 
-def test_targets_and_gain_stop_an_adaptive_capture(cal, tmp_path):
+def test_targets_and_gain_stop_an_adaptive_capture(cal, tmp_path, capsys):
     """A target every map meets at once stops after the first round; so does an unreachable
-    minimum gain (each with its reason)."""
+    minimum gain (each with its reason); a target on a map this sample's fit has no sigma of
+    (an opaque twill's transmittance) is said to be one that cannot stop it."""
     assert _capture(tmp_path / "t", cal, "--target", "albedo=1,normal=90") == 0
     rec = json.loads((tmp_path / "t" / "capture.json").read_text())["adaptive"]
     assert rec["stop"] == "targets" and len(rec["rounds"]) == 2 and rec["shots"] == 14
-    assert _capture(tmp_path / "g", cal, "--min-gain", "1e9") == 0
+    assert "cannot stop" not in capsys.readouterr().out
+    assert _capture(tmp_path / "g", cal, "--min-gain", "1e9", "--target", "transmittance=0.01") == 0
+    assert "no sigma of transmittance" in capsys.readouterr().out
     rec = json.loads((tmp_path / "g" / "capture.json").read_text())["adaptive"]
     assert rec["stop"] == "gain" and "under 1e+09" in rec["reason"] and len(rec["rounds"]) == 2
 

@@ -364,7 +364,8 @@ class AdaptiveCapture:
         picked, got, first = choose_batch(st, info, costs, size, self.opts.criterion)
         npx = st.x.shape[0]
         best = float(first.max()) / npx
-        scores = {str(c): [round(float(first[j]) / npx, 6), round(float(costs[j]), 6)] for j, c in enumerate(cands)}
+        scores = {str(c): {"gain": round(float(first[j]) / npx, 6), "cost_s": round(float(costs[j]), 6)}
+                  for j, c in enumerate(cands)}
         if best < self.opts.min_gain:
             return {"round": r, "leds": [], "stop": "gain", "scores": scores,
                     "reason": f"the best candidate's gain {best:.3g} nats per pixel is under {self.opts.min_gain:g}"}
@@ -396,6 +397,11 @@ class AdaptiveCapture:
                 journal.append("fit", **rec)
                 fits[cur["round"]] = rec
             f = fits[cur["round"]]
+            absent = sorted(k for k in self.opts.targets if k not in f["sigma"])
+            if absent and cur["round"] == 0:
+                self.log(f"warning: the fit of this sample has no sigma of {', '.join(absent)} (not among its "
+                         "components, or undetermined everywhere): the target cannot stop the capture; the gain "
+                         "and budget rules still do")
             self.log(f"round {cur['round']}: {len(cur['leds'])} LEDs, {f['shots']} shots, device {f['floor_s']:.1f} s; "
                      "median sigma " + ", ".join(f"{k} {v:.3g}" for k, v in sorted(f["sigma"].items())))
             decision = self._decide(nxt, rounds)
