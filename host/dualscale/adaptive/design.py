@@ -50,8 +50,7 @@ from dualscale.fit.observations import Observations, analyzer_weights
 from dualscale.fit.presets import Preset
 from dualscale.fit.uncertainty import posterior
 
-CRITERIA = ("D", "A")
-"""The optimal-design criteria (module doc)."""
+from .options import CRITERIA  # noqa: F401  (the criteria, module doc)
 
 
 @dataclass

@@ -189,7 +189,7 @@ def cmd_capture(a: argparse.Namespace) -> int:
     adaptive = adaptive_options(a, plan)  # checked before the rig starts
     ident = ["calibration targets"] if targets else [f"plan:{a.plan}", f"lights:{a.lights}", *a.camera]
     if a.resume and not targets:
-        from dualscale.adaptive.loop import check_resume
+        from dualscale.adaptive.options import check_resume
 
         check_resume(a.output, adaptive)  # an adaptive capture resumed as one, with its options
     with output_folder(a, "capture", ident) as out:
@@ -227,7 +227,7 @@ def adaptive_options(a: argparse.Namespace, plan):
     ``None`` without ``--adaptive``; ``InputError`` for a plan other than micro, a missing
     calibration (every round is calibrated with it) or a bad option, before the rig starts."""
     if not getattr(a, "adaptive", False):
-        from dualscale.adaptive.loop import AdaptiveOptions
+        from dualscale.adaptive.options import AdaptiveOptions
 
         d = AdaptiveOptions()
         only = (("--target", "target", None), ("--budget", "budget", None), ("--initial-leds", "initial_leds", d.initial),
@@ -238,7 +238,8 @@ def adaptive_options(a: argparse.Namespace, plan):
             raise InputError(f"{', '.join(given)}: options of the adaptive capture; add --adaptive (and "
                              f"--calibration), or leave them out for the fixed plan")
         return None
-    from dualscale.adaptive.loop import AdaptiveOptions, check_calibration, parse_budget, parse_targets
+    from dualscale.adaptive.loop import check_calibration
+    from dualscale.adaptive.options import AdaptiveOptions, parse_budget, parse_targets
 
     if plan.name != "micro":
         raise InputError(f"--adaptive captures the micro plan, not {plan.name}")
@@ -256,7 +257,7 @@ def adaptive_options(a: argparse.Namespace, plan):
 
 def add_adaptive_options(p: argparse.ArgumentParser) -> None:
     """The options of ``--adaptive`` that ``capture micro`` and ``digitize --rig`` share."""
-    from dualscale.adaptive.loop import AdaptiveOptions
+    from dualscale.adaptive.options import AdaptiveOptions
 
     d = AdaptiveOptions()
     g = p.add_argument_group("adaptive capture (docs/CAPTURE.md, \"Adaptive capture\")")
