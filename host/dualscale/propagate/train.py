@@ -17,6 +17,7 @@ or model file is a one-line :class:`~dualscale.errors.FormatError` naming it.
 
 from __future__ import annotations
 
+import contextlib
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -69,6 +70,8 @@ class TrainOptions:
     init: str | None = None
     progress: bool = True
     device: str = "cpu"
+    channels_last: bool = False
+    compile: bool = False
 
 
 @dataclass
@@ -110,11 +113,9 @@ def _autocast(device: str, enabled: bool):
     return torch.autocast(device.split(":")[0], dtype=dtype, enabled=enabled)
 
 
-def train(sources: list[Source | DiskSource], preset: Preset, out: str | Path, opts: TrainOptions = TrainOptions(),
-          half_file: bool = False) -> TrainResult:
-    """Train on ``sources`` and write the model file ``out`` (+ ``out.ckpt`` checkpoints)."""
-    from tqdm import tqdm
-
+def build(sources: list[Source | DiskSource], preset: Preset, opts: TrainOptions):
+    """``(model, optimiser, gradient scaler, loss)`` of a training run, seeded by ``opts.seed``
+    (the warm start ``opts.init`` applied)."""
     maps = check_sources(sources)
     width = opts.width or (16 if len(sources) == 1 else 32)
     config = UNetConfig(tuple(maps), width, opts.decoder_ratio)
@@ -122,10 +123,24 @@ def train(sources: list[Source | DiskSource], preset: Preset, out: str | Path, o
     model = PropagationUNet(config).to(opts.device)
     if opts.init:
         warm_start(model, opts.init)
+    if opts.channels_last:
+        model = model.to(memory_format=torch.channels_last)
+    if opts.compile:
+        model.compile()  # in place: the state dict keeps its names
     optim = torch.optim.Adam(model.parameters(), lr=preset.lr, weight_decay=preset.weight_decay)
     cuda = opts.device.startswith("cuda")
     scaler = torch.amp.GradScaler("cuda", enabled=cuda and opts.amp)
     loss_fn = PropagationLoss(maps, opts.perceptual).to(opts.device)
+    return model, optim, scaler, loss_fn
+
+
+def train(sources: list[Source | DiskSource], preset: Preset, out: str | Path, opts: TrainOptions = TrainOptions(),
+          half_file: bool = False) -> TrainResult:
+    """Train on ``sources`` and write the model file ``out`` (+ ``out.ckpt`` checkpoints)."""
+    from tqdm import tqdm
+
+    model, optim, scaler, loss_fn = build(sources, preset, opts)
+    config = model.config
     gen = torch.Generator().manual_seed(opts.seed)
     start, history = 0, []
     ckpt = checkpoint_path(out)
@@ -160,19 +175,8 @@ def train(sources: list[Source | DiskSource], preset: Preset, out: str | Path, o
     bar = tqdm(range(start, preset.iterations), initial=start, total=preset.iterations, disable=not opts.progress,
                desc=f"propagate train ({preset.name})", unit="it")
     for it in bar:
-        x, y = sample_batch(sources, preset.batch, preset.crop, gen)
-        x = augment(x, gen, len(sources), opts.blur_sigma).to(opts.device)
-        y = {k: v.to(opts.device) for k, v in y.items()}
-        with _autocast(opts.device, opts.amp):
-            pred = model.split(model(x))
-        loss, parts = loss_fn(pred, y, gen)
-        if not torch.isfinite(loss):
-            raise FloatingPointError(f"loss became {float(loss.detach())} at iteration {it + 1}")
-        optim.zero_grad(set_to_none=True)
-        scaler.scale(loss).backward()
-        scaler.step(optim)
-        scaler.update()
-        history.append({"it": it + 1, "loss": float(loss.detach()), **parts})
+        loss, parts = train_step(model, optim, scaler, loss_fn, sources, preset, gen, opts, it)
+        history.append({"it": it + 1, "loss": loss, **parts})
         bar.set_postfix(loss=f"{history[-1]['loss']:.4f}")
         done = it + 1
         if done % opts.checkpoint_every == 0 or done == preset.iterations:
@@ -185,6 +189,41 @@ def train(sources: list[Source | DiskSource], preset: Preset, out: str | Path, o
                             "blur_sigma": list(opts.blur_sigma), "final": history[-1] if history else {}}
     save_model(out, model, input_reference(sources), info, half=half_file)
     return TrainResult(model, preset.iterations, seconds, start, history)
+
+
+def _phase(name: str):
+    return contextlib.nullcontext()
+
+
+def train_step(model: PropagationUNet, optim, scaler, loss_fn: PropagationLoss, sources: list[Source | DiskSource],
+               preset: Preset, gen: torch.Generator, opts: TrainOptions, it: int = 0, phase=_phase) -> tuple[float, dict]:
+    """One optimisation step on a fresh random batch; returns ``(loss, {part: value})``.
+
+    ``phase(name)``: a context manager around each part of the step (``data.crops``,
+    ``data.augment``, ``forward``, ``loss``, ``backward``, ``optimiser``), for the profiler
+    (bench/bench_propagate_profile.py); a no-op by default.  A non-finite loss is a
+    :class:`FloatingPointError` naming iteration ``it + 1``."""
+    with phase("data.crops"):
+        x, y = sample_batch(sources, preset.batch, preset.crop, gen)
+    with phase("data.augment"):
+        x = augment(x, gen, len(sources), opts.blur_sigma).to(opts.device)
+        if opts.channels_last:
+            x = x.contiguous(memory_format=torch.channels_last)
+        y = {k: v.to(opts.device) for k, v in y.items()}
+    with phase("forward"):
+        with _autocast(opts.device, opts.amp):
+            pred = model.split(model(x))
+    with phase("loss"):
+        loss, parts = loss_fn(pred, y, gen)
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"loss became {float(loss.detach())} at iteration {it + 1}")
+    with phase("backward"):
+        optim.zero_grad(set_to_none=True)
+        scaler.scale(loss).backward()
+    with phase("optimiser"):
+        scaler.step(optim)
+        scaler.update()
+    return float(loss.detach()), parts
 
 
 def _save_checkpoint(path: Path, model, optim, scaler, gen, iteration: int, history, run_id, target: int) -> None:

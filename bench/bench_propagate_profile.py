@@ -1,0 +1,267 @@
+"""Where a propagation training step spends its time (issue 29 §1): prints markdown tables.
+
+    PYTHONPATH=host python bench/bench_propagate_profile.py [--work /tmp/propbench] [--presets fast,balanced]
+        [--steps 6] [--warmup 2] [--threads 1] [--variants base,...]
+
+Trains on the twill micro dataset of bench/bench_propagate.py (``prep`` stage, made here when
+missing: 256^2 at 6 um, 127 LEDs P0/P90 + the synthesised diffuse image) with the real training
+step (:func:`dualscale.propagate.train.train_step`, the model of :func:`~dualscale.propagate.train.build`).
+
+Three tables per preset (the step depends on the preset's batch and crop only: ``fast`` and
+``balanced`` are both 8 x 128^2 and differ in their iteration count):
+
+* **phases**: wall time per step of the data pipeline (``data.crops``: random crops out of the
+  float16 images; ``data.augment``: blur and colour gains), forward, loss, backward, optimiser;
+  median over ``--steps`` timed steps after ``--warmup``, no profiler attached.
+* **operators**: torch.profiler self CPU time per ATen operator over ``--steps`` steps.
+* **network parts**: forward (module pre/post hooks) and backward (module full backward
+  pre/post hooks) wall time of every encoder level, the bottleneck, each decoder level summed over
+  the decoders (level 1 = full resolution) and the heads; measured in a third pass (the hooks add a
+  little overhead; the shares are what matters).
+
+``--variants`` (comma list, each a ``+``-joined set of ``base``, ``fp32`` (no bf16 autocast),
+``cl`` (channels-last), ``compile``) times several settings of the step, alternated step by step.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import time
+from collections import defaultdict
+from contextlib import contextmanager
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+PHASES = ("data.crops", "data.augment", "forward", "loss", "backward", "optimiser")
+
+
+def load() -> str:
+    return open("/proc/loadavg").read().split()[0]
+
+
+def source(work: Path):
+    from bench_propagate import EVAL, prep
+
+    from dualscale.propagate.data import load_source
+
+    if not (work / EVAL / "micro" / "manifest.json").is_file():
+        prep(work)
+    return load_source(work / EVAL)
+
+
+def make_step(src, preset_name: str, variant: str, seed: int = 0):
+    """``(step(phase) -> loss, model, opts)`` for one variant of the training step."""
+    from dualscale.propagate.train import TrainOptions, build, preset_with, train_step
+
+    flags = set(variant.split("+"))
+    bad = flags - {"base", "fp32", "cl", "compile"}
+    if bad:
+        raise SystemExit(f"unknown variant flags {sorted(bad)}")
+    extra = {}
+    if "cl" in flags:
+        extra["channels_last"] = True
+    if "compile" in flags:
+        extra["compile"] = True
+    opts = TrainOptions(amp="fp32" not in flags, progress=False, seed=seed, **extra)
+    preset = preset_with(preset_name)
+    model, optim, scaler, loss_fn = build([src], preset, opts)
+    gen = torch.Generator().manual_seed(seed)
+    model.train()
+    it = [0]
+
+    def step(phase=None):
+        kw = {"phase": phase} if phase else {}
+        loss, _ = train_step(model, optim, scaler, loss_fn, [src], preset, gen, opts, it[0], **kw)
+        it[0] += 1
+        return loss
+
+    return step, model, preset
+
+
+def phase_times(step, steps: int) -> dict[str, list[float]]:
+    out: dict[str, list[float]] = defaultdict(list)
+    for _ in range(steps):
+        acc: dict[str, float] = {}
+
+        @contextmanager
+        def phase(name):
+            t = time.perf_counter()
+            yield
+            acc[name] = time.perf_counter() - t
+
+        t0 = time.perf_counter()
+        step(phase)
+        out["step"].append(time.perf_counter() - t0)
+        for k, v in acc.items():
+            out[k].append(v)
+    return out
+
+
+def operator_table(step, steps: int, top: int) -> list[tuple[str, float, int]]:
+    from torch.profiler import ProfilerActivity, profile, record_function
+
+    @contextmanager
+    def phase(name):
+        with record_function(name):
+            yield
+
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        for _ in range(steps):
+            step(phase)
+    rows = [(e.key, e.self_cpu_time_total / steps / 1e3, e.count // steps) for e in prof.key_averages()
+            if not e.key.startswith("data.") and e.key not in PHASES and not e.key.startswith("ProfilerStep")]
+    rows.sort(key=lambda r: -r[1])
+    return rows[:top], sum(r[1] for r in rows)
+
+
+def part_names(model) -> dict[str, str]:
+    """module path -> part of the network."""
+    parts = {}
+    for i in range(len(model.enc)):
+        parts[f"enc.{i}"] = f"encoder level {i + 1}"
+    parts["bottleneck"] = "bottleneck (1/16)"
+    for m in model.config.maps:
+        n = len(model.decoders[m].ups)
+        for j in range(n):
+            level = n - j  # ups[0] is the coarsest step; level 1 = full resolution
+            parts[f"decoders.{m}.ups.{j}"] = f"decoders, level {level}"
+            parts[f"decoders.{m}.blocks.{j}"] = f"decoders, level {level}"
+        parts[f"decoders.{m}.head"] = "decoder heads (1x1)"
+    return parts
+
+
+def part_times(step, model, steps: int) -> tuple[dict[str, float], dict[str, float], float, float]:
+    """Forward and backward seconds per step of each part, plus the whole forward and backward."""
+    names = part_names(model)
+    fwd: dict[str, float] = defaultdict(float)
+    bwd: dict[str, float] = defaultdict(float)
+    starts: dict[str, float] = {}
+    handles = []
+    mods = dict(model.named_modules())
+    for path, part in names.items():
+        mod = mods[path]
+
+        def pre(m, inp, path=path):
+            starts["f" + path] = time.perf_counter()
+
+        def post(m, inp, out, path=path, part=part):
+            fwd[part] += time.perf_counter() - starts["f" + path]
+
+        def bpre(m, gout, path=path):
+            starts["b" + path] = time.perf_counter()
+
+        def bpost(m, gin, gout, path=path, part=part):
+            bwd[part] += time.perf_counter() - starts["b" + path]
+
+        handles += [mod.register_forward_pre_hook(pre), mod.register_forward_hook(post),
+                    mod.register_full_backward_pre_hook(bpre), mod.register_full_backward_hook(bpost)]
+    tot: dict[str, float] = defaultdict(float)
+
+    @contextmanager
+    def phase(name):
+        t = time.perf_counter()
+        yield
+        tot[name] += time.perf_counter() - t
+
+    try:
+        for _ in range(steps):
+            step(phase)
+    finally:
+        for h in handles:
+            h.remove()
+    return ({k: v / steps for k, v in fwd.items()}, {k: v / steps for k, v in bwd.items()},
+            tot["forward"] / steps, tot["backward"] / steps)
+
+
+def profile_preset(src, preset: str, steps: int, warmup: int, top: int) -> None:
+    step, model, p = make_step(src, preset, "base")
+    for _ in range(warmup):
+        step()
+    l0 = load()
+    ph = phase_times(step, steps)
+    med = {k: statistics.median(v) for k, v in ph.items()}
+    print(f"\n### `{preset}`: {p.iterations} iterations x batch {p.batch}, crop {p.crop}, bf16 autocast, "
+          f"{torch.get_num_threads()} thread(s); load {l0} -> {load()}\n")
+    print(f"Phases, median of {steps} steps (no profiler):\n")
+    print("| phase | s / step | share |\n|---|---:|---:|")
+    for k in PHASES:
+        print(f"| {k} | {med[k]:.3f} | {100 * med[k] / med['step']:.1f} % |")
+    print(f"| **step** | **{med['step']:.3f}** | |")
+    print(f"\nAt this rate the preset's {p.iterations} steps take ~{med['step'] * p.iterations:.0f} s.")
+    rows, total = operator_table(step, steps, top)
+    print(f"\nOperators (torch.profiler self CPU time, mean per step over {steps} steps; all operators "
+          f"{total:.0f} ms):\n")
+    print("| operator | ms / step | share | calls / step |\n|---|---:|---:|---:|")
+    for k, ms, n in rows:
+        print(f"| `{k}` | {ms:.1f} | {100 * ms / total:.1f} % | {n} |")
+    fwd, bwd, ft, bt = part_times(step, model, steps)
+    print(f"\nNetwork parts (module hooks, mean per step over {steps} steps; forward {ft:.3f} s, backward "
+          f"{bt:.3f} s; the rest of each is the output activations, the concatenations and autograd "
+          "bookkeeping):\n")
+    print("| part | forward [s] | share of forward | backward [s] | share of backward |\n|---|---:|---:|---:|---:|")
+    order = sorted(set(fwd) | set(bwd), key=lambda k: (not k.startswith("enc"), not k.startswith("bott"),
+                                                        k.startswith("decoder heads"), k))
+    for k in order:
+        print(f"| {k} | {fwd.get(k, 0):.3f} | {100 * fwd.get(k, 0) / ft:.1f} % | {bwd.get(k, 0):.3f} | "
+              f"{100 * bwd.get(k, 0) / bt:.1f} % |")
+
+
+def compare_variants(src, preset: str, variants: list[str], steps: int, warmup: int) -> None:
+    built = {}
+    for v in variants:
+        t = time.perf_counter()
+        step, _, _ = make_step(src, preset, v)
+        first = time.perf_counter()
+        step()  # the first step compiles, when compiling
+        built[v] = (step, time.perf_counter() - first, first - t)
+        for _ in range(warmup):
+            step()
+    times: dict[str, list[float]] = defaultdict(list)
+    l0 = load()
+    for _ in range(steps):  # alternated, so that a changing load hits every variant alike
+        for v in variants:
+            t = time.perf_counter()
+            built[v][0]()
+            times[v].append(time.perf_counter() - t)
+    ref = statistics.median(times[variants[0]])
+    print(f"\nVariants of the `{preset}` step, {torch.get_num_threads()} thread(s), median of {steps} alternated "
+          f"steps after {warmup} warm-up; load {l0} -> {load()}:\n")
+    print(f"| variant | s / step (min-max) | {variants[0]} / variant | first step [s] |\n|---|---:|---:|---:|")
+    for v in variants:
+        t = times[v]
+        print(f"| {v} | {statistics.median(t):.3f} ({min(t):.3f}-{max(t):.3f}) | "
+              f"{ref / statistics.median(t):.2f} | {built[v][1]:.1f} |")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--work", default="/tmp/propbench")
+    ap.add_argument("--presets", default="fast,balanced")
+    ap.add_argument("--steps", type=int, default=6)
+    ap.add_argument("--warmup", type=int, default=2)
+    ap.add_argument("--top", type=int, default=15, help="operators listed")
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--variants", help="compare these step variants instead of profiling, e.g. base,fp32,cl")
+    a = ap.parse_args()
+    torch.set_num_threads(a.threads)
+    import platform
+
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} thread(s), {os.cpu_count()} cores "
+          f"({platform.processor() or platform.machine()}), load {load()}, {time.strftime('%Y-%m-%d %H:%M')}")
+    src = source(Path(a.work))
+    for preset in a.presets.split(","):
+        if a.variants:
+            compare_variants(src, preset, a.variants.split(","), a.steps, a.warmup)
+        else:
+            profile_preset(src, preset, a.steps, a.warmup, a.top)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
