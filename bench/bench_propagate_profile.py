@@ -19,8 +19,13 @@ Three tables per preset (the step depends on the preset's batch and crop only: `
   the decoders (level 1 = full resolution) and the heads; measured in a third pass (the hooks add a
   little overhead; the shares are what matters).
 
-``--variants`` (comma list, each a ``+``-joined set of ``base``, ``fp32`` (no bf16 autocast),
-``cl`` (channels-last), ``compile``) times several settings of the step, alternated step by step.
+``--accuracy N`` trains each of ``--variants`` for ``N`` iterations of the preset and scores it on
+the benchmark's twill guidance (every map's L1 and SSIM), old and new in the same run.
+
+``--variants`` (comma list, each a ``+``-joined set of ``base`` (bf16 autocast, contiguous, eager:
+the default before issue 29), ``fp32`` (no autocast), ``cl`` (channels-last: today's default),
+``compile``) times several settings of the step, alternated step by step.  The profile tables
+use today's defaults (:class:`~dualscale.propagate.train.TrainOptions`).
 """
 
 from __future__ import annotations
@@ -38,7 +43,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-PHASES = ("data.crops", "data.augment", "forward", "loss", "backward", "optimiser")
+from dualscale.propagate.train import PHASES  # noqa: E402
+
 
 
 def load() -> str:
@@ -63,12 +69,8 @@ def make_step(src, preset_name: str, variant: str, seed: int = 0):
     bad = flags - {"base", "fp32", "cl", "compile"}
     if bad:
         raise SystemExit(f"unknown variant flags {sorted(bad)}")
-    extra = {}
-    if "cl" in flags:
-        extra["channels_last"] = True
-    if "compile" in flags:
-        extra["compile"] = True
-    opts = TrainOptions(amp="fp32" not in flags, progress=False, seed=seed, **extra)
+    opts = TrainOptions(amp="fp32" not in flags, channels_last="cl" in flags, compile="compile" in flags,
+                        progress=False, seed=seed)
     preset = preset_with(preset_name)
     model, optim, scaler, loss_fn = build([src], preset, opts)
     gen = torch.Generator().manual_seed(seed)
@@ -180,14 +182,14 @@ def part_times(step, model, steps: int) -> tuple[dict[str, float], dict[str, flo
 
 
 def profile_preset(src, preset: str, steps: int, warmup: int, top: int) -> None:
-    step, model, p = make_step(src, preset, "base")
+    step, model, p = make_step(src, preset, "cl")
     for _ in range(warmup):
         step()
     l0 = load()
     ph = phase_times(step, steps)
     med = {k: statistics.median(v) for k, v in ph.items()}
     print(f"\n### `{preset}`: {p.iterations} iterations x batch {p.batch}, crop {p.crop}, bf16 autocast, "
-          f"{torch.get_num_threads()} thread(s); load {l0} -> {load()}\n")
+          f"channels-last, {torch.get_num_threads()} thread(s); load {l0} -> {load()}\n")
     print(f"Phases, median of {steps} steps (no profiler):\n")
     print("| phase | s / step | share |\n|---|---:|---:|")
     for k in PHASES:
@@ -239,6 +241,38 @@ def compare_variants(src, preset: str, variants: list[str], steps: int, warmup: 
               f"{ref / statistics.median(t):.2f} | {built[v][1]:.1f} |")
 
 
+def accuracy(work: Path, preset: str, variants: list[str], iterations: int) -> None:
+    """Train ``iterations`` steps of ``preset`` per variant (same seed, one after the other) and
+    score each on the benchmark's guidance (bench_propagate.scores: ORT fp32, 256 px tiles)."""
+    from bench_propagate import EVAL, scores
+
+    from dualscale.propagate.data import load_source
+    from dualscale.propagate.train import TrainOptions, preset_with, train
+
+    src = load_source(work / EVAL)
+    rows = []
+    for v in variants:
+        flags = set(v.split("+"))
+        opts = TrainOptions(amp="fp32" not in flags, channels_last="cl" in flags, compile="compile" in flags,
+                            progress=False, checkpoint_every=10 ** 9)
+        model = work / f"variant_{v.replace('+', '_')}.dsp"
+        for f in (model, Path(str(model) + ".ckpt")):
+            f.unlink(missing_ok=True)
+        l0 = load()
+        t = time.perf_counter()
+        train([src], preset_with(preset, iterations=iterations), model, opts)
+        sec = time.perf_counter() - t
+        rows.append((v, sec, l0, load(), scores(work, model, work / f"pred_variant_{v.replace('+', '_')}")))
+        print(f"{v}: {sec:.0f} s, load {l0}", file=sys.stderr)
+    maps = list(rows[0][4])
+    print(f"\nAccuracy of the variants: `{preset}` cut to {iterations} iterations, same seed, trained one after "
+          f"the other; L1 / SSIM on the twill guidance:\n")
+    print("| variant | train [s] (load) | " + " | ".join(maps) + " |\n|---|---:|" + "---:|" * len(maps))
+    for v, sec, l0, l1, sc in rows:
+        print(f"| {v} | {sec:.0f} ({l0}-{l1}) | " + " | ".join(f"{sc[m]['l1']:.4f} / {sc[m]['ssim']:.3f}" for m in maps)
+              + " |")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--work", default="/tmp/propbench")
@@ -248,6 +282,8 @@ def main() -> int:
     ap.add_argument("--top", type=int, default=15, help="operators listed")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--variants", help="compare these step variants instead of profiling, e.g. base,fp32,cl")
+    ap.add_argument("--accuracy", type=int, metavar="ITERATIONS",
+                    help="with --variants: train each variant this many iterations and score it on the guidance")
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
     import platform
@@ -255,6 +291,14 @@ def main() -> int:
     print(f"torch {torch.__version__}, {torch.get_num_threads()} thread(s), {os.cpu_count()} cores "
           f"({platform.processor() or platform.machine()}), load {load()}, {time.strftime('%Y-%m-%d %H:%M')}")
     src = source(Path(a.work))
+    if a.accuracy:
+        if not (Path(a.work) / "guide" / "guidance.exr").is_file():
+            from bench_propagate import prep
+
+            prep(Path(a.work))
+        for preset in a.presets.split(","):
+            accuracy(Path(a.work), preset, (a.variants or "base").split(","), a.accuracy)
+        return 0
     for preset in a.presets.split(","):
         if a.variants:
             compare_variants(src, preset, a.variants.split(","), a.steps, a.warmup)

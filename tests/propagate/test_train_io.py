@@ -4,7 +4,8 @@ import torch
 from dualscale.propagate.data import load_source, sample_batch
 from dualscale.formats.model import read_model_file
 from dualscale.propagate.model import load_model, save_model
-from dualscale.propagate.train import TrainOptions, checkpoint_path, preset_with, train, warm_start
+from dualscale.propagate.train import (PHASES, TrainOptions, build, checkpoint_path, preset_with, train, train_step,
+                                       warm_start)
 from dualscale.propagate.unet import PropagationUNet, UNetConfig
 
 
@@ -32,6 +33,29 @@ def test_resume_equals_uninterrupted(twill, tmp_path):
         train(src, preset_with("quick", iterations=8, batch=3, crop=16), tmp_path / "part.dsp",
               _opts(resume=True))
     assert checkpoint_path(tmp_path / "part.dsp").is_file()
+
+
+def test_train_step_phases_and_channels_last(twill):
+    """train_step runs every phase in order; a channels-last model takes the same steps (float32)."""
+    from contextlib import contextmanager
+
+    src = [load_source(twill)]
+    preset = preset_with("quick", iterations=2, batch=2, crop=16)
+    losses = {}
+    for cl in (False, True):
+        opts = _opts(amp=False, channels_last=cl)
+        model, optim, scaler, loss_fn = build(src, preset, opts)
+        gen, seen = torch.Generator().manual_seed(0), []
+
+        @contextmanager
+        def phase(name):
+            seen.append(name)
+            yield
+
+        losses[cl] = [train_step(model, optim, scaler, loss_fn, src, preset, gen, opts, i, phase)[0] for i in range(3)]
+        assert seen == list(PHASES) * 3
+        assert model.enc[0].conv1.weight.is_contiguous(memory_format=torch.channels_last) == cl
+    assert losses[True] == pytest.approx(losses[False], rel=1e-4)
 
 
 def test_training_reduces_loss(twill, tmp_path):

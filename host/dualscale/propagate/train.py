@@ -6,6 +6,12 @@ no weight decay; ~15 min on a 1080Ti, ~8 h on one busy CPU core).  ``balanced``,
 
 Mixed precision: bfloat16 autocast on the CPU, float16 autocast with gradient scaling on CUDA.
 
+Speed (issue 29, docs/PROPAGATION.md "Training speed"): the model and its inputs are
+channels-last (``TrainOptions.channels_last``, measured 1.05-1.08x per step on the CPU, same
+accuracy); bf16 autocast stays on (float32 steps took 1.4-1.6x as long); ``TrainOptions.compile``
+(``torch.compile`` of the U-Net, in place) is off: ~1.1x per step after a 250-270 s compile on
+2 busy cores, which the ``fast`` and ``balanced`` presets do not win back.
+
 Checkpoints: ``<model>.ckpt`` every ``checkpoint_every`` iterations and at the last one (model,
 optimiser, scaler, sampler RNG, iteration, the run's target iteration count); ``resume=True``
 continues from it when it matches the run.  Checkpoints and the model file are written
@@ -70,7 +76,7 @@ class TrainOptions:
     init: str | None = None
     progress: bool = True
     device: str = "cpu"
-    channels_last: bool = False
+    channels_last: bool = True
     compile: bool = False
 
 
@@ -191,12 +197,17 @@ def train(sources: list[Source | DiskSource], preset: Preset, out: str | Path, o
     return TrainResult(model, preset.iterations, seconds, start, history)
 
 
+PHASES = ("data.crops", "data.augment", "forward", "loss", "backward", "optimiser")
+"""The parts of :func:`train_step`, in order."""
+
+
 def _phase(name: str):
     return contextlib.nullcontext()
 
 
 def train_step(model: PropagationUNet, optim, scaler, loss_fn: PropagationLoss, sources: list[Source | DiskSource],
-               preset: Preset, gen: torch.Generator, opts: TrainOptions, it: int = 0, phase=_phase) -> tuple[float, dict]:
+               preset: Preset, gen: torch.Generator, opts: TrainOptions, it: int = 0,
+               phase=_phase) -> tuple[float, dict]:
     """One optimisation step on a fresh random batch; returns ``(loss, {part: value})``.
 
     ``phase(name)``: a context manager around each part of the step (``data.crops``,
