@@ -38,6 +38,24 @@ WARM_MATERIALS = ("plain", "satin", "denim")
 THREADS = 1  # training threads; set by --threads
 
 
+
+def constant_maps(train_maps: dict[str, np.ndarray], shape: tuple[int, int]) -> dict[str, np.ndarray]:
+    """The per-map constant predictor: each map's mean over the training maps (the normal's
+    renormalised, the axial tangent's circular mean), broadcast to ``shape`` (H, W)."""
+    out = {}
+    for m, v in train_maps.items():
+        if m == "normal":
+            mean = v.mean((0, 1))
+            mean = mean / np.linalg.norm(mean)
+        elif m == "tangent":
+            a = 2 * np.pi * v[..., 0]
+            mean = np.array([np.mod(np.arctan2(np.sin(a).mean(), np.cos(a).mean()), 2 * np.pi) / (2 * np.pi)])
+        else:
+            mean = v.mean((0, 1))
+        out[m] = np.broadcast_to(mean, tuple(shape) + (v.shape[-1],)).astype(np.float32)
+    return out
+
+
 def sh(*args: str) -> None:
     env = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE"}
     subprocess.run([sys.executable, "-m", "dualscale.cli", *args], check=True, stdout=subprocess.DEVNULL, env=env)
@@ -547,18 +565,7 @@ def stage_bridge(work: Path, preset: str, configs: list[str]) -> None:
         gs = BRIDGE_CONFIGS[name][2]
         gt = {k: v.numpy() for k, v in generate(EVAL, gs, tex, 0).maps.items()}
         train_maps, _ = load_maps(d / "maps")
-        base = {}
-        for m in maps:
-            v = getattr(train_maps, m).numpy()
-            if m == "normal":
-                mean = v.mean((0, 1))
-                mean = mean / np.linalg.norm(mean)
-            elif m == "tangent":
-                a = 2 * np.pi * v[..., 0]
-                mean = np.array([np.mod(np.arctan2(np.sin(a).mean(), np.cos(a).mean()), 2 * np.pi) / (2 * np.pi)])
-            else:
-                mean = v.mean((0, 1))
-            base[m] = np.broadcast_to(mean, gt[m].shape).astype(np.float32)
+        base = constant_maps({m: getattr(train_maps, m).numpy() for m in maps}, gt[maps[0]].shape[:2])
         sb = compare(base, gt)
         print(f"| {name} | constant (mean of the micro maps) | - | - | "
               + " | ".join(f"{sb[m]['l1']:.3f} / {sb[m]['ssim']:.2f}" for m in maps) + " |")

@@ -103,18 +103,9 @@ def ridge(train_rgb: np.ndarray, train_maps: dict[str, np.ndarray], test_rgb: np
 
 
 def constant(train_maps: dict[str, np.ndarray], shape: tuple[int, int]) -> dict[str, np.ndarray]:
-    out = {}
-    for m, v in train_maps.items():
-        if m == "normal":
-            mean = v.mean((0, 1))
-            mean = mean / np.linalg.norm(mean)
-        elif m == "tangent":
-            a = 2 * np.pi * v[..., 0]
-            mean = np.array([np.mod(np.arctan2(np.sin(a).mean(), np.cos(a).mean()), 2 * np.pi) / (2 * np.pi)])
-        else:
-            mean = v.mean((0, 1))
-        out[m] = np.broadcast_to(mean, shape + (v.shape[-1],)).astype(np.float32)
-    return out
+    from bench_propagate import constant_maps
+
+    return constant_maps(train_maps, shape)
 
 
 def main() -> int:
