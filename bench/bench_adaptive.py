@@ -14,7 +14,10 @@ Per material and seed:
    stopping rule) up to ``--budget``; its own dataset fitted with ``standard``;
 3. **fixed plans with the adaptive capture's LED count**, cut from the full capture (the same
    frames a fixed capture of those LEDs takes): ``MODn`` (the n whose count is nearest),
-   ``random`` (that many LEDs, seeded), and ``ROW2+4`` (its own 19 LEDs).
+   ``random`` (that many LEDs, seeded), and ``ROW2+4`` (its own 19 LEDs);
+4. **adaptive at equal error** (unless ``--no-equal``): ``capture micro --lights ALL --adaptive`` with the
+   default stop rules and no budget (``--target full+5%``: every map's predicted sigma within
+   5 % of the whole plan's), so the device time it needs for about the full plan's error.
 
 Errors are :func:`dualscale.fit.metrics.map_errors` against the ground truth; device time is the
 physical floor of the shots in capture order (settle, servo moves, exposures, readout gaps;
@@ -86,7 +89,8 @@ def _fit_errors(obs, gt) -> dict[str, float]:
     return map_errors(res.maps, gt)
 
 
-def run_one(material: str, seed: int, size: int, cal: Path, min_gain: float, budget: str, work: Path) -> dict:
+def run_one(material: str, seed: int, size: int, cal: Path, min_gain: float, budget: str, work: Path,
+            equal: bool = False) -> dict:
     gt = generate(material, size, TEXEL_UM / 1000.0, seed).maps
     cam = _cam(material, size, seed)
     full, ad = work / f"{material}-{seed}-full", work / f"{material}-{seed}-adaptive"
@@ -117,6 +121,17 @@ def run_one(material: str, seed: int, size: int, cal: Path, min_gain: float, bud
              "ROW2+4": select_leds("ROW2+4")}
     for name, sub in plans.items():
         out[name] = {"leds": len(sub), "floor_s": _floor(full, sub), **_fit_errors(obs.select_leds(set(sub)), gt)}
+    if equal:
+        eq = work / f"{material}-{seed}-equal"
+        t2 = time.perf_counter()
+        _capture(eq, cam, "--lights", "ALL", "--adaptive", "--calibration", str(cal))
+        req = json.loads((eq / "capture.json").read_text())["adaptive"]
+        to_radiance(eq, work / f"{material}-{seed}-eq-rad", cal)
+        out["equal"] = {"leds": len({i for r in req["rounds"] for i in r["leds"]}), "floor_s": float(req["floor_s"]),
+                        **_fit_errors(load_observations(work / f"{material}-{seed}-eq-rad"), gt)}
+        out["equal_stop"], out["equal_wall_s"] = req["stop"], time.perf_counter() - t2
+        last = [r for r in req["rounds"] if r.get("full_plan")]
+        out["equal_full_plan"] = last[-1]["full_plan"] if last else None
     out["setup_wall_s"] = time.perf_counter() - t0
     return out
 
@@ -133,7 +148,7 @@ def tables(results: list[dict]) -> str:
     lines.append("| material | seed | plan | LEDs | device s | " + " | ".join(ERRS) + " |")
     lines.append("|---|---:|---|---:|---:|" + "---:|" * len(ERRS))
     for r in results:
-        for p in [k for k in r if isinstance(r[k], dict)]:
+        for p in [k for k in r if isinstance(r[k], dict) and "leds" in r[k]]:
             e = r[p]
             lines.append(f"| {r['material']} | {r['seed']} | {p} | {e['leds']} | {e['floor_s']:.1f} | "
                          + " | ".join(f"{e[k]:.4g}" for k in ERRS) + " |")
@@ -142,8 +157,11 @@ def tables(results: list[dict]) -> str:
     lines.append("|---|---|---:|---:|" + "---:|" * len(ERRS))
     for mat in dict.fromkeys(r["material"] for r in results):
         rs = [r for r in results if r["material"] == mat]
-        for p in ["adaptive", "MOD", "random", "ROW2+4"]:
-            keys = [next(k for k in r if k.startswith(p) and isinstance(r[k], dict)) for r in rs]
+        for p in ["adaptive", "MOD", "random", "ROW2+4", "equal"]:
+            plan_of = lambda r, p=p: [k for k in r if k.startswith(p) and isinstance(r[k], dict) and "leds" in r[k]]  # noqa: E731
+            if not all(plan_of(r) for r in rs):
+                continue
+            keys = [plan_of(r)[0] for r in rs]
             med = lambda f: statistics.median(f(r, k) for r, k in zip(rs, keys))  # noqa: E731
             lines.append(f"| {mat} | {keys[0] if p != 'MOD' else 'MODn'} | {med(lambda r, k: r[k]['leds']):.0f} | "
                          f"{med(lambda r, k: r[k]['floor_s'] / r['full']['floor_s']):.2f} | "
@@ -152,6 +170,13 @@ def tables(results: list[dict]) -> str:
     stops = {}
     for r in results:
         stops[r["stop"]] = stops.get(r["stop"], 0) + 1
+    eq = {}
+    for r in results:
+        if "equal_stop" in r:
+            eq[r["equal_stop"]] = eq.get(r["equal_stop"], 0) + 1
+    if eq:
+        lines += ["", f"Adaptive at equal error (full+5%, no budget) stops: {eq}; wall time median "
+                  f"{statistics.median(r['equal_wall_s'] for r in results if 'equal_wall_s' in r):.0f} s"]
     lines += ["", f"Adaptive stops: {stops}; rounds median {statistics.median(r['rounds'] for r in results):.0f}; "
               f"wall time of an adaptive capture median {statistics.median(r['adaptive_wall_s'] for r in results):.0f} s"]
     return "\n".join(lines)
@@ -168,6 +193,8 @@ def main_() -> None:
                          "the issue's goal)")
     ap.add_argument("--calibration", default=None, help="a calibration of every LED (default: made here)")
     ap.add_argument("--json", default=None, help="also write the results here")
+    ap.add_argument("--no-equal", dest="equal", action="store_false",
+                    help="leave out the adaptive capture at equal error (default target, no budget)")
     a = ap.parse_args()
     import torch
 
@@ -185,7 +212,7 @@ def main_() -> None:
         results = []
         for mat in a.materials.split(","):
             for seed in [int(s) for s in a.seeds.split(",")]:
-                r = run_one(mat, seed, a.size, cal, min_gain, a.budget, work)
+                r = run_one(mat, seed, a.size, cal, min_gain, a.budget, work, a.equal)
                 results.append(r)
                 print(json.dumps(r), flush=True)
         if a.json:

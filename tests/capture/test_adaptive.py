@@ -79,6 +79,13 @@ def test_an_adaptive_capture_chooses_rounds_and_stops_on_its_budget(run):
     s0, s1 = rounds[0]["fit"]["sigma"], rounds[-2]["fit"]["sigma"]
     assert s1["normal"] < s0["normal"] and s1["roughness"] < s0["roughness"]
     assert rec["floor_s"] > 0 and rounds[-2]["fit"]["floor_s"] == pytest.approx(rec["floor_s"])
+    # every decision says what the whole candidate plan (32 LEDs) would give and cost
+    for r in rounds[1:]:
+        full = r["full_plan"]
+        assert full["shots"] == 66 and full["cost_s"] > rounds[r["round"] - 1]["fit"]["floor_s"]
+        assert set(full["sigma"]) == set(full["sigma_now"]) >= {"normal", "roughness"}
+        assert all(full["sigma"][k] < full["sigma_now"][k] for k in ("normal", "roughness"))
+    assert rounds[-1]["full_plan"]["cost_s"] > rec["floor_s"]
 
 
 def test_the_adaptive_dataset_is_a_normal_photometric_dataset(run, cal, tmp_path):
@@ -107,6 +114,32 @@ def test_targets_and_gain_stop_an_adaptive_capture(cal, tmp_path, capsys):
     assert "no sigma of transmittance" in capsys.readouterr().out
     rec = json.loads((tmp_path / "g" / "capture.json").read_text())["adaptive"]
     assert rec["stop"] == "gain" and "under 1e+09" in rec["reason"] and len(rec["rounds"]) == 2
+    # the relative target: the capture stops at the first decision whose predicted sigma of every
+    # map is within 1000 % of the whole plan's predicted sigma, and not before
+    assert _capture(tmp_path / "f", cal, "--target", "full+1000%") == 0
+    rec = json.loads((tmp_path / "f" / "capture.json").read_text())["adaptive"]
+    assert rec["stop"] == "targets" and "within 1000 % of the whole plan's" in rec["reason"]
+    assert rec["options"]["full_target"] == 10.0 and len(rec["rounds"]) <= 4
+    worst = [max(r["full_plan"]["sigma_now"][k] / r["full_plan"]["sigma"][k] for k in r["full_plan"]["sigma"])
+             for r in rec["rounds"][1:]]
+    assert all(w > 11.0 for w in worst[:-1]) and 1.0 < worst[-1] <= 11.0
+    assert f"{100 * (worst[-1] - 1):.1f} %" in rec["reason"]
+
+
+def test_parse_targets():
+    """``--target``: the default is ``full+5%`` and no map; a given one replaces it whole."""
+    from dualscale.adaptive.options import parse_targets
+    from dualscale.errors import InputError
+
+    assert parse_targets(None) == ({}, 0.05)
+    assert parse_targets("full+10%") == ({}, pytest.approx(0.10))
+    assert parse_targets("none") == ({}, None)
+    assert parse_targets("normal=0.5") == ({"normal": 0.5}, None)
+    assert parse_targets("normal=0.5,full+2.5%") == ({"normal": 0.5}, pytest.approx(0.025))
+    for bad, why in [("full", r"full\+N%"), ("full+x%", "not a number"), ("full+5%,full+3%", "given twice"),
+                     ("full+-5%", ">= 0"), ("gloss=1", "MAP=SIGMA")]:
+        with pytest.raises(InputError, match=why):
+            parse_targets(bad)
 
 
 def _round1_decided(entries: list[dict]) -> bool:
@@ -207,6 +240,34 @@ def test_resume_keeps_the_adaptive_capture_and_its_options(run, cal, tmp_path, c
     (plain / "journal.jsonl").write_text("".join(keep))
     assert _capture(plain, cal, "--resume", "--budget", "26") == 2
     assert "holds a capture of a fixed plan" in capsys.readouterr().err
+
+
+def test_predicted_sigmas_on_known_matrices():
+    """The predicted sigma of a map is the median over the pixels of the posterior ``F^-1``'s
+    diagonal in the map's units (ior: ``eta = 1 + 2 v``), undetermined pixels left out; added
+    information lowers it."""
+    from dualscale.adaptive.design import DesignState, predicted_sigmas
+    from dualscale.bsdf import Components
+
+    n = 5
+    h = torch.diag_embed(torch.tensor([[1.0, 2.0]] * n, dtype=torch.float64) * torch.arange(1, n + 1)[:, None])
+    g = torch.diag_embed(torch.tensor([[4.0, 1.0]] * n, dtype=torch.float64))
+    prior = torch.full((n, 2), 0.5, dtype=torch.float64)
+    det = torch.ones(n, 2, dtype=torch.bool)
+    det[4, 1] = False  # pixel 4's ior undetermined (held)
+    st = DesignState(("roughness", "ior"), torch.full((n, 2), 0.3, dtype=torch.float64), h, g, 2.0, prior, det,
+                     torch.zeros(n, 2, dtype=torch.float64), True, None, 1.0)
+    params = {"roughness": torch.full((1, n, 1), 0.3), "ior": torch.full((1, n, 1), 0.3)}
+    f = torch.stack([h[:, j, j] ** 2 / g[:, j, j] / 2.0 + 0.5 for j in range(2)], 1)
+    got = predicted_sigmas(st, params, Components())
+    assert got["roughness"] == pytest.approx(float(f[:, 0].rsqrt().median()))
+    assert got["ior"] == pytest.approx(2.0 * float(f[:4, 1].rsqrt().double().median()))
+    more = torch.zeros(n, 2, 2, 2, dtype=torch.float64)
+    more[:, 0] = torch.eye(2, dtype=torch.float64)
+    more[:, 1] = torch.eye(2, dtype=torch.float64)
+    after = predicted_sigmas(st, params, Components(), more)
+    assert after["roughness"] < got["roughness"] and after["ior"] < got["ior"]
+    assert predicted_sigmas(st, params, Components(), torch.zeros_like(more)) == pytest.approx(got)
 
 
 def test_the_design_criteria_on_known_matrices():

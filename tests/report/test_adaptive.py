@@ -138,3 +138,14 @@ def test_adaptive_section_words(tmp_path, figures_not_drawn):
     assert "after each of the 2 rounds" in sec and "A gap: the map was not fitted in that round (roughness" in sec
     assert "the 8 candidates" in sec and "the 3 LEDs taken" in sec
     assert sorted(s for s in p.imgs if "adaptive_" in s) == ["assets/adaptive_dome.png", "assets/adaptive_sigma.png"]
+    assert "whole candidate plan" not in sec  # a record without the prediction: nothing invented
+    # with the whole plan's prediction (the last decision's full_plan) and the relative target
+    rec["options"]["full_target"] = 0.05
+    rec["rounds"][1]["full_plan"] = {"sigma": {"normal": 0.1, "albedo": 0.001}, "sigma_now": {"normal": 0.19, "albedo": 0.0012},
+                                     "cost_s": 95.5, "shots": 18}
+    (run / "capture" / "micro" / "capture.json").write_text(json.dumps({"plan": plan, "adaptive": rec}))
+    sec = _section(write_run_report(run), "adaptive")
+    assert "targets (median σ) normal 0.2, every other map within 5 % of the whole plan's" in sec
+    assert ("the whole candidate plan (predicted) 18 shots, about 95.5 s of device time; at the last decision the worst map, "
+            "normal, had 1.9 times its predicted σ") in sec, sec
+    assert "Dashed: each map's median 1σ that the whole candidate plan would give" in sec

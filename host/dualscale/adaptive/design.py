@@ -48,7 +48,7 @@ from dualscale.fit import lm
 from dualscale.fit.loop import step_data
 from dualscale.fit.observations import Observations, analyzer_weights
 from dualscale.fit.presets import Preset
-from dualscale.fit.uncertainty import posterior
+from dualscale.fit.uncertainty import map_sigmas, posterior
 
 from .options import CRITERIA  # noqa: F401  (the criteria, module doc)
 
@@ -159,6 +159,31 @@ def _information(bread: Tensor, meat: Tensor, c: float, prior: Tensor) -> Tensor
     f = bread @ torch.linalg.solve(meat, bread) / c
     f = 0.5 * (f + f.transpose(-1, -2))
     return f + torch.diag_embed(prior.expand(f.shape[:-1]))
+
+
+def predicted_sigmas(state: DesignState, params: dict[str, Tensor], comps: Components,
+                     info: Tensor | None = None) -> dict[str, float]:
+    """``{map: median sigma}`` (the maps' sigma units, as :func:`dualscale.fit.uncertainty.median_sigmas`:
+    the normal in degrees) of the posterior ``F^-1`` (module doc) of the sample's pixels, after
+    the lights whose summed ``(H_l, G_l)`` are ``info (n, 2, P, P)`` (``None``: the lights taken
+    so far; ``params`` the sample's ``(1, n, C)`` parameters), by the fit's own delta method (:func:`dualscale.fit.uncertainty.map_sigmas`);
+    undetermined parameters are left out.  With ``info`` the sum over every candidate it is the
+    prediction, at the current maps, of what the whole candidate plan would give: the
+    ``--target full+N%`` rule (:mod:`.loop`).  Maps with no determined texel are absent."""
+    h, g = state.bread, state.meat
+    if info is not None:
+        h, g = h + info[:, 0], g + info[:, 1]
+    f = _information(h, g, state.c, state.prior)
+    cov = torch.cholesky_inverse(torch.linalg.cholesky(f))
+    n, p = state.x.shape
+    det = state.determined.reshape(1, n, p)
+    sig, und = map_sigmas(params, cov.reshape(1, n, p, p), state.names, det, comps)
+    out = {}
+    for k, v in sig.items():
+        keep = ~und[k] & torch.isfinite(v)
+        if keep.any():
+            out[k] = float(v[keep].double().median())
+    return out
 
 
 def gains(state_h: Tensor, state_g: Tensor, c: float, prior: Tensor, info: Tensor, criterion: str = "D",

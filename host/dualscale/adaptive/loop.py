@@ -13,7 +13,11 @@ the back light is always taken, in the first round (both modes: how an opaque sa
    joint step only, from the last round's maps, while the components stay the same), with its
    per-pixel uncertainty (:mod:`dualscale.fit.uncertainty`).
 3. **Stop**, first of: every map's median sigma at or under its target (:attr:`AdaptiveOptions.targets`,
-   map units as ``fit.json``'s); the best candidate's D-gain under
+   map units as ``fit.json``'s) and, with :attr:`AdaptiveOptions.full_target` (default ``full+5%``),
+   every other map's predicted median sigma within that fraction of what the whole candidate
+   plan would give (:func:`.design.predicted_sigmas`: the fit's posterior with every remaining
+   candidate's information added, at the current maps; each decision records it with the whole
+   plan's estimated device time, ``full_plan``); the best candidate's D-gain under
    :attr:`AdaptiveOptions.min_gain` nats per sample pixel (no light improves the criterion enough);
    the shot budget or the device-time budget (the next batch would exceed it); no candidate left.
 4. **Else choose** the next batch (:func:`.design.choose_batch`: greedy D- or A-optimal gain per
@@ -199,12 +203,15 @@ class AdaptiveCapture:
     def _decide(self, r: int, rounds: list[dict]) -> dict:
         """The decision after round ``r - 1``: the journal's ``round`` entry for round ``r`` (a
         ``stop`` entry has ``leds`` empty and the ``reason``)."""
-        from .design import candidate_information, candidate_observations, choose_batch, design_state
+        from .design import (candidate_information, candidate_observations, choose_batch, design_state,
+                             predicted_sigmas)
 
         params, comps, sample, preset, sig, rec = self._fit(r - 1, rounds)
         taken_leds = sorted({i for x in rounds for i in x["leds"]})
         shots = rec["shots"]
-        if all(k in sig and sig[k] <= t for k, t in self.opts.targets.items()) and self.opts.targets:
+        given = self.opts.targets
+        met = all(k in sig and sig[k] <= t for k, t in given.items())
+        if given and met and self.opts.full_target is None:
             return {"round": r, "leds": [], "stop": "targets", "reason": "every map reached its target sigma"}
         cands = [i for i in self.leds if i not in set(taken_leds)]
         if not cands:
@@ -212,6 +219,23 @@ class AdaptiveCapture:
         if r >= self.opts.max_rounds:
             return {"round": r, "leds": [], "stop": "rounds", "reason": f"{self.opts.max_rounds} rounds"}
         costs = self._costs(taken_leds, cands)
+        st = design_state(params, comps, sample, preset)
+        info = candidate_information(st, params, comps,
+                                     candidate_observations(sample, self.dirs[cands], cands))
+        # what the whole candidate plan would give and cost, predicted at the current maps
+        now, full = predicted_sigmas(st, params, comps), predicted_sigmas(st, params, comps, info.sum(1))
+        plan = {"sigma": {k: round(v, 6) for k, v in full.items()}, "sigma_now": {k: round(v, 6) for k, v in now.items()},
+                "cost_s": round(rec["floor_s"] + float(costs.sum()), 6), "shots": shots + 2 * len(cands)}
+        if self.opts.full_target is not None and met:
+            slack = 1.0 + self.opts.full_target
+            rel = {k: now[k] / full[k] for k in full if k in now and k not in given and full[k] > 0}
+            if all(v <= slack for v in rel.values()):
+                worst = max(rel, key=rel.get) if rel else None
+                why = (f"every map's predicted sigma within {100 * self.opts.full_target:g} % of the whole plan's"
+                       + (f" (worst {worst}: {100 * (rel[worst] - 1):.1f} %)" if worst else ""))
+                if given:
+                    why += "; the named maps reached their target sigma"
+                return {"round": r, "leds": [], "stop": "targets", "reason": why, "full_plan": plan}
         size = self.opts.batch or auto_batch(float(np.median(costs)), self._servo_s())
         if self.opts.budget_shots is not None:
             size = min(size, (self.opts.budget_shots - shots) // 2)
@@ -219,20 +243,19 @@ class AdaptiveCapture:
             left = self.opts.budget_s - rec["floor_s"] - 2 * self._servo_s()
             size = min(size, int(left // max(float(np.median(costs)), 1e-9)))
         if size < 1:
-            return {"round": r, "leds": [], "stop": "budget", "reason": "the budget leaves no room for another LED"}
-        st = design_state(params, comps, sample, preset)
-        info = candidate_information(st, params, comps,
-                                     candidate_observations(sample, self.dirs[cands], cands))
+            return {"round": r, "leds": [], "stop": "budget", "reason": "the budget leaves no room for another LED",
+                    "full_plan": plan}
         picked, got, first = choose_batch(st, info, costs, size, self.opts.criterion)
         npx = st.x.shape[0]
         best = float(first.max()) / npx
         scores = {str(c): {"gain": round(float(first[j]) / npx, 6), "cost_s": round(float(costs[j]), 6)}
                   for j, c in enumerate(cands)}
         if best < self.opts.min_gain:
-            return {"round": r, "leds": [], "stop": "gain", "scores": scores,
+            return {"round": r, "leds": [], "stop": "gain", "scores": scores, "full_plan": plan,
                     "reason": f"the best candidate's gain {best:.3g} nats per pixel is under {self.opts.min_gain:g}"}
         return {"round": r, "leds": sorted(cands[j] for j in picked), "why": f"best {self.opts.criterion}-gain per second",
-                "picks": [[cands[j], round(g / npx, 6)] for j, g in zip(picked, got)], "scores": scores}
+                "picks": [[cands[j], round(g / npx, 6)] for j, g in zip(picked, got)], "scores": scores,
+                "full_plan": plan}
 
     # ------------------------------------------------------------------ the capture
     def run(self):

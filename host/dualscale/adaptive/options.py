@@ -15,20 +15,29 @@ from dualscale.errors import InputError
 CRITERIA = ("D", "A")
 """The optimal-design criteria (:mod:`.design`)."""
 
-#: map -> the default target median sigma (map units, as fit.json's uncertainty summary)
+#: map -> the default target median sigma (map units, as fit.json's uncertainty summary): none;
+#: the default target is relative, :data:`DEFAULT_FULL_TARGET`
 DEFAULT_TARGETS: dict[str, float] = {}
+
+#: the default ``--target full+5%``: stop when every map's predicted median sigma is within 5 % of
+#: what the whole candidate plan would give (the ``standard`` fit on a full capture of this
+#: sample, predicted from the current maps: :func:`dualscale.adaptive.design.predicted_sigmas`)
+DEFAULT_FULL_TARGET = 0.05
 
 
 @dataclass
 class AdaptiveOptions:
     """How the adaptive capture decides (module doc).  ``targets``: map -> median sigma to stop
-    at; ``budget_shots`` / ``budget_s``: the most shots / seconds of device time (floor);
+    at; ``full_target``: stop when every map's predicted median sigma is at most ``1 +
+    full_target`` times the whole candidate plan's (``None``: no such rule; a map named in
+    ``targets`` uses its own target instead); ``budget_shots`` / ``budget_s``: the most shots / seconds of device time (floor);
     ``batch``: LEDs per round (``None``: :func:`auto_batch`)."""
 
     initial: int = 12
     batch: int | None = None
     criterion: str = "D"
     targets: dict[str, float] = field(default_factory=lambda: dict(DEFAULT_TARGETS))
+    full_target: float | None = DEFAULT_FULL_TARGET
     min_gain: float = 0.1
     budget_shots: int | None = None
     budget_s: float | None = None
@@ -50,6 +59,8 @@ class AdaptiveOptions:
         for k, v in self.targets.items():
             if not (isinstance(v, (int, float)) and v > 0 and math.isfinite(v)):
                 raise InputError(f"--target {k}={v}: a positive sigma")
+        if self.full_target is not None and not (math.isfinite(self.full_target) and self.full_target >= 0):
+            raise InputError(f"--target full+{self.full_target:g}: a percentage >= 0 (e.g. full+5%)")
         if self.budget_shots is not None and self.budget_shots < 1:
             raise InputError(f"--budget {self.budget_shots}: a positive shot count (e.g. 80) or device time (e.g. 300s)")
         if self.budget_shots is not None and self.budget_shots < 2 * self.initial + 2:
@@ -59,30 +70,52 @@ class AdaptiveOptions:
             raise InputError(f"--budget {self.budget_s}s: a positive device time")
 
 
-def parse_targets(spec: str | None) -> dict[str, float]:
-    """``--target MAP=SIGMA,...`` (e.g. ``normal=0.5,roughness=0.01``; sigma in the map's units:
-    the normal in degrees) over :data:`DEFAULT_TARGETS`; ``InputError`` naming the bad entry."""
+def parse_targets(spec: str | None) -> tuple[dict[str, float], float | None]:
+    """``--target`` as ``(targets, full_target)`` (:class:`AdaptiveOptions`); ``InputError``
+    naming the bad entry.  Entries, comma-separated: ``MAP=SIGMA`` (e.g. ``normal=0.5``; sigma in
+    the map's units: the normal in degrees) and ``full+N%`` (every other map within N % of the
+    whole candidate plan's predicted sigma); ``none``: no target (the gain and budget rules
+    stop the capture).  Without ``--target``: :data:`DEFAULT_TARGETS` and ``full+5%``
+    (:data:`DEFAULT_FULL_TARGET`).  A given ``--target`` replaces the default whole."""
     from dualscale.formats.maps import SIGMA_UNITS
 
-    out = dict(DEFAULT_TARGETS)
     if not spec:
-        return out
-    for part in str(spec).split(","):
-        name, sep, val = part.strip().partition("=")
+        return dict(DEFAULT_TARGETS), DEFAULT_FULL_TARGET
+    out: dict[str, float] = {}
+    full = None
+    parts = [p.strip() for p in str(spec).split(",")]
+    if parts == ["none"]:
+        return out, None
+    for part in parts:
+        if part.startswith("full"):
+            pct = part[4:].strip()
+            if full is not None:
+                raise InputError(f"--target {spec!r}: full+N% is given twice")
+            if not (pct.startswith("+") and pct.endswith("%")):
+                raise InputError(f"--target {part!r}: full+N% (e.g. full+5%: within 5 % of the whole plan's sigma)")
+            try:
+                full = float(pct[1:-1]) / 100.0
+            except ValueError:
+                raise InputError(f"--target {part!r}: {pct[1:-1]!r} is not a number") from None
+            if not (math.isfinite(full) and full >= 0):
+                raise InputError(f"--target {part!r}: a percentage >= 0")
+            continue
+        name, sep, val = part.partition("=")
         if not sep or name not in SIGMA_UNITS:
-            raise InputError(f"--target {part!r}: MAP=SIGMA with MAP one of {', '.join(sorted(SIGMA_UNITS))}")
-        if name in out and name not in DEFAULT_TARGETS:
+            raise InputError(f"--target {part!r}: MAP=SIGMA with MAP one of {', '.join(sorted(SIGMA_UNITS))}, "
+                             "or full+N%, or none")
+        if name in out:
             raise InputError(f"--target {spec!r}: {name} is named twice; give each map once")
         try:
             out[name] = float(val)
         except ValueError:
             raise InputError(f"--target {part!r}: {val!r} is not a number") from None
-    return out
+    return out, full
 
 
 #: the options' names on the command line (for a refused --resume)
 OPTION_FLAGS = {"initial": "--initial-leds", "batch": "--batch-leds", "criterion": "--criterion",
-                "targets": "--target", "min_gain": "--min-gain", "budget_shots": "--budget",
+                "targets": "--target", "full_target": "--target full+", "min_gain": "--min-gain", "budget_shots": "--budget",
                 "budget_s": "--budget"}
 
 
@@ -120,6 +153,8 @@ def _show(key: str, v: Any) -> str:
         return ",".join(f"{k}={x:g}" for k, x in v.items()) or "none"
     if key == "budget_s":
         return f"{v:g}s"
+    if key == "full_target":
+        return f"{100 * v:g}%"
     return f"{v:g}" if isinstance(v, float) else str(v)
 
 

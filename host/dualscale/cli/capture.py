@@ -250,8 +250,9 @@ def adaptive_options(a: argparse.Namespace, plan):
         raise InputError(f"--calibration {a.calibration}: no such file")
     check_calibration(Path(a.calibration), sorted({s.index for s in plan.shots if s.kind == "led"}))
     shots, seconds = parse_budget(a.budget)
+    targets, full = parse_targets(a.target)
     return AdaptiveOptions(initial=a.initial_leds, batch=a.batch_leds, criterion=a.criterion,
-                           targets=parse_targets(a.target), min_gain=a.min_gain, budget_shots=shots,
+                           targets=targets, full_target=full, min_gain=a.min_gain, budget_shots=shots,
                            budget_s=seconds, seed=getattr(a, "seed", 0) or 0)
 
 
@@ -264,9 +265,11 @@ def add_adaptive_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--adaptive", action="store_true",
                    help="micro plan: choose the lights round by round from the fit's uncertainty, among --lights, and "
                         "stop when the maps are determined (needs --calibration)")
-    g.add_argument("--target", default=None, metavar="MAP=SIGMA,...",
+    g.add_argument("--target", default=None, metavar="MAP=SIGMA,...|full+N%|none",
                    help="stop when every named map's median 1-sigma is at or under this (the maps' sigma units: "
-                        "normal in degrees); default: none, the gain and budget rules stop it")
+                        "normal in degrees), and with full+N%% every other map's predicted sigma is within N %% of "
+                        "what the whole candidate plan would give; none: only the gain and budget rules stop it "
+                        "(default: full+5%%)")
     g.add_argument("--budget", default=None, metavar="SHOTS|Ts|Tmin",
                    help="the most shots (e.g. 80) or device time (e.g. 300s, 5min) the capture may take "
                         "(default: no limit)")

@@ -7,7 +7,9 @@
   else the figures and the table of the section.
 * :func:`sigma_rounds_figure`: each map's median 1σ over the round's sample pixels (log axis,
   each map in its own unit, :func:`dualscale.report.plots.sigma_unit`) against the shots taken
-  and against the device time (the physical floor, ``floor_s``), one marker per round.
+  and against the device time (the physical floor, ``floor_s``), one marker per round; with the
+  whole candidate plan's prediction (the last decision's ``full_plan``) as each map's dashed
+  level and its estimated device time as a dotted vertical line.
 * :func:`dome_figure`: the dome seen from above (the x-y projection of the unit LED directions
   of :meth:`dualscale.geometry.dome.DomeGeometry.from_regmap`, +z the zenith at the centre),
   every LED a small grey dot, the candidates (the plan's LEDs) outlined, the chosen LEDs filled
@@ -73,9 +75,19 @@ def _map_names(rounds: list[dict[str, Any]]) -> list[str]:
     return [n for n in plots.MAP_TITLES if n in seen] + sorted(seen - set(plots.MAP_TITLES))
 
 
-def sigma_rounds_figure(rounds: list[dict[str, Any]]):
+def last_full_plan(rec: dict[str, Any]) -> dict[str, Any] | None:
+    """The last decision's prediction of the whole candidate plan (``full_plan``: ``sigma`` and
+    ``sigma_now`` per map, ``cost_s`` its estimated device time, ``shots``), or ``None`` (a
+    record written before the prediction existed, or a capture that stopped for want of
+    candidates)."""
+    plans = [r["full_plan"] for r in rec["rounds"] if isinstance(r, dict) and isinstance(r.get("full_plan"), dict)]
+    return plans[-1] if plans else None
+
+
+def sigma_rounds_figure(rounds: list[dict[str, Any]], full: dict[str, Any] | None = None):
     """Median 1σ per map after each round (log y, one line and marker per map and round) against
-    the shots taken (left) and the device time [s] (right).  ``rounds``: :func:`fitted_rounds`.
+    the shots taken (left) and the device time [s] (right).  ``rounds``: :func:`fitted_rounds`;
+    ``full``: :func:`last_full_plan` (its predicted σ dashed, its shots and device time dotted).
     Returns ``(fig, caption)``."""
     names = _map_names(rounds)
     shots = np.array([float(r["fit"].get("shots", np.nan)) for r in rounds])
@@ -92,6 +104,13 @@ def sigma_rounds_figure(rounds: list[dict[str, Any]]):
         label = f"{'IOR' if n == 'ior' else plots.MAP_TITLES.get(n, n)} [{plots.sigma_unit(n)}]"
         for ax, x in zip(axes, (shots, secs)):
             ax.plot(x, y, marker="o", ms=4, lw=1.2, color=colours[i % len(colours)], label=label)
+            v = (full or {}).get("sigma", {}).get(n)
+            if isinstance(v, (int, float)) and v > 0:
+                ax.axhline(v, color=colours[i % len(colours)], lw=0.8, ls="--")
+    if full:
+        for ax, k in zip(axes, ("shots", "cost_s")):
+            if isinstance(full.get(k), (int, float)):
+                ax.axvline(float(full[k]), color="0.4", lw=0.8, ls=":")
     for ax, xl in zip(axes, ("shots taken", "device time (physical floor) [s]")):
         ax.set_yscale("log")
         ax.set_xlabel(xl)
@@ -106,6 +125,11 @@ def sigma_rounds_figure(rounds: list[dict[str, Any]]):
            "and the tangent, η for the IOR, the map's own value for the others), against the shots taken (left) "
            "and the device time spent so far (right: the shots' physical floor, settle, servo moves, exposures "
            "and readout, without metering).")
+    if full:
+        cap += (" Dashed: each map's median 1σ that the whole candidate plan would give, predicted at the last "
+                "decision from the maps then (the fit's posterior with every remaining candidate's information "
+                f"added); dotted: the whole plan's {fmt.value(full.get('shots'))} shots and its estimated "
+                f"{fmt.quantity(full.get('cost_s'), 's')} of device time.")
     if missing:
         cap += (f" A gap: the map was not fitted in that round ({', '.join(missing)}: the round's component "
                 "choice left it out).")
@@ -160,7 +184,8 @@ def section(run: Path, fig: Callable[..., Any], note: Callable[[str], None]) -> 
     rounds = fitted_rounds(rec)
     chosen = {int(led): int(r.get("round", i)) for i, r in enumerate(rounds) for led in (r.get("leds") or [])}
     dirs = DomeGeometry.from_regmap().led_dirs.numpy()
-    figs = [fig(sigma_rounds_figure(rounds), "adaptive_sigma", "Median σ per round"),
+    full = last_full_plan(rec)
+    figs = [fig(sigma_rounds_figure(rounds, full), "adaptive_sigma", "Median σ per round"),
             fig(dome_figure(dirs, rec["candidates"], chosen, len(rounds)), "adaptive_dome", "LEDs chosen per round")]
     header = ["round", "LEDs taken", "shots", "device time"] + [
         f"median σ {plots.MAP_TITLES.get(n, n)}" + (f" [{plots.sigma_unit(n)}]" if n in plots.SIGMA_SHORT_UNITS else "")
@@ -183,8 +208,18 @@ def section(run: Path, fig: Callable[..., Any], note: Callable[[str], None]) -> 
             ("device time (physical floor)", fmt.quantity(rec.get("floor_s"), "s")),
             ("criterion", f"{opts.get('criterion', fmt.DASH)}-optimal gain per second of device time"),
             ("budget", " and ".join(b for b in budget if b) or "none"),
-            ("targets (median σ)", ", ".join(f"{plots.MAP_TITLES.get(k, k)} {fmt.number(v)}" for k, v in targets.items())
-             or "none")]
+            ("targets (median σ)", ", ".join(
+                [f"{plots.MAP_TITLES.get(k, k)} {fmt.number(v)}" for k, v in targets.items()]
+                + ([f"every other map within {fmt.number(100 * opts['full_target'])} % of the whole plan's"]
+                   if isinstance(opts.get("full_target"), (int, float)) else [])) or "none")]
+    if full:
+        ratio = {k: full["sigma_now"][k] / v for k, v in (full.get("sigma") or {}).items()
+                 if isinstance(v, (int, float)) and v > 0 and isinstance((full.get("sigma_now") or {}).get(k), (int, float))}
+        worst = max(ratio, key=ratio.get) if ratio else None
+        info.append(("the whole candidate plan (predicted)",
+                     f"{fmt.value(full.get('shots'))} shots, about {fmt.quantity(full.get('cost_s'), 's')} of device time"
+                     + (f"; at the last decision the worst map, {plots.MAP_TITLES.get(worst, worst)}, had "
+                        f"{fmt.number(ratio[worst])} times its predicted σ" if worst else "")))
     stop = f"Stopped ({rec.get('stop', fmt.DASH)}): {rec.get('reason', 'no reason recorded')}."
     return {"info": info, "table": {"header": header, "rows": rows, "numeric": set(range(2, len(header)))},
             "stop": stop, "figs": figs}
