@@ -262,10 +262,11 @@ def test_predicted_sigmas_on_known_matrices():
     got = predicted_sigmas(st, params, Components())
     assert got["roughness"] == pytest.approx(float(f[:, 0].rsqrt().median()))
     assert got["ior"] == pytest.approx(2.0 * float(f[:4, 1].rsqrt().double().median()))
-    more = torch.zeros(n, 2, 2, 2, dtype=torch.float64)
-    more[:, 0] = torch.eye(2, dtype=torch.float64)
-    more[:, 1] = torch.eye(2, dtype=torch.float64)
+    more = torch.stack([h, g], 1)  # the same lights again: twice the data information, the prior once
     after = predicted_sigmas(st, params, Components(), more)
+    f2 = 2.0 * (f - 0.5) + 0.5
+    assert after["roughness"] == pytest.approx(float(f2[:, 0].rsqrt().median()))
+    assert after["ior"] == pytest.approx(2.0 * float(f2[:4, 1].rsqrt().median()))
     assert after["roughness"] < got["roughness"] and after["ior"] < got["ior"]
     assert predicted_sigmas(st, params, Components(), torch.zeros_like(more)) == pytest.approx(got)
 
