@@ -148,7 +148,7 @@ def test_back_lit_rows_weighted_twice_match_the_kernels_pass(datasets):
     names = free_names("joint", params)
     assert "transmittance" in names and "opacity" in names
     d = step_data(obs, "joint", "fused")
-    prob = lm._problem(lm._block(d, 0, 4), comps)
+    prob = lm.problem(lm._block(d, 0, 4), comps)
     x = pack(params, names)
     fixed = {k: v for k, v in params.items() if k not in names}
     r = prob.residuals(x, names, fixed)
@@ -277,7 +277,7 @@ def test_one_pass_gives_the_lms_matrices_and_each_weightings(datasets):
     comps = Components(opaque=False, isotropic=True, tinted=False)
     params = {k: v[0:3, 0:3].contiguous() for k, v in params_from_maps(gt, comps).items()}
     names = free_names("joint", params)
-    prob = lm._problem(lm._block(step_data(obs, "joint", "fused"), 0, 3), comps)
+    prob = lm.problem(lm._block(step_data(obs, "joint", "fused"), 0, 3), comps)
     x, fixed = pack(params, names), {k: v for k, v in params.items() if k not in names}
     g = torch.Generator().manual_seed(5)
     r = prob.residuals(x, names, fixed)

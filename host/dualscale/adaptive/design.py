@@ -125,7 +125,7 @@ def candidate_information(state: DesignState, params: dict[str, Tensor], comps: 
     """``(n, C, 2, P, P)`` float64: each sample pixel's ``(H_l, G_l)`` from each candidate LED
     (module doc) of :func:`candidate_observations`' ``cand``; zero on undetermined parameters."""
     d = step_data(cand, "joint", "fused")
-    prob = lm._problem(d, comps)
+    prob = lm.problem(d, comps)
     fixed = {k: v for k, v in params.items() if k not in state.names}
     xb = state.x.reshape(*cand.shape, -1).to(cand.images.dtype)
     mu = prob.residuals(xb, state.names, fixed).double().clamp(min=0.0)  # (1, n, 3 K): render - 0

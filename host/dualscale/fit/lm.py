@@ -188,8 +188,13 @@ def _lohi(names: tuple[str, ...], bounds: dict[str, tuple[float, float]], like: 
     return torch.tensor(lo, dtype=like.dtype), torch.tensor(hi, dtype=like.dtype)
 
 
-def _problem(d: StepData, comps: Components) -> fused.Problem:
-    """The fused kernel's layout of a block's data, built once per step and block."""
+def problem(d: StepData, comps: Components) -> fused.Problem:
+    """The fused kernel's layout (:class:`dualscale.fit.fused.Problem`) of a step's data ``d``
+    (:func:`dualscale.fit.loop.step_data`) for ``comps``, built once per step and block and
+    cached on ``d``: its ``residuals`` render the observations at given parameters and its
+    ``normal_equations`` give each pixel's weighted ``J^T W J``.  Public for the experimental
+    design of the adaptive capture (:mod:`dualscale.adaptive.design`), which renders candidate
+    lights that are not in the data."""
     key = ("fused", comps)
     if key not in d.cache:
         d.cache[key] = fused.Problem(d.obs, d.images, d.back, comps)
@@ -200,7 +205,7 @@ def _residual(x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor], comps
               d: StepData) -> Tensor:
     """Unweighted residuals ``(h, w, K)`` of a pixel block: LED images, then the back-lit image."""
     if d.kernel == "fused":
-        return _problem(d, comps).residuals(x, names, fixed)
+        return problem(d, comps).residuals(x, names, fixed)
     maps = to_maps(unpack(x, names), fixed)
     r = pixel_rows(render_leds(maps, comps, d.obs, compiled=d.compiled) - d.images)
     if d.back is not None:
@@ -238,7 +243,7 @@ def cost(x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor], comps: Com
         fx = {k: v[y0:y1] for k, v in fixed.items()}
         db = _block(d, y0, y1)
         if d.kernel == "fused":
-            cb, rows = _problem(db, comps).cost(x[y0:y1], names, fx, loss, None if keep is None else keep[y0:y1],
+            cb, rows = problem(db, comps).cost(x[y0:y1], names, fx, loss, None if keep is None else keep[y0:y1],
                                                 residuals=remember)
             if remember:
                 db.cache["trial rows"] = rows
@@ -292,7 +297,7 @@ def _normal_equations(x: Tensor, names: tuple[str, ...], fixed: dict[str, Tensor
             if r0 is None:
                 r0 = _residual(xb, names, fx, comps, db)
             db.cache["rows"] = r0
-            prob = _problem(db, comps)
+            prob = problem(db, comps)
             keep, sw, cst, scl = prob.irls(r0, loss)
             if gather is None:
                 a, b = prob.normal_equations(xb, names, fx, r0, sw)

@@ -295,7 +295,7 @@ def _separate_pass(params: dict[str, Tensor], comps: Components, obs: Observatio
     for y0, y1 in lm._chunks(*x.shape[:2]):
         xb = x[y0:y1]
         fx = {k: v[y0:y1] for k, v in fixed.items()}
-        prob = lm._problem(lm._block(d, y0, y1), comps)
+        prob = lm.problem(lm._block(d, y0, y1), comps)
         r = prob.residuals(xb, names, fx)
         keep, sw_fit, _, scale = prob.irls(r, loss)  # kept rows: valid and not in a cast shadow
         h_fit, g_fit, m = _block_matrices(prob, xb, names, fx, r, keep, sw_fit, loss, u_rows)
