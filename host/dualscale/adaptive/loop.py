@@ -228,7 +228,8 @@ class AdaptiveCapture:
                 "cost_s": round(rec["floor_s"] + float(costs.sum()), 6), "shots": shots + 2 * len(cands)}
         if self.opts.full_target is not None and met:
             slack = 1.0 + self.opts.full_target
-            rel = {k: now[k] / full[k] for k in full if k in now and k not in given and full[k] > 0}
+            # a map the whole plan would determine and the lights taken do not is not within any slack
+            rel = {k: now[k] / full[k] if k in now else math.inf for k in full if k not in given and full[k] > 0}
             if all(v <= slack for v in rel.values()):
                 worst = max(rel, key=rel.get) if rel else None
                 why = (f"every map's predicted sigma within {100 * self.opts.full_target:g} % of the whole plan's"
