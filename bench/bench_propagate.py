@@ -65,6 +65,34 @@ def load() -> str:
     return open("/proc/loadavg").read().split()[0]
 
 
+def machine() -> str:
+    """The machine, in words, for the JSON rows (cores, CPU, torch, training threads)."""
+    import platform
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        cpu = next(ln.split(":", 1)[1].strip() for ln in open("/proc/cpuinfo") if ln.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    return f"{os.cpu_count()}-core {cpu}, torch {torch.__version__}, {THREADS} torch thread(s)"
+
+
+def write_rows(path: str | Path, name: str, points: list[dict], load0: str) -> None:
+    """Write one run's points (the layout of ``dualscale.report.trade``'s points) as JSON to
+    ``path`` through a temp file and a rename: ``{"name", "date", "machine", "load", "points"}``
+    (``load``: the 1-min load average at the start and the end).  ``bench_propagate_trade.py``
+    collects these files into the package's trade data."""
+    from dualscale.formats.atomic import write_json
+
+    write_json(path, {"name": name, "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "machine": machine(),
+                      "load": f"{load0}-{load()}", "points": points})
+
+
+def score_pairs(sc: dict) -> dict[str, list[float]]:
+    """``compare``'s ``{map: {"l1", "ssim"}}`` as the trade data's ``{map: [l1, ssim]}``."""
+    return {m: [round(float(v["l1"]), 5), round(float(v["ssim"]), 4)] for m, v in sc.items()}
+
+
 def prep(work: Path) -> None:
     from dualscale.geometry.cameras import micro_camera
     from dualscale.formats.exr import write_exr
@@ -126,8 +154,11 @@ def stage_warm(work: Path, repo: Path, iterations: int, batch: int) -> None:
     print(f"warm-start model: {iterations} its x batch {batch}, {time.perf_counter() - t:.0f} s, load {load()}")
 
 
-def stage_presets(work: Path, repo: Path, runs: list[str]) -> None:
+def stage_presets(work: Path, repo: Path, runs: list[str], json_out: str | None = None) -> None:
+    from dualscale.propagate.train import PRESETS
+
     rows = []
+    start = load()
     for run in runs:  # e.g. quick, fast, quick+warm
         preset, _, warm = run.partition("+")
         extra = ["--init", str(repo / "models" / "warmstart_w16.dsp")] if warm else []
@@ -145,6 +176,12 @@ def stage_presets(work: Path, repo: Path, runs: list[str]) -> None:
     for run, sec, l0, sc in rows:
         print(f"| {run} | {sec:.0f} ({l0}) | " + " | ".join(f"{sc[m]['l1']:.3f} / {sc[m]['ssim']:.2f}" for m in maps)
               + " |")
+    if json_out:
+        write_rows(json_out, "presets", [
+            {"label": run.replace("+warm", " + warm start"), "kind": "preset", "preset": run.partition("+")[0],
+             "warm_start": bool(run.partition("+")[2]), "iterations": PRESETS[run.partition("+")[0]].iterations,
+             "batch": PRESETS[run.partition("+")[0]].batch, "seconds": float(f"{sec:.4g}"), "load": float(l0),
+             "maps": score_pairs(sc)} for run, sec, l0, sc in rows], start)
 
 
 def stage_parity(work: Path) -> None:
@@ -653,6 +690,8 @@ def main() -> int:
     ap.add_argument("--profile-rounds", type=int, default=2, help="rounds of the profile stage's per-tile timings")
     ap.add_argument("--warm-iterations", type=int, default=300)
     ap.add_argument("--warm-batch", type=int, default=8)
+    ap.add_argument("--json", help="presets stage: also write its rows as JSON to this file (for "
+                    "bench_propagate_trade.py)")
     ap.add_argument("--threads", type=int, default=1, help="torch threads for training (1: the shared cores "
                     "are busy, and 2 spinning OpenMP threads ran ~2-10x slower)")
     a = ap.parse_args()
@@ -668,7 +707,7 @@ def main() -> int:
     if "warm" in st:
         stage_warm(work, repo, a.warm_iterations, a.warm_batch)
     if "presets" in st:
-        stage_presets(work, repo, a.runs.split(","))
+        stage_presets(work, repo, a.runs.split(","), a.json)
     if "parity" in st:
         stage_parity(work)
     if "seams" in st:

@@ -112,8 +112,9 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--work", default="/tmp/propbench")
     ap.add_argument("--alpha", type=float, default=1e-3, help="ridge penalty (per sample, on standardised features)")
+    ap.add_argument("--json", help="also write the rows as JSON to this file (for bench_propagate_trade.py)")
     a = ap.parse_args()
-    from bench_propagate import EVAL, load, prep
+    from bench_propagate import EVAL, load, prep, score_pairs, write_rows
 
     from dualscale.formats.exr import read_exr
     from dualscale.formats.maps import load_maps
@@ -144,6 +145,11 @@ def main() -> int:
     for name, sec, l0, sc in rows:
         print(f"| {name} | {sec:.1f} ({l0}) | " + " | ".join(f"{sc[m]['l1']:.3f} / {sc[m]['ssim']:.2f}" for m in maps)
               + " |")
+    if a.json:
+        write_rows(a.json, "baselines", [{"label": name, "kind": "baseline", "method": name,
+                                          "seconds": float(f"{sec:.3g}"), "load": float(l0),
+                                          "maps": score_pairs({m: sc[m] for m in maps})}
+                                         for name, sec, l0, sc in rows], rows[0][2])
     return 0
 
 

@@ -241,16 +241,17 @@ def compare_variants(src, preset: str, variants: list[str], steps: int, warmup: 
               f"{ref / statistics.median(t):.2f} | {built[v][1]:.1f} |")
 
 
-def accuracy(work: Path, preset: str, variants: list[str], iterations: int) -> None:
+def accuracy(work: Path, preset: str, variants: list[str], iterations: int, json_out: str | None = None) -> None:
     """Train ``iterations`` steps of ``preset`` per variant (same seed, one after the other) and
     score each on the benchmark's guidance (bench_propagate.scores: ORT fp32, 256 px tiles)."""
-    from bench_propagate import EVAL, scores
+    from bench_propagate import EVAL, score_pairs, scores, write_rows
 
     from dualscale.propagate.data import load_source
     from dualscale.propagate.train import TrainOptions, preset_with, train
 
     src = load_source(work / EVAL)
     rows = []
+    start = load()
     for v in variants:
         flags = set(v.split("+"))
         opts = TrainOptions(amp="fp32" not in flags, channels_last="cl" in flags, compile="compile" in flags,
@@ -271,6 +272,14 @@ def accuracy(work: Path, preset: str, variants: list[str], iterations: int) -> N
     for v, sec, l0, l1, sc in rows:
         print(f"| {v} | {sec:.0f} ({l0}-{l1}) | " + " | ".join(f"{sc[m]['l1']:.4f} / {sc[m]['ssim']:.3f}" for m in maps)
               + " |")
+    if json_out:  # the variants share a preset: a figure of their own, not the trade data (one point per preset)
+        from dualscale.propagate.train import preset_with
+
+        p = preset_with(preset, iterations=iterations)
+        write_rows(json_out, f"variants of {preset} at {iterations} iterations", [
+            {"label": f"{preset} {iterations} its, {v}", "kind": "preset", "preset": preset, "variant": v,
+             "warm_start": False, "iterations": iterations, "batch": p.batch, "seconds": float(f"{sec:.4g}"),
+             "load": float(l0), "maps": score_pairs(sc)} for v, sec, l0, l1, sc in rows], start)
 
 
 def main() -> int:
@@ -284,6 +293,7 @@ def main() -> int:
     ap.add_argument("--variants", help="compare these step variants instead of profiling, e.g. base,fp32,cl")
     ap.add_argument("--accuracy", type=int, metavar="ITERATIONS",
                     help="with --variants: train each variant this many iterations and score it on the guidance")
+    ap.add_argument("--json", help="with --accuracy: also write the rows as JSON to this file (one preset)")
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
     import platform
@@ -297,7 +307,7 @@ def main() -> int:
 
             prep(Path(a.work))
         for preset in a.presets.split(","):
-            accuracy(Path(a.work), preset, (a.variants or "base").split(","), a.accuracy)
+            accuracy(Path(a.work), preset, (a.variants or "base").split(","), a.accuracy, a.json)
         return 0
     for preset in a.presets.split(","):
         if a.variants:
