@@ -14,6 +14,8 @@
 * ``capture/micro/capture.json`` when ``digitize --rig ... --adaptive`` captured the input: its
   ``"adaptive"`` record gives the "Adaptive capture" section (:mod:`dualscale.report.adaptive`);
 * ``flyouts/`` and ``propagate/`` when those stages ran (a skipped stage says why in its summary);
+  the propagation section says where the run's training preset sits on the benchmark's
+  accuracy-against-training-time curve (:mod:`dualscale.report.trade`, packaged data);
 * ``export/`` (the exports of its summary: per scale, the files of each format, each with its own
   size).
 
@@ -54,6 +56,7 @@ from . import plots
 from .adaptive import section as adaptive_section
 from .checks import run_checks
 from .html import Assets, write_page
+from .trade import trade_rows
 
 REQUIRED_STAGES = ("calibrate", "fit")
 
@@ -425,8 +428,12 @@ def write_run_report(run_dir: str | Path, out: str | Path | None = None) -> Path
         prop["rows"] = [("guidance", str(ps.get("guidance", fmt.DASH))),
                         ("guidance size", f"{gw} × {gh} px" + (f" ({fmt.size_mm([gw * gt, gh * gt])})" if gt else "")),
                         ("guidance texel", fmt.length_mm(gt)),
-                        ("micro field in the guidance", _box_text(ps.get("micro_box_px"))),
-                        ("training time", fmt.duration(ps.get("train_seconds")))]
+                        ("micro field in the guidance", _box_text(ps.get("micro_box_px")))]
+        try:  # where the run's preset sits on the benchmark's trade curve (issue 29 §4)
+            prop["rows"] += trade_rows(ps)
+        except FormatError as e:
+            prop["rows"].append(("training time", fmt.duration(ps.get("train_seconds"))))
+            note(f"the propagation trade curve is not shown: {e}")
         prop["rows"] += [(f"registration › {k}", v) for k, v in fmt.rows(ps.get("registration") or {})]
 
     # -- export
