@@ -137,7 +137,7 @@ def test_parse_targets():
     assert parse_targets("normal=0.5") == ({"normal": 0.5}, None)
     assert parse_targets("normal=0.5,full+2.5%") == ({"normal": 0.5}, pytest.approx(0.025))
     for bad, why in [("full", r"full\+N%"), ("full+x%", "not a number"), ("full+5%,full+3%", "given twice"),
-                     ("full+-5%", ">= 0"), ("gloss=1", "MAP=SIGMA")]:
+                     ("full+-5%", ">= 0"), ("gloss=1", "MAP=SIGMA"), ("", "without --target: full")]:
         with pytest.raises(InputError, match=why):
             parse_targets(bad)
 
@@ -203,6 +203,10 @@ def test_adaptive_refusals_come_before_the_rig(cal, tmp_path, capsys):
         (["--adaptive", "--calibration", str(cal), "--lights", "MOD4", "--target", "normal=1,normal=2"],
          "normal is named twice"),
         (["--adaptive", "--calibration", str(cal), "--lights", "MOD4", "--initial-leds", "2"], "--initial-leds 2"),
+        (["--adaptive", "--calibration", str(cal), "--lights", "MOD4", "--initial-leds", "40"],
+         "--initial-leds 40: --lights MOD4 gives 32 candidate LEDs"),
+        (["--adaptive", "--calibration", str(cal), "--lights", "MOD4", "--rig-id", "other-dome"],
+         "calibration is from rig 'virtual-dome-0', the captures are from rig 'other-dome'"),
         (["--lights", "MOD4", "--budget", "40", "--criterion", "A"], "--budget, --criterion: options of the adaptive"),
     ]
     for k, (extra, why) in enumerate(cases):
@@ -213,6 +217,19 @@ def test_adaptive_refusals_come_before_the_rig(cal, tmp_path, capsys):
     assert main(["capture", "mid", "-o", str(tmp_path / "m"), "--port", "sim", "--camera", CAM, "--adaptive",
                  "--calibration", str(cal), "--no-progress"]) == 2
     assert "micro plan" in capsys.readouterr().err
+
+
+def test_another_rigs_calibration_is_refused_before_the_first_shot(cal, tmp_path, capsys):
+    """Without --rig-id the firmware names the rig: a calibration of another rig is refused once
+    the rig is open, before any shot, naming --rig-id."""
+    from dualscale.cli import main
+
+    out = tmp_path / "r"
+    rc = main(["capture", "micro", "-o", str(out), "--port", "sim", "--camera", CAM, "--calibration", str(cal),
+               *[x for x in ARGS if x not in ("--rig-id", "virtual-dome-0")], "--budget", "26"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "calibration is from rig 'virtual-dome-0'" in err and "--rig-id" in err, err
+    assert not (out / "journal.jsonl").is_file() or not [e for e in _journal(out) if e["kind"] == "shot"]
 
 
 def test_resume_keeps_the_adaptive_capture_and_its_options(run, cal, tmp_path, capsys):
@@ -232,6 +249,8 @@ def test_resume_keeps_the_adaptive_capture_and_its_options(run, cal, tmp_path, c
     assert _capture(run, cal, "--resume", "--budget", "30", "--criterion", "A") == 2
     err = capsys.readouterr().err
     assert "--budget: 26 there, 30 given" in err and "--criterion: D there, A given" in err, err
+    assert _capture(run, cal, "--resume", "--budget", "26", "--target", "normal=0.5,full+10%") == 2
+    assert "--target: full+5% there, normal=0.5,full+10% given" in capsys.readouterr().err
     assert (run / "journal.jsonl").read_bytes() == before
     plain = tmp_path / "fixed"  # the same capture's journal without its adaptive entries: a fixed plan's
     shutil.copytree(run, plain)

@@ -145,7 +145,7 @@ def test_adaptive_section_words(tmp_path, figures_not_drawn):
                                      "cost_s": 95.5, "shots": 18}
     (run / "capture" / "micro" / "capture.json").write_text(json.dumps({"plan": plan, "adaptive": rec}))
     sec = _section(write_run_report(run), "adaptive")
-    assert "targets (median σ) normal 0.2, every other map within 5 % of the whole plan's" in sec
+    assert "targets (median σ) normal 0.2, every other map within 5 % of the whole plan's predicted σ" in sec
     assert ("the whole candidate plan (predicted) 18 shots, about 95.5 s of device time; at the last decision the worst map, "
             "normal, had 1.9 times its predicted σ") in sec, sec
     assert "Dashed: each map's median 1σ that the whole candidate plan would give" in sec

@@ -109,8 +109,8 @@ class AdaptiveCapture:
         self.ring = ring_of()
         self.leds = sorted({sh.index for sh in session.plan.shots if sh.kind == "led"})
         if len(self.leds) < opts.initial:
-            raise InputError(f"--adaptive: --lights gives {len(self.leds)} LEDs, fewer than --initial {opts.initial}")
-        check_calibration(self.cal, self.leds)
+            raise InputError(f"--adaptive: --lights gives {len(self.leds)} LEDs, fewer than --initial-leds {opts.initial}")
+        check_calibration(self.cal, self.leds, session.rig_record())
         ident = {k: v for k, v in asdict(opts).items()}
         starts = session.journal.of("adaptive")
         if starts and starts[0]["options"] != _jsonable(ident):
@@ -212,7 +212,8 @@ class AdaptiveCapture:
         given = self.opts.targets
         met = all(k in sig and sig[k] <= t for k, t in given.items())
         if given and met and self.opts.full_target is None:
-            return {"round": r, "leds": [], "stop": "targets", "reason": "every map reached its target sigma"}
+            return {"round": r, "leds": [], "stop": "targets", "reason": f"every named map ({', '.join(given)}) reached "
+                    "its target sigma"}
         cands = [i for i in self.leds if i not in set(taken_leds)]
         if not cands:
             return {"round": r, "leds": [], "stop": "candidates", "reason": "every candidate LED is taken"}
@@ -224,8 +225,11 @@ class AdaptiveCapture:
                                      candidate_observations(sample, self.dirs[cands], cands))
         # what the whole candidate plan would give and cost, predicted at the current maps
         now, full = predicted_sigmas(st, params, comps), predicted_sigmas(st, params, comps, info.sum(1))
+        size = self.opts.batch or auto_batch(float(np.median(costs)), self._servo_s())
+        rounds_left = math.ceil(len(cands) / size)  # each round turns the analyser there and back
         plan = {"sigma": {k: round(v, 6) for k, v in full.items()}, "sigma_now": {k: round(v, 6) for k, v in now.items()},
-                "cost_s": round(rec["floor_s"] + float(costs.sum()), 6), "shots": shots + 2 * len(cands)}
+                "cost_s": round(rec["floor_s"] + float(costs.sum()) + 2 * rounds_left * self._servo_s(), 6),
+                "shots": shots + 2 * len(cands)}
         if self.opts.full_target is not None and met:
             slack = 1.0 + self.opts.full_target
             # a map the whole plan would determine and the lights taken do not is not within any slack
@@ -235,17 +239,20 @@ class AdaptiveCapture:
                 why = (f"every map's predicted sigma within {100 * self.opts.full_target:g} % of the whole plan's"
                        + (f" (worst {worst}: {100 * (rel[worst] - 1):.1f} %)" if worst else ""))
                 if given:
-                    why += "; the named maps reached their target sigma"
+                    why = why.replace("every map's", "every other map's") + (f"; the named ({', '.join(given)}) "
+                                                                             "reached their target sigma")
                 return {"round": r, "leds": [], "stop": "targets", "reason": why, "full_plan": plan}
-        size = self.opts.batch or auto_batch(float(np.median(costs)), self._servo_s())
         if self.opts.budget_shots is not None:
             size = min(size, (self.opts.budget_shots - shots) // 2)
         if self.opts.budget_s is not None:
             left = self.opts.budget_s - rec["floor_s"] - 2 * self._servo_s()
             size = min(size, int(left // max(float(np.median(costs)), 1e-9)))
         if size < 1:
-            return {"round": r, "leds": [], "stop": "budget", "reason": "the budget leaves no room for another LED",
-                    "full_plan": plan}
+            why = "the budget leaves no room for another LED"
+            if self.opts.budget_s is not None and rec["floor_s"] > self.opts.budget_s:
+                why += (f" (the first {r} round(s) alone took {rec['floor_s']:.1f} s of device time, over the "
+                        f"{self.opts.budget_s:g} s budget: round 0's spread is taken whole)")
+            return {"round": r, "leds": [], "stop": "budget", "reason": why, "full_plan": plan}
         picked, got, first = choose_batch(st, info, costs, size, self.opts.criterion)
         npx = st.x.shape[0]
         best = float(first.max()) / npx
@@ -306,14 +313,22 @@ class AdaptiveCapture:
         return self.s.finish(taken=taken, adaptive=record)
 
 
-def check_calibration(path: Path, leds: list[int]) -> None:
+def check_calibration(path: Path, leds: list[int], rig: dict[str, str] | None = None) -> None:
     """Before the first shot: the calibration covers every candidate LED (each round is calibrated
-    with it), else :class:`~dualscale.errors.CalibrationError` naming the LEDs it lacks."""
+    with it), else :class:`~dualscale.errors.CalibrationError` naming the LEDs it lacks; and,
+    with ``rig`` (``{"id", "layout"}``, :meth:`~dualscale.capture.session.CaptureSession.rig_record`),
+    it is this rig's, else :class:`~dualscale.errors.RigMismatchError` naming ``--rig-id``."""
     from dualscale.capture.stage import calibrated_leds
-    from dualscale.errors import CalibrationError
+    from dualscale.errors import CalibrationError, RigMismatchError
     from dualscale.formats.calibration import read_calibration
 
-    have = calibrated_leds(read_calibration(path))
+    try:
+        cal = read_calibration(path, rig_id=None if rig is None else rig["id"],
+                               layout=None if rig is None else rig["layout"])
+    except RigMismatchError as e:
+        raise RigMismatchError(f"{e}: every round is calibrated with it, so it is refused before the first shot; "
+                               "give the rig's --rig-id as it was at calibration, or calibrate this rig") from None
+    have = calibrated_leds(cal)
     missing = sorted(set(leds) - have) if have is not None else []
     if missing:
         raise CalibrationError(f"{path}: no white-sheet capture for LED(s) {missing[:8]}{' ...' if len(missing) > 8 else ''} "

@@ -79,8 +79,10 @@ def parse_targets(spec: str | None) -> tuple[dict[str, float], float | None]:
     (:data:`DEFAULT_FULL_TARGET`).  A given ``--target`` replaces the default whole."""
     from dualscale.formats.maps import SIGMA_UNITS
 
-    if not spec:
+    if spec is None:
         return dict(DEFAULT_TARGETS), DEFAULT_FULL_TARGET
+    if not str(spec).strip():
+        raise InputError("--target '': give MAP=SIGMA,..., full+N% or none (without --target: full+5%)")
     out: dict[str, float] = {}
     full = None
     parts = [p.strip() for p in str(spec).split(",")]
@@ -115,7 +117,7 @@ def parse_targets(spec: str | None) -> tuple[dict[str, float], float | None]:
 
 #: the options' names on the command line (for a refused --resume)
 OPTION_FLAGS = {"initial": "--initial-leds", "batch": "--batch-leds", "criterion": "--criterion",
-                "targets": "--target", "full_target": "--target full+", "min_gain": "--min-gain", "budget_shots": "--budget",
+                "targets": "--target", "min_gain": "--min-gain", "budget_shots": "--budget",
                 "budget_s": "--budget"}
 
 
@@ -149,18 +151,31 @@ def check_resume(work: str | Path, opts: "AdaptiveOptions | None") -> None:
 def _show(key: str, v: Any) -> str:
     if v is None:
         return "none"
-    if key == "targets":
-        return ",".join(f"{k}={x:g}" for k, x in v.items()) or "none"
+    if key == "targets":  # v: (targets, full_target), as target_spec takes them
+        return target_spec(*v)
     if key == "budget_s":
         return f"{v:g}s"
-    if key == "full_target":
-        return f"{100 * v:g}%"
     return f"{v:g}" if isinstance(v, float) else str(v)
+
+
+def target_spec(targets: dict[str, float] | None, full_target: float | None) -> str:
+    """The ``--target`` that gives ``targets`` and ``full_target``: ``normal=0.5,full+5%``, or ``none``."""
+    parts = [f"{k}={x:g}" for k, x in (targets or {}).items()]
+    if full_target is not None:
+        parts.append(f"full+{100 * full_target:g}%")
+    return ",".join(parts) or "none"
+
+
+def _merged(opts: dict[str, Any]) -> dict[str, Any]:
+    """The stored options with ``targets`` and ``full_target`` as one ``--target`` value."""
+    out = {k: v for k, v in opts.items() if k != "full_target"}
+    out["targets"] = (opts.get("targets") or {}, opts.get("full_target"))
+    return out
 
 
 def describe_options(opts: dict[str, Any]) -> str:
     """The stored options as the command line gives them (those set), e.g. ``--budget (shots) 40``."""
-    defaults = _jsonable(asdict(AdaptiveOptions()))
+    defaults, opts = _merged(_jsonable(asdict(AdaptiveOptions()))), _merged(opts)
     parts = [f"{flag} {_show(k, opts.get(k))}" for k, flag in OPTION_FLAGS.items()
              if opts.get(k) != defaults.get(k) or k == "criterion"]
     return ", ".join(parts)
@@ -169,6 +184,7 @@ def describe_options(opts: dict[str, Any]) -> str:
 def option_differences(there: dict[str, Any], given: dict[str, Any]) -> list[str]:
     """One line per option that differs: ``--budget (shots): 40 there, none given``."""
     out = []
+    there, given = _merged(there), _merged(given)
     for k in sorted(set(there) | set(given)):
         if there.get(k) != given.get(k):
             flag = OPTION_FLAGS.get(k, k)

@@ -717,7 +717,9 @@ class CaptureSession:
         write_json(self.work / "capture.json", _jsonable(rec))
 
     # ------------------------------------------------------------------ calibration targets
-    def _rig_record(self) -> dict[str, str]:
+    def rig_record(self) -> dict[str, str]:
+        """The rig's record in a dataset or calibration (``id``: ``--rig-id`` or the firmware's
+        identification, ``layout``: the dome's signature)."""
         ident = self.rig.identity
         return {"id": self.opts.rig_id or (ident.text if ident else "unknown"),
                 "layout": DomeGeometry.from_regmap().signature()}
@@ -747,7 +749,7 @@ class CaptureSession:
                 raise InputError(f"plan 'chart': the {r} camera's chart corners are not given: --holder FILE with "
                                  f"{{\"chart_corners\": {{\"{r}\": [[x, y], ...4]}}}} (the centred chart's swatch-area "
                                  "corners TL, TR, BR, BL in pixels; the simulated cameras give theirs)")
-        own = {"rig": self._rig_record(), "cameras": self._camera_records()}
+        own = {"rig": self.rig_record(), "cameras": self._camera_records()}
         others = [p for p in read_parts(self.out) if p["plan"] != self.plan.name]
         _check_parts(others + [{"plan": self.plan.name, **own}], self.out)
 
@@ -775,7 +777,7 @@ class CaptureSession:
             if e["role"] in self.cameras:
                 darks.setdefault(self.plan.camera_name(e["role"]), []).append([e["exposure_us"] / 1e6,
                                                                               str(prefix / e["file"])])
-        part: dict[str, Any] = {"rig": self._rig_record(), "cameras": self._camera_records(), "groups": groups,
+        part: dict[str, Any] = {"rig": self.rig_record(), "cameras": self._camera_records(), "groups": groups,
                                 "darks": darks}
         roles = set(self.plan.roles)
         if self.plan.name in ("white-sheet", "chart"):

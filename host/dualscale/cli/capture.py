@@ -248,7 +248,15 @@ def adaptive_options(a: argparse.Namespace, plan):
                          "fitted to choose the next lights")
     if not Path(a.calibration).is_file():
         raise InputError(f"--calibration {a.calibration}: no such file")
-    check_calibration(Path(a.calibration), sorted({s.index for s in plan.shots if s.kind == "led"}))
+    leds = sorted({s.index for s in plan.shots if s.kind == "led"})
+    if len(leds) < a.initial_leds:
+        raise InputError(f"--initial-leds {a.initial_leds}: --lights {a.lights} gives {len(leds)} candidate LEDs")
+    rig = None
+    if getattr(a, "rig_id", None):  # else the firmware names the rig: checked once it is open, before the first shot
+        from dualscale.geometry.dome import DomeGeometry
+
+        rig = {"id": a.rig_id, "layout": DomeGeometry.from_regmap().signature()}
+    check_calibration(Path(a.calibration), leds, rig)
     shots, seconds = parse_budget(a.budget)
     targets, full = parse_targets(a.target)
     return AdaptiveOptions(initial=a.initial_leds, batch=a.batch_leds, criterion=a.criterion,

@@ -210,7 +210,8 @@ def section(run: Path, fig: Callable[..., Any], note: Callable[[str], None]) -> 
             ("budget", " and ".join(b for b in budget if b) or "none"),
             ("targets (median σ)", ", ".join(
                 [f"{plots.MAP_TITLES.get(k, k)} {fmt.number(v)}" for k, v in targets.items()]
-                + ([f"every other map within {fmt.number(100 * opts['full_target'])} % of the whole plan's"]
+                + ([f"every {'other ' if targets else ''}map within {fmt.number(100 * opts['full_target'])} % of the "
+                    "whole plan's predicted σ"]
                    if isinstance(opts.get("full_target"), (int, float)) else [])) or "none")]
     if full:
         ratio = {k: full["sigma_now"][k] / v for k, v in (full.get("sigma") or {}).items()
