@@ -4,13 +4,13 @@ itself is :mod:`.loop`."""
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
 from dualscale.errors import InputError
+from dualscale.formats.atomic import jsonable as _jsonable  # loop.py imports it from here too
 
 CRITERIA = ("D", "A")
 """The optimal-design criteria (:mod:`.design`)."""
@@ -205,7 +205,3 @@ def parse_budget(spec: str | None) -> tuple[int | None, float | None]:
         return int(s), None
     except ValueError:
         raise InputError(f"--budget {spec!r}: a shot count (e.g. 80) or a device time (e.g. 300s, 5min)") from None
-
-
-def _jsonable(obj: Any) -> Any:
-    return json.loads(json.dumps(obj, default=str))

@@ -77,7 +77,7 @@ from dualscale.calib.chart import ChartLayout
 from dualscale.calib.hdr import WhiteLevel, merge_debevec, plan_brackets
 from dualscale.calib.radiometric import dark_at, fit_dark
 from dualscale.errors import CameraError, CameraTimeout, FormatError, InputError, RigError
-from dualscale.formats.atomic import write_json
+from dualscale.formats.atomic import jsonable as _jsonable, write_json
 from dualscale.formats.dataset import DatasetWriter
 from dualscale.formats.exr import read_exr, write_exr
 from dualscale.geometry.cameras import Camera as GeometryCamera, micro_camera, mid_camera, polar_camera
@@ -919,6 +919,3 @@ def stable_spec(spec: str) -> str:
     opts.pop("hw", None)
     return f"{scheme}:{target}" + ("?" + "&".join(f"{k}={v}" for k, v in sorted(opts.items())) if opts else "")
 
-
-def _jsonable(obj: Any) -> Any:
-    return json.loads(json.dumps(obj, default=str))

@@ -225,6 +225,16 @@ def write_text(path: str | Path, text: str) -> Path:
     return write_bytes(path, text.encode("utf-8"))
 
 
+def jsonable(obj: Any) -> Any:
+    """``obj`` as the JSON value :func:`write_json` writes and reads back: dicts, lists, str,
+    numbers, bool and None, with anything else (paths, enums, numpy scalars) made ``str`` (the
+    same ``default=str``) and tuples made lists.  For a record that is compared with one read
+    from disk (a journal entry, ``capture.json``) before or without writing it.  ``TypeError`` /
+    ``ValueError`` as :func:`json.dumps` raises them (e.g. a dict key that is not a str,
+    number, bool or None; a circular reference)."""
+    return json.loads(json.dumps(obj, default=str))
+
+
 def write_json(path: str | Path, data: Any, indent: int | None = 1) -> Path:
     """Write ``data`` as JSON atomically (``default=str`` for paths and the like)."""
     return write_text(path, json.dumps(data, indent=indent, default=str) + "\n")
