@@ -182,6 +182,31 @@ def test_an_edge_during_readout_is_missed_as_on_a_real_camera(rig0):
     assert [f.index for f in e.value.frames] == [0]
 
 
+def test_edges_right_after_a_long_software_exposure_are_taken(rig0):
+    """A software-triggered 0.8 s dark then, at once, a device-master sequence (the adaptive
+    capture's darks at a round's end, then the next round's metering): arming for the edges
+    waits until the dark's exposure and readout ended on the device clock, so the sequence's
+    edges find the sensor free.  (Without the wait the dark, delivered when rendered, left the
+    sensor busy 0.8 device seconds and the sequence's frames were missed as busy triggers: 0
+    frames, a retake.)"""
+    steps = [Step(rm.Source.LED, 12, FULL, None, 1000, 5_000, 0, 2, 0, MICRO)]
+    with rig0.camera(size=8, readout_ms=1, noise=0) as cam, rig0.client() as c:
+        cam.prepare(TriggerInfo(TriggerMode.INTERNAL, frames=1, exposure_s=0.8, timeout_s=10))
+        cam.arm()
+        cam.trigger()
+        (dark,) = cam.collect()
+        cam.disarm()
+        cam.prepare(TriggerInfo(TriggerMode.GATE, frames=2, exposure_s=0.005, timeout_s=10))
+        cam.arm()
+        assert c.status().uptime_us >= dark.metadata["device_t_us"] + 0.8e6
+        c.write_registers(rm.HR.FRAME_GAP_US, [0, 2_000])
+        res = c.run(steps, watchdog_ms=0)
+        frames = cam.collect(timeout_s=5)
+        busy = cam.settings()["busy_triggers"]
+    assert busy == 0 and [f.metadata["device_t_us"] for f in frames] == [
+        e.ts_us for e in res.events if e.kind == rm.Event.TRIGGER]
+
+
 def test_camera_master_edges_advance_the_firmware(tmp_path):
     """Camera-master (PROTOCOL.md §3.2): each trigger() sends the camera's edge; the firmware
     latches the next step on it (CAMERA_EDGE events, in the frames' metadata), the frame shows

@@ -312,19 +312,20 @@ class CaptureSession:
                                     timeout_s=exposure_s + self.opts.collect_quiet_s))
             cam.arm()
             cam.trigger()
-            frames = self._collect(cam)
+            frames = self._collect(cam, first_s=exposure_s)
             if frames:
                 return frames[0]
             self._retake(key, "frame missing")
 
-    def _collect(self, cam: Camera) -> list[Frame]:
+    def _collect(self, cam: Camera, first_s: float = 0.0) -> list[Frame]:
         """The frames of the acquisition that just ended: wait while they keep arriving (a camera
-        still reading out or rendering), give up ``collect_quiet_s`` after the last one came."""
+        still reading out or rendering), give up ``collect_quiet_s`` after the last one came;
+        ``first_s`` [s]: the exposure still running (a software trigger's), waited for first."""
         seen = -1
         try:
             while True:
                 try:
-                    return cam.collect(timeout_s=self.opts.collect_quiet_s)
+                    return cam.collect(timeout_s=self.opts.collect_quiet_s + (first_s if seen < 0 else 0.0))
                 except CameraTimeout as e:
                     if len(e.frames) <= seen:
                         return list(e.frames)

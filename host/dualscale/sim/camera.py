@@ -30,7 +30,12 @@ oblique polar cameras; PROTOCOL.md §3.1 device-master and §3.2 camera-master t
   (the renderer is linear in the light), then the camera's sensor
   (:func:`dualscale.sim.targets.rig_exposer`: vignetting, dark signal, shot/read noise, 12 bits)
   at this frame's exposure: exactly the sensor path of ``dualscale synth --realistic``.  The raw
-  signal is cached per (lights, analyser) state, so the brackets of one step render once.
+  signal is cached per (lights, analyser) state, so the brackets of one step render once.  A
+  frame comes as soon as it is rendered, which for a long internal-trigger exposure is before
+  the exposure has ended on the device clock; so :meth:`SimCamera.arm` for the rig's edges
+  (``edge``/``gate``) first waits until the sensor is free, as a real camera is free only once
+  it delivered that frame: a 4 s dark followed at once by a sequence waits 4 s / speed of wall
+  time (the adaptive capture's darks at a round's end, then its metering, docs/CAPTURE.md).
 
 Spec: ``sim:CAMERA?hw=SOCKET&OPTION=VALUE&...`` with CAMERA one of ``rm.CAMERA_NAMES`` (``micro``,
 ``mid``, ``polar0``, ``polar1``).  Options (:data:`OPTIONS`):
@@ -587,6 +592,7 @@ class SimCamera:
         self._exposed = 0            # exposures started this acquisition (dropped ones included)
         self._pending = 0            # exposures queued and not yet rendered
         self._busy_until_us = -1     # device time until which the sensor is exposing / reading out
+        self._soft_busy_until_us = -1  # the same, of the last internal-trigger exposure (arm() waits for it)
         self._gate: tuple[int, Lights, int] | None = None
         self._frames: list[Frame] = []
         self._counters = {"ignored_triggers": 0, "busy_triggers": 0, "dropped_frames": 0, "unarmed_triggers": 0}
@@ -861,9 +867,20 @@ class SimCamera:
             self._info = info
 
     def arm(self) -> None:
+        """Start the acquisition :meth:`prepare` declared.  For the rig's edges (``edge``/``gate``)
+        first wait until an internal-trigger exposure still running on the device clock (its
+        frame came at once, when rendered) and its readout have ended: edges inside it would be
+        missed as ``busy_triggers``, which a real camera, whose frame comes only after the
+        exposure, never shows a host that waited for its frame."""
         with self._cond:
             if self._info is None:
                 raise InputError(f"camera {self.spec!r}: arm() before prepare()")
+            if self._info.mode in (TriggerMode.EDGE, TriggerMode.GATE):
+                while not self._stop and self._disconnected is None:
+                    left_us = self._soft_busy_until_us - self._device_now_us()
+                    if left_us <= 0:
+                        break
+                    self._cond.wait(min(left_us / 1e6 / self._rate, 0.5))
             self._generation += 1
             self._frames = []
             self._exposed = 0
@@ -906,6 +923,7 @@ class SimCamera:
             else:
                 t_us, exact = max(self._device_now_us(), self._busy_until_us, self._last_t_us), False
             self._busy_until_us = t_us + round((info.exposure_s + self.readout_s) * 1e6)
+            self._soft_busy_until_us = self._busy_until_us
             self._queue(t_us, info.exposure_s, self._snapshot(), "master" if self.options.master else "software",
                         exact, extra=extra)
 
@@ -950,7 +968,9 @@ class SimCamera:
 
     def close(self) -> None:
         """Stop both threads and close the socket; safe to call more than once."""
-        self._stop = True
+        with self._cond:
+            self._stop = True
+            self._cond.notify_all()
         try:
             self._sock.shutdown(socket.SHUT_RDWR)
         except OSError:
