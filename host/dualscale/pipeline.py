@@ -342,6 +342,77 @@ def _calibration_key(path: Path) -> str:
     return json_sha256(doc)
 
 
+def guidance_extent(g: Path, opts: DigitizeOptions) -> tuple[int, int, float]:
+    """``(width, height, texel_mm)`` of the guidance ``g`` as the propagate stage will read it
+    (module docstring), every error naming ``--guidance``: a dataset folder's manifest, units and
+    diffuse image (its header; it goes through the calibrate stage first), an image file read
+    whole.  The texel: ``opts.guidance_texel_mm``, else the guidance's own, else the rig's
+    mid-range field over its width (:data:`~dualscale.propagate.stage.RIG_GUIDANCE_FIELD_MM`)."""
+    from dualscale.formats.dataset import read_dataset
+    from dualscale.formats.exr import open_image
+    from dualscale.propagate.guidance import _dataset_image, read_guidance
+    from dualscale.propagate.stage import RIG_GUIDANCE_FIELD_MM
+
+    opt = f"--guidance {g}"
+    try:
+        if g.is_dir():
+            gds = read_dataset(g)
+            raw = {r.units for r in gds.records} - {"relative_radiance"}
+            if raw and opts.calibration is None:
+                raise UnitsError(f"the guidance is in {', '.join(sorted(raw))} (camera counts): give the rig's "
+                                 f"calibration file {opts.give('calibration')}")
+            file, cam, _ = _dataset_image(g)
+            inp = open_image(file)
+            try:
+                width, height = inp.spec().width, inp.spec().height
+            finally:
+                inp.close()
+            tex = cam.pixel_mm[0] if cam is not None else None
+        else:
+            guide = read_guidance(g, opts.guidance_transfer, opts.guidance_texel_mm)
+            height, width = guide.shape
+            tex = guide.texel_mm
+    except (InputError, OSError) as e:
+        hint = ("the guidance is an image (EXR, or PNG/JPEG/TIFF with --transfer) or a dataset folder with a "
+                "manifest.json (`dualscale synth --mid`, `dualscale import`)") if g.is_dir() else ""
+        raise _named(opt, e, hint) from None
+    if opts.guidance_texel_mm is not None:
+        tex = float(opts.guidance_texel_mm)
+    if tex is None:
+        tex = RIG_GUIDANCE_FIELD_MM / width
+    return width, height, tex
+
+
+def check_rig_guidance(rc: RigCapture, opts: DigitizeOptions) -> None:
+    """``digitize --rig``, before the first shot: the coverage rule of the propagate stage
+    (:func:`~dualscale.propagate.stage.require_coverage`) on what the capture will give, so that
+    a guidance too coarse for the micro field is refused before the rig starts, not after the
+    capture.  The micro field: the micro camera's geometry
+    (:func:`dualscale.capture.session.geometry_for`: its size and field, as the dataset records
+    them); the guidance: ``--guidance`` (:func:`guidance_extent`), else the mid camera's geometry
+    (its size, pixel pitch = field / width, or ``--guidance-texel-mm``); no mid camera and no
+    ``--guidance``: nothing to check.  ``InputError`` naming the option or the camera."""
+    from dualscale.capture.session import geometry_for, stable_spec
+    from dualscale.propagate.stage import require_coverage
+
+    if "micro" not in rc.cameras:
+        return  # the capture stage refuses it (the micro plan needs the micro camera)
+    micro = geometry_for("micro", rc.cameras["micro"])
+    hint = "a finer guidance, or its true texel size (--guidance-texel-mm)"
+    if opts.guidance is not None:
+        width, height, tex = guidance_extent(opts.guidance, opts)
+        where = f"--guidance {opts.guidance} (a {width}x{height} guidance)"
+    elif "mid" in rc.cameras:
+        mid = geometry_for("mid", rc.cameras["mid"])
+        width, height = mid.width, mid.height
+        tex = float(opts.guidance_texel_mm) if opts.guidance_texel_mm is not None else mid.pixel_mm[0]
+        where = f"--camera {stable_spec(rc.cameras['mid'].spec)} (the guidance: {width}x{height} px of {tex:.4g} mm)"
+        hint = "a mid camera with more pixels over its field, or a finer --guidance"
+    else:
+        return
+    require_coverage((micro.height, micro.width), micro.field_mm[0] / micro.width, tex, where, hint)
+
+
 class Digitizer:
     """Runs the stages of one run folder (see the module docstring)."""
 
@@ -392,49 +463,19 @@ class Digitizer:
             self._check_guidance(g, ds)
 
     def _check_guidance(self, g: Path, ds: Any) -> None:
-        """The guidance as the propagate stage will read it (module docstring), every error naming
-        ``--guidance``: a dataset folder's manifest, units and diffuse image (its header; it goes
-        through the calibrate stage first), an image file read whole; then whether the micro field
-        covers enough guidance pixels to train on."""
-        from dualscale.formats.dataset import read_dataset
-        from dualscale.formats.exr import open_image
-        from dualscale.propagate.guidance import _dataset_image, read_guidance
-        from dualscale.propagate.stage import RIG_GUIDANCE_FIELD_MM, require_coverage
+        """The guidance as the propagate stage will read it (:func:`guidance_extent`), then whether
+        the micro field covers enough guidance pixels to train on."""
+        from dualscale.propagate.stage import require_coverage
 
-        opt = f"--guidance {g}"
-        try:
-            if g.is_dir():
-                gds = read_dataset(g)
-                raw = {r.units for r in gds.records} - {"relative_radiance"}
-                if raw and self.opts.calibration is None:
-                    raise UnitsError(f"the guidance is in {', '.join(sorted(raw))} (camera counts): give the rig's "
-                                     f"calibration file {self.opts.give('calibration')}")
-                file, cam, _ = _dataset_image(g)
-                inp = open_image(file)
-                try:
-                    width, height = inp.spec().width, inp.spec().height
-                finally:
-                    inp.close()
-                tex = cam.pixel_mm[0] if cam is not None else None
-            else:
-                guide = read_guidance(g, self.opts.guidance_transfer, self.opts.guidance_texel_mm)
-                height, width = guide.shape
-                tex = guide.texel_mm
-        except (InputError, OSError) as e:
-            hint = ("the guidance is an image (EXR, or PNG/JPEG/TIFF with --transfer) or a dataset folder with a "
-                    "manifest.json (`dualscale synth --mid`, `dualscale import`)") if g.is_dir() else ""
-            raise _named(opt, e, hint) from None
-        if self.opts.guidance_texel_mm is not None:
-            tex = float(self.opts.guidance_texel_mm)
-        if tex is None:
-            tex = RIG_GUIDANCE_FIELD_MM / width
+        width, height, tex = guidance_extent(g, self.opts)
         micro = _micro_texel(ds)
         if micro is None:
             return  # the propagate stage refuses it, naming the missing texel size
         rec = ds.records[0]
         cam = (ds.manifest.get("cameras") or {}).get(rec.camera) or {}
         if cam.get("width") and cam.get("height"):
-            require_coverage((int(cam["height"]), int(cam["width"])), micro, tex, f"{opt} (a {width}x{height} guidance)",
+            require_coverage((int(cam["height"]), int(cam["width"])), micro, tex,
+                             f"--guidance {g} (a {width}x{height} guidance)",
                              "a finer guidance, or its true texel size (--guidance-texel-mm)")
 
     # -- paths of the finished stages
@@ -853,6 +894,7 @@ def digitize(opts: DigitizeOptions, on_stage: Callable[[StageResult], None] | No
         if opts.calibration is not None and not opts.calibration.is_file():
             raise FileNotFoundError(f"calibration file not found: {opts.calibration}")
         check_rig_calibration(rig, opts.calibration)
+        check_rig_guidance(rig, opts)
         opts.run.mkdir(parents=True, exist_ok=True)
         captured = capture_stage(opts.run, rig, calibration=opts.calibration,
                                  log=lambda line: print(f"  adaptive capture: {line}", flush=True))

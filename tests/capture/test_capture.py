@@ -228,6 +228,26 @@ def test_digitize_from_the_rig_checks_the_calibration_before_capturing(tmp_path,
     assert not (run / "capture").exists() and not (run / "work" / "capture").exists()
 
 
+def test_digitize_from_the_rig_checks_the_guidance_coverage_before_capturing(tmp_path, capsys):
+    """The mid camera's guidance (64 px over 100 mm) is far too coarse for the micro field
+    (12 px of 9 um): refused, naming the mid camera, before any shot (it was refused only after
+    the capture, by the stages' own check)."""
+    from dualscale.cli import main
+    from dualscale.geometry.dome import DomeGeometry
+    from tests.units.test_calibrate import _minimal_calibration
+
+    cal = _minimal_calibration(tmp_path / "c.calib.json", leds=(0, 32, 64, 96),
+                               rig={"id": "virtual-dome-0", "layout": DomeGeometry.from_regmap().signature()})
+    run = tmp_path / "run"
+    mid = "sim:mid?material=leather&size=64"
+    assert main(["digitize", "--rig", "sim", "--camera", MICRO, "--camera", mid, "--lights", "MOD32",
+                 "--rig-id", "virtual-dome-0", "--sim-speed", "10", "-o", str(run), "--calibration", str(cal),
+                 "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "covers only" in err and f"--camera {mid} (the guidance: 64x64 px of 1.562 mm)" in err, err
+    assert not (run / "capture").exists() and not (run / "work" / "capture").exists()
+
+
 def test_a_spec_typo_names_the_spec_the_user_gave(capsys, tmp_path):
     assert _capture(tmp_path / "cap", camera="sim:mirco?material=leather") == 2
     err = capsys.readouterr().err
