@@ -290,6 +290,26 @@ def test_predicted_sigmas_on_known_matrices():
     assert predicted_sigmas(st, params, Components(), torch.zeros_like(more)) == pytest.approx(got)
 
 
+def test_an_indefinite_information_matrix_is_lifted_not_fatal():
+    """Rounding can leave a badly determined pixel's ``H G^-1 H`` indefinite (a sheer sample's
+    first rounds once stopped the capture with a Cholesky error): its factor is that of the
+    nearest matrix with eigenvalues at least EIG_FLOOR times the largest; good pixels are
+    factored as they are."""
+    from dualscale.adaptive.design import EIG_FLOOR, _cholesky
+
+    good = torch.tensor([[4.0, 1.0], [1.0, 3.0]], dtype=torch.float64)
+    bad = torch.tensor([[1.0, 1.0], [1.0, 1.0 - 1e-14]], dtype=torch.float64)  # eigenvalues 2 and ~ -5e-15
+    f = torch.stack([good, bad])
+    with pytest.raises(Exception):
+        torch.linalg.cholesky(f)
+    chol = _cholesky(f)
+    torch.testing.assert_close(chol[0], torch.linalg.cholesky(good))
+    rebuilt = chol[1] @ chol[1].T
+    w = torch.linalg.eigvalsh(rebuilt)
+    assert torch.isfinite(chol).all() and w.min() >= EIG_FLOOR * w.max() * 0.99
+    torch.testing.assert_close(rebuilt, bad, atol=1e-10, rtol=0)
+
+
 def test_the_design_criteria_on_known_matrices():
     """The D-gain is the log-determinant ratio of the information after and before, the A-gain
     the relative variance reductions; the greedy batch picks the best first and rescoring after

@@ -154,6 +154,26 @@ def candidate_information(state: DesignState, params: dict[str, Tensor], comps: 
     return torch.where(both, out, torch.zeros((), dtype=out.dtype))  # undetermined: held (module doc)
 
 
+#: the smallest eigenvalue of an information matrix, relative to its largest, that
+#: :func:`_cholesky` keeps (a matrix that rounding left indefinite is lifted to it)
+EIG_FLOOR = 1e-12
+
+
+def _cholesky(f: Tensor) -> Tensor:
+    """The Cholesky factor of symmetric ``f (..., P, P)``; where rounding made a matrix
+    indefinite (``H G^-1 H`` of a badly determined pixel: a poor early fit of a sheer sample),
+    the factor of the matrix with its eigenvalues raised to :data:`EIG_FLOOR` times the largest."""
+    chol, info = torch.linalg.cholesky_ex(f)
+    bad = info > 0
+    if bad.any():
+        w, v = torch.linalg.eigh(f[bad])
+        w = w.clamp(min=EIG_FLOOR * w.abs().amax(-1, keepdim=True).clamp(min=1e-300))
+        chol = chol.clone()
+        chol[bad] = torch.linalg.cholesky((v * w.unsqueeze(-2)) @ v.transpose(-1, -2)
+                                          + torch.diag_embed(EIG_FLOOR * w.amax(-1, keepdim=True).expand_as(w)))
+    return chol
+
+
 def _information(bread: Tensor, meat: Tensor, c: float, prior: Tensor) -> Tensor:
     """``F = H G^-1 H / c + diag(prior)`` for ``(..., P, P)`` bread ``H`` and meat ``G``."""
     f = bread @ torch.linalg.solve(meat, bread) / c
@@ -174,7 +194,7 @@ def predicted_sigmas(state: DesignState, params: dict[str, Tensor], comps: Compo
     if info is not None:
         h, g = h + info[:, 0], g + info[:, 1]
     f = _information(h, g, state.c, state.prior)
-    cov = torch.cholesky_inverse(torch.linalg.cholesky(f))
+    cov = torch.cholesky_inverse(_cholesky(f))
     n, p = state.x.shape
     det = state.determined.reshape(1, n, p)
     sig, und = map_sigmas(params, cov.reshape(1, n, p, p), state.names, det, comps)
@@ -194,18 +214,18 @@ def gains(state_h: Tensor, state_g: Tensor, c: float, prior: Tensor, info: Tenso
     if criterion not in CRITERIA:
         raise ValueError(f"criterion {criterion!r}: one of {', '.join(CRITERIA)}")
     f0 = _information(state_h, state_g, c, prior)
-    l0 = torch.linalg.cholesky(f0)
+    l0 = _cholesky(f0)
     out = []
     for j0 in range(0, info.shape[1], chunk):
         blk = info[:, j0:j0 + chunk]
         f1 = _information(state_h.unsqueeze(1) + blk[:, :, 0], state_g.unsqueeze(1) + blk[:, :, 1], c,
                           prior.unsqueeze(1))
         if criterion == "D":
-            ld1 = torch.linalg.cholesky(f1).diagonal(dim1=-2, dim2=-1).log().sum(-1)
+            ld1 = _cholesky(f1).diagonal(dim1=-2, dim2=-1).log().sum(-1)
             out.append(2.0 * (ld1 - l0.diagonal(dim1=-2, dim2=-1).log().sum(-1).unsqueeze(1)))
         else:
             v0 = torch.cholesky_inverse(l0).diagonal(dim1=-2, dim2=-1).unsqueeze(1)
-            v1 = torch.cholesky_inverse(torch.linalg.cholesky(f1)).diagonal(dim1=-2, dim2=-1)
+            v1 = torch.cholesky_inverse(_cholesky(f1)).diagonal(dim1=-2, dim2=-1)
             out.append((1.0 - v1 / v0).sum(-1))
     return torch.cat(out, 1)
 
