@@ -94,13 +94,14 @@ def test_choices_match_their_sources():
     from dualscale.capture import plan
     from dualscale.cli import choices
     from dualscale.fit import presets
-    from dualscale.propagate import losses, train
+    from dualscale.propagate import losses, schedule, train
     from dualscale.sim import materials
 
     assert set(choices.MATERIALS) == set(materials.MATERIALS) and len(choices.MATERIALS) == len(materials.MATERIALS)
     assert set(choices.FIT_PRESETS) == set(presets.PRESETS) and len(choices.FIT_PRESETS) == len(presets.PRESETS)
     assert set(choices.PROPAGATE_PRESETS) == set(train.PRESETS) and len(choices.PROPAGATE_PRESETS) == len(train.PRESETS)
     assert set(choices.PERCEPTUAL) == set(losses.PERCEPTUAL) and len(choices.PERCEPTUAL) == len(losses.PERCEPTUAL)
+    assert set(choices.SCHEDULES) == set(schedule.SCHEDULES) and len(choices.SCHEDULES) == len(schedule.SCHEDULES)
     assert set(choices.QUALITIES) == set(pipeline.QUALITIES) and len(choices.QUALITIES) == len(pipeline.QUALITIES)
     assert choices.FIT_KERNELS == presets.KERNELS
     assert choices.STAGES == pipeline.STAGES

@@ -1,3 +1,5 @@
+from dataclasses import replace
+
 import pytest
 import torch
 
@@ -33,6 +35,57 @@ def test_resume_equals_uninterrupted(twill, tmp_path):
         train(src, preset_with("quick", iterations=8, batch=3, crop=16), tmp_path / "part.dsp",
               _opts(resume=True))
     assert checkpoint_path(tmp_path / "part.dsp").is_file()
+
+
+def test_onecycle_schedule_trace_and_resume(twill, tmp_path, monkeypatch):
+    """``--schedule onecycle``: the learning rates follow OneCycleLR (lr/25 -> peak lr after 30 %
+    of the steps -> lr/25e4 at the last, cosine both ways; Adam's beta1 inversely); a run killed
+    after its checkpoint at iteration 4 and resumed equals the uninterrupted run (the scheduler
+    state is in the checkpoint); a one-cycle checkpoint is not extended to more iterations."""
+    import dualscale.propagate.train as tr
+    from dualscale.cli import main
+    from dualscale.formats.torchfile import load_torch
+
+    lr, n = 0.01, 10
+    args = ["propagate", "train", str(twill), "-o", str(tmp_path / "full.dsp"), "--preset", "quick", "--iterations",
+            str(n), "--batch", "2", "--crop", "16", "--width", "8", "--no-amp", "--no-progress", "--lr", str(lr),
+            "--schedule", "onecycle"]
+    assert main(args) == 0
+    trace = [h["lr"] for h in load_torch(checkpoint_path(tmp_path / "full.dsp"), "ckpt")["history"]]
+    peak = round(0.3 * n) - 1  # OneCycleLR's warm-up ends at step pct_start * total - 1 = 2
+    assert trace[0] == pytest.approx(lr / 25) and trace[peak] == pytest.approx(lr)
+    assert trace[-1] == pytest.approx(lr / 25e4)
+    assert all(a < b for a, b in zip(trace[:peak], trace[1:peak + 1]))
+    assert all(a > b for a, b in zip(trace[peak:-1], trace[peak + 1:]))
+    mid = (peak + n - 1) / 2  # cosine annealing: half way down at the middle of the second phase
+    assert trace[int(mid)] > (lr + lr / 25e4) / 2 > trace[int(mid) + 1]
+    full, _ = load_model(tmp_path / "full.dsp")
+
+    src = [load_source(twill)]
+    pre = preset_with("quick", iterations=n, batch=2, crop=16, lr=lr)
+    real_step = tr.train_step
+
+    def killed_at_5(*a, **kw):  # the process dies during iteration 5, after the checkpoint at 4
+        if a[-1] == 4:
+            raise KeyboardInterrupt
+        return real_step(*a, **kw)
+
+    monkeypatch.setattr(tr, "train_step", killed_at_5)
+    with pytest.raises(KeyboardInterrupt):
+        train(src, pre, tmp_path / "part.dsp", _opts(amp=False, schedule="onecycle"))
+    monkeypatch.setattr(tr, "train_step", real_step)
+    assert load_torch(checkpoint_path(tmp_path / "part.dsp"), "ckpt")["iteration"] == 4
+    res = train(src, pre, tmp_path / "part.dsp", _opts(amp=False, resume=True, schedule="onecycle"))
+    assert res.resumed_from == 4 and [h["lr"] for h in res.history] == pytest.approx(trace)
+    for (k, a), b in zip(full.state_dict().items(), res.model.state_dict().values()):
+        assert torch.allclose(a, b, atol=1e-6), k
+    with pytest.raises(ValueError, match="cannot continue as a 12-iteration run"):
+        train(src, replace(pre, iterations=12), tmp_path / "part.dsp", _opts(amp=False, resume=True,
+                                                                              schedule="onecycle"))
+    with pytest.raises(ValueError, match="different run"):  # a constant-lr run does not take the one-cycle checkpoint
+        train(src, pre, tmp_path / "part.dsp", _opts(amp=False, resume=True))
+    with pytest.raises(ValueError, match="schedule must be one of"):
+        train(src, pre, tmp_path / "x.dsp", _opts(schedule="cosine"))
 
 
 def test_train_step_phases_and_channels_last(twill):

@@ -20,6 +20,9 @@ FIT_KERNELS = ("fused", "eager", "compiled")
 #: ``propagate train --preset`` -- the keys of :data:`dualscale.propagate.train.PRESETS`
 PROPAGATE_PRESETS = ("paper", "balanced", "fast", "quick")
 
+#: ``propagate train --schedule`` -- the keys of :data:`dualscale.propagate.schedule.SCHEDULES`
+SCHEDULES = ("constant", "onecycle")
+
 #: ``propagate train --perceptual`` -- the keys of :data:`dualscale.propagate.losses.PERCEPTUAL`
 PERCEPTUAL = ("gram", "lpips_alex")
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from dualscale.errors import InputError
 
-from .choices import PERCEPTUAL, PROPAGATE_PRESETS
+from .choices import PERCEPTUAL, PROPAGATE_PRESETS, SCHEDULES
 from .common import add_output, add_work_options, apply_threads, output_folder, want_progress
 
 
@@ -26,7 +26,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     sigma = (0.1, args.blur_sigma_max)
     opts = TrainOptions(width=args.width, perceptual=args.perceptual, amp=not args.no_amp, blur_sigma=sigma,
                         seed=args.seed, checkpoint_every=args.checkpoint_every, resume=args.resume, init=args.init,
-                        progress=want_progress(args), device=args.device)
+                        progress=want_progress(args), device=args.device, schedule=args.schedule)
     _refuse_foreign_model(Path(args.output), [s.name for s in sources], args.overwrite)
     with output_folder(args, "propagate train", record=False, folder=Path(args.output).absolute().parent):
         res = train(sources, preset, args.output, opts)
@@ -138,6 +138,9 @@ def register(subparsers) -> None:
     t.add_argument("--iterations", type=int, help="override the preset's iteration count")
     t.add_argument("--batch", type=int, help="override the preset's batch size")
     t.add_argument("--lr", type=float, help="override the preset's learning rate")
+    t.add_argument("--schedule", choices=SCHEDULES, default="constant",
+                   help="learning-rate schedule: constant (the preset's lr) or onecycle (one cycle peaking at the lr; "
+                        "pair it with a higher --lr, docs/PROPAGATION.md; default: constant)")
     t.add_argument("--crop", type=int, help="override the 128 px crop (multiple of 16)")
     t.add_argument("--width", type=int, help="width factor W (default 16 for one dataset, 32 for several)")
     t.add_argument("--perceptual", choices=sorted(PERCEPTUAL), default="gram",

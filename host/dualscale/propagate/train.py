@@ -12,8 +12,12 @@ accuracy); bf16 autocast stays on (float32 steps took 1.4-1.6x as long); ``Train
 (``torch.compile`` of the U-Net, in place) is off: ~1.1x per step after a 250-270 s compile on
 2 busy cores, which the ``fast`` and ``balanced`` presets do not win back.
 
+Learning-rate schedule (``TrainOptions.schedule``, :mod:`.schedule`): ``"constant"`` (the
+preset's ``lr``) or ``"onecycle"`` (``OneCycleLR`` peaking at the preset's ``lr``), stepped after
+every optimiser step; its state is checkpointed.
+
 Checkpoints: ``<model>.ckpt`` every ``checkpoint_every`` iterations and at the last one (model,
-optimiser, scaler, sampler RNG, iteration, the run's target iteration count); ``resume=True``
+optimiser, scaler, scheduler, sampler RNG, iteration, the run's target iteration count); ``resume=True``
 continues from it when it matches the run.  Checkpoints and the model file are written
 atomically (:mod:`dualscale.formats.torchfile`), and the last checkpoint is written before the
 model: a run killed while saving the model resumes by writing the model from it (no training),
@@ -38,6 +42,7 @@ from .augment import BLUR_SIGMA, augment
 from .data import DiskSource, Source, check_sources, sample_batch
 from .model import load_model, save_model
 from .losses import PropagationLoss
+from .schedule import check_extend, make_schedule
 from .unet import PropagationUNet, UNetConfig
 
 
@@ -63,7 +68,10 @@ PRESETS: dict[str, Preset] = {
 
 @dataclass
 class TrainOptions:
-    """Everything besides the preset; ``width=None`` picks 16 for one dataset, 32 for several."""
+    """Everything besides the preset; ``width=None`` picks 16 for one dataset, 32 for several.
+
+    ``schedule``: the learning-rate schedule, a key of :data:`dualscale.propagate.schedule.SCHEDULES`
+    (``"constant"``: the preset's ``lr``; ``"onecycle"``: one cycle peaking at the preset's ``lr``)."""
 
     width: int | None = None
     decoder_ratio: float = 0.5
@@ -78,6 +86,7 @@ class TrainOptions:
     device: str = "cpu"
     channels_last: bool = True
     compile: bool = False
+    schedule: str = "constant"
 
 
 @dataclass
@@ -147,12 +156,16 @@ def train(sources: list[Source | DiskSource], preset: Preset, out: str | Path, o
 
     model, optim, scaler, loss_fn = build(sources, preset, opts)
     config = model.config
+    # before the optimiser state is loaded: the scheduler sets the optimiser's lr when it is made
+    sched = make_schedule(opts.schedule, optim, max(preset.iterations, 1), preset.lr)
     gen = torch.Generator().manual_seed(opts.seed)
     start, history = 0, []
     ckpt = checkpoint_path(out)
     # the run's identity; the iteration count may grow between resumes
     run_id = {"preset": {k: v for k, v in asdict(preset).items() if k != "iterations"},
               "config": config.to_json(), "sources": [s.name for s in sources]}
+    if opts.schedule != "constant":  # keeps the identity of constant-lr checkpoints written before schedules
+        run_id["schedule"] = opts.schedule
     if opts.resume and ckpt.is_file():
         st = load_torch(ckpt, "training checkpoint", "delete it (training restarts) or drop --resume",
                         map_location=opts.device)
@@ -165,6 +178,8 @@ def train(sources: list[Source | DiskSource], preset: Preset, out: str | Path, o
             scaler.load_state_dict(st["scaler"])
             gen.set_state(st["gen"])
             start, history = int(st["iteration"]), list(st["history"])
+            if sched is not None:
+                sched.load_state_dict(st["sched"])
         except (KeyError, TypeError, ValueError, RuntimeError) as e:
             raise FormatError(f"{ckpt}: damaged training checkpoint ({type(e).__name__}: "
                               f"{(str(e).splitlines() or [''])[0][:160]}); delete it (training restarts) or drop "
@@ -176,22 +191,27 @@ def train(sources: list[Source | DiskSource], preset: Preset, out: str | Path, o
             # a finished run whose model was not written (killed while saving it): write it now
             preset = replace(preset, iterations=start)
         # start == iterations: a run stopped after its last checkpoint; the loop is empty, the model is written
+        check_extend(opts.schedule, ckpt, st.get("target"), preset.iterations)
     t0 = time.perf_counter()
     model.train()
     bar = tqdm(range(start, preset.iterations), initial=start, total=preset.iterations, disable=not opts.progress,
                desc=f"propagate train ({preset.name})", unit="it")
     for it in bar:
+        lr = optim.param_groups[0]["lr"]
         loss, parts = train_step(model, optim, scaler, loss_fn, sources, preset, gen, opts, it)
-        history.append({"it": it + 1, "loss": loss, **parts})
+        if sched is not None:
+            sched.step()
+        history.append({"it": it + 1, "loss": loss, "lr": lr, **parts})
         bar.set_postfix(loss=f"{history[-1]['loss']:.4f}")
         done = it + 1
         if done % opts.checkpoint_every == 0 or done == preset.iterations:
-            _save_checkpoint(ckpt, model, optim, scaler, gen, done, history, run_id, preset.iterations)
+            _save_checkpoint(ckpt, model, optim, scaler, gen, done, history, run_id, preset.iterations, sched)
     seconds = time.perf_counter() - t0
     model.eval().cpu()
     info: dict[str, Any] = {"preset": asdict(preset), "iterations": preset.iterations, "seconds_this_run": seconds,
                             "resumed_from": start, "datasets": [s.name for s in sources],
                             "perceptual": opts.perceptual, "amp": opts.amp, "init": opts.init,
+                            "schedule": opts.schedule,
                             "blur_sigma": list(opts.blur_sigma), "final": history[-1] if history else {}}
     save_model(out, model, input_reference(sources), info, half=half_file)
     return TrainResult(model, preset.iterations, seconds, start, history)
@@ -237,12 +257,15 @@ def train_step(model: PropagationUNet, optim, scaler, loss_fn: PropagationLoss, 
     return float(loss.detach()), parts
 
 
-def _save_checkpoint(path: Path, model, optim, scaler, gen, iteration: int, history, run_id, target: int) -> None:
+def _save_checkpoint(path: Path, model, optim, scaler, gen, iteration: int, history, run_id, target: int,
+                     sched=None) -> None:
     """Write the checkpoint atomically; ``target``: the iteration count of this run (a checkpoint
-    with ``iteration == target`` is a finished run)."""
-    save_torch(path, {"model": model.state_dict(), "optim": optim.state_dict(), "scaler": scaler.state_dict(),
-                      "gen": gen.get_state(), "iteration": iteration, "history": history, "run": run_id,
-                      "target": target})
+    with ``iteration == target`` is a finished run); ``sched``: the learning-rate scheduler, if any."""
+    st = {"model": model.state_dict(), "optim": optim.state_dict(), "scaler": scaler.state_dict(),
+          "gen": gen.get_state(), "iteration": iteration, "history": history, "run": run_id, "target": target}
+    if sched is not None:
+        st["sched"] = sched.state_dict()
+    save_torch(path, st)
 
 
 def preset_with(name: str, **overrides: Any) -> Preset:
