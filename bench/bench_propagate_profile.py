@@ -26,6 +26,12 @@ the benchmark's twill guidance (every map's L1 and SSIM), old and new in the sam
 the default before issue 29), ``fp32`` (no autocast), ``cl`` (channels-last: today's default),
 ``compile``) times several settings of the step, alternated step by step.  The profile tables
 use today's defaults (:class:`~dualscale.propagate.train.TrainOptions`).
+
+With ``--accuracy`` three more flags choose the recipe (issue 29 §2, "Schedule and warm start"):
+``warm`` (warm start from ``models/warmstart_w16.dsp``), ``ocN`` (one-cycle learning rate,
+peak ``N / 1000``: ``oc8`` peaks at 0.008) and ``bN`` (batch ``N`` with the iteration count
+scaled so that the samples stay ``N_iterations x preset batch``: ``b16`` on ``fast`` at 300 is
+150 x 16), e.g. ``--variants cl+warm,cl+warm+oc8,cl+warm+oc8+b16``.
 """
 
 from __future__ import annotations
@@ -45,6 +51,35 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from dualscale.propagate.train import PHASES  # noqa: E402
 
+
+
+REPO = Path(__file__).resolve().parent.parent
+WARM = REPO / "models" / "warmstart_w16.dsp"
+STEP_FLAGS = {"base", "fp32", "cl", "compile"}
+
+
+def recipe(variant: str, preset_name: str, iterations: int):
+    """``(TrainOptions, Preset)`` of an ``--accuracy`` variant (the flags of the module docstring)."""
+    import re
+
+    from dualscale.propagate.train import TrainOptions, preset_with
+
+    flags = set(variant.split("+"))
+    base = preset_with(preset_name)
+    over: dict = {"iterations": iterations}
+    schedule = "constant"
+    for f in flags - STEP_FLAGS - {"warm"}:
+        if m := re.fullmatch(r"oc(\d+)", f):
+            schedule, over["lr"] = "onecycle", int(m[1]) / 1000
+        elif m := re.fullmatch(r"b(\d+)", f):
+            over["batch"] = int(m[1])
+            over["iterations"] = max(1, round(iterations * base.batch / int(m[1])))
+        else:
+            raise SystemExit(f"unknown variant flag {f!r}")
+    opts = TrainOptions(amp="fp32" not in flags, channels_last="cl" in flags, compile="compile" in flags,
+                        progress=False, checkpoint_every=10 ** 9, schedule=schedule,
+                        init=str(WARM) if "warm" in flags else None)
+    return opts, preset_with(preset_name, **over)
 
 
 def load() -> str:
@@ -247,26 +282,26 @@ def accuracy(work: Path, preset: str, variants: list[str], iterations: int, json
     from bench_propagate import EVAL, score_pairs, scores, write_rows
 
     from dualscale.propagate.data import load_source
-    from dualscale.propagate.train import TrainOptions, preset_with, train
+    from dualscale.propagate.train import train
 
     src = load_source(work / EVAL)
     rows = []
     start = load()
     for v in variants:
-        flags = set(v.split("+"))
-        opts = TrainOptions(amp="fp32" not in flags, channels_last="cl" in flags, compile="compile" in flags,
-                            progress=False, checkpoint_every=10 ** 9)
+        opts, p = recipe(v, preset, iterations)
         model = work / f"variant_{v.replace('+', '_')}.dsp"
         for f in (model, Path(str(model) + ".ckpt")):
             f.unlink(missing_ok=True)
         l0 = load()
         t = time.perf_counter()
-        train([src], preset_with(preset, iterations=iterations), model, opts)
+        train([src], p, model, opts)
         sec = time.perf_counter() - t
-        rows.append((v, sec, l0, load(), scores(work, model, work / f"pred_variant_{v.replace('+', '_')}")))
-        print(f"{v}: {sec:.0f} s, load {l0}", file=sys.stderr)
+        rows.append((f"{v} ({p.iterations} x {p.batch}, lr {p.lr:g} {opts.schedule})", sec, l0, load(), scores(work, model, work / f"pred_variant_{v.replace('+', '_')}")))
+        sc = rows[-1][4]
+        print(f"{rows[-1][0]}: {sec:.0f} s, load {l0}-{rows[-1][3]}, {time.strftime('%H:%M')}; "
+              + ", ".join(f"{m} {sc[m]['l1']:.4f}/{sc[m]['ssim']:.3f}" for m in sc), file=sys.stderr, flush=True)
     maps = list(rows[0][4])
-    print(f"\nAccuracy of the variants: `{preset}` cut to {iterations} iterations, same seed, trained one after "
+    print(f"\nAccuracy of the variants: `{preset}` at {iterations} iterations' samples, same seed, trained one after "
           f"the other; L1 / SSIM on the twill guidance:\n")
     print("| variant | train [s] (load) | " + " | ".join(maps) + " |\n|---|---:|" + "---:|" * len(maps))
     for v, sec, l0, l1, sc in rows:
