@@ -172,8 +172,13 @@ def test_kill_9_in_the_middle_resumes_with_identical_decisions(run, cal, tmp_pat
     os.killpg(p.pid, signal.SIGKILL)
     p.wait()
     assert not (out / "capture.json").exists()  # killed before the end
+    before = {e["key"] for e in _journal(out) if e["kind"] == "shot"}
     r = subprocess.run(cmd + ["--resume"], capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr
+    # the summary counts the shots of the killed run, and its floor is the whole capture's
+    assert f"; {len(before)} from an earlier run)" in r.stdout and len(before) >= 14, r.stdout
+    floor = float(r.stdout.split("for a physical floor of ")[1].split(" s")[0])
+    assert floor == pytest.approx(json.loads((run / "capture.json").read_text())["adaptive"]["floor_s"], abs=1.0)
     want = json.loads((run / "capture.json").read_text())["adaptive"]
     got = json.loads((out / "capture.json").read_text())["adaptive"]
     assert [x["leds"] for x in got["rounds"]] == [x["leds"] for x in want["rounds"]]

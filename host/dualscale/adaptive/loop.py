@@ -277,6 +277,9 @@ class AdaptiveCapture:
             first = spread_leds(self.leds, self.opts.initial, self.dirs)
             journal.append("round", round=0, leds=first, why=f"{self.opts.initial} LEDs spread over the dome")
             rounds = journal.of("round")
+        for x in rounds[:-1]:  # a resume: the rounds before the last are in the journal whole; take()
+            if not x.get("stop"):  # finds them there and counts them in the capture's summary
+                self.s.take(self._shots(x["leds"], x["round"] == 0))
         stop = None
         while True:
             cur = rounds[-1]
