@@ -126,6 +126,35 @@ def test_targets_and_gain_stop_an_adaptive_capture(cal, tmp_path, capsys):
     assert f"{100 * (worst[-1] - 1):.1f} %" in rec["reason"]
 
 
+def test_the_rounds_samples_join_along_the_images(run, cal, tmp_path):
+    """concat_images: the rounds' samples one after the other (images, directions, weights, LED
+    ids, masks, signal scales), the back light the first's; the joined sample of the whole
+    capture holds exactly the images of its dataset at the same pixels (in round order)."""
+    from dualscale.adaptive.loop import concat_images
+    from dualscale.calib.apply import to_radiance
+    from dualscale.fit.observations import load_observations
+
+    to_radiance(run, tmp_path / "rad", cal)
+    obs = load_observations(tmp_path / "rad")
+    idx = torch.arange(0, obs.shape[0] * obs.shape[1], 7)
+    sample = obs.pixels(idx)
+    rec = json.loads((run / "capture.json").read_text())["adaptive"]
+    ids = [[i for i in r["leds"]] for r in rec["rounds"] if r["leds"]]
+    parts = [sample.select_leds(set(k)) for k in ids]
+    parts[1] = type(parts[1])(**{**parts[1].__dict__, "valid": None, "backlight": None})
+    joined = concat_images(parts)
+    assert joined.images.shape == (sample.n, 1, len(idx), 3) and joined.backlight is parts[0].backlight
+    order = [k for i in ids for k, x in enumerate(sample.led_ids.tolist()) if x in set(i)]
+    order = list(dict.fromkeys(order))
+    torch.testing.assert_close(joined.images, sample.images[order])
+    torch.testing.assert_close(joined.dirs, sample.dirs[order])
+    assert joined.led_ids.tolist() == sample.led_ids[order].tolist()
+    if sample.valid is not None:
+        n1 = parts[0].n
+        assert joined.valid[n1:n1 + parts[1].n].all()
+    torch.testing.assert_close(joined.signal_scale, sample.signal_scale[order])
+
+
 def test_parse_targets():
     """``--target``: the default is ``full+5%`` and no map; a given one replaces it whole."""
     from dualscale.adaptive.options import parse_targets

@@ -6,9 +6,11 @@ the back light is always taken, in the first round (both modes: how an opaque sa
 
 1. **Round 0**: :attr:`AdaptiveOptions.initial` LEDs spread over the dome by farthest-point
    sampling of their directions from the one nearest the zenith (deterministic), and the back light.
-2. **After each round**: its shots are merged and calibrated (the capture's own HDR merge, then
-   :func:`dualscale.calib.apply.to_radiance` with the rig's calibration) into a temporary
-   dataset, and a regular grid of at most :attr:`AdaptiveOptions.sample_pixels` pixels is fitted
+2. **After each round**: its own shots are merged and calibrated (the capture's own HDR merge,
+   then :func:`dualscale.calib.apply.to_radiance` with the rig's calibration) into a temporary
+   dataset and read at a regular grid of at most :attr:`AdaptiveOptions.sample_pixels` pixels
+   (each image once, whatever the rounds: :func:`concat_images` joins the rounds' samples); the
+   sample of every round so far is fitted
    with the ``standard`` preset (components chosen on the sample; from round 1 a warm start: the
    joint step only, from the last round's maps, while the components stay the same), with its
    per-pixel uncertainty (:mod:`dualscale.fit.uncertainty`).
@@ -120,6 +122,7 @@ class AdaptiveCapture:
         if not starts:
             session.journal.append("adaptive", options=_jsonable(ident))
         self._fit_cache: dict[int, tuple] = {}
+        self._sample_cache: dict[int, Any] = {}
 
     # ------------------------------------------------------------------ shots
     def _shots(self, leds: list[int], back: bool) -> list:
@@ -138,28 +141,14 @@ class AdaptiveCapture:
         sigma medians, fit record)``; cached."""
         if r in self._fit_cache:
             return self._fit_cache[r]
-        from dualscale.calib.apply import to_radiance
         from dualscale.fit.core import fit_observations
-        from dualscale.fit.observations import load_observations
         from dualscale.fit.params import params_from_maps
         from dualscale.fit.presets import get_preset
         from dualscale.fit.select import select_components
         from dualscale.fit.uncertainty import median_sigmas
 
         taken = self._taken(rounds[:r + 1])
-        tmp = Path(tempfile.mkdtemp(prefix=f"round{r:02d}-", dir=self._round_root()))
-        try:
-            self.s.merge(taken, tmp / "raw")
-            to_radiance(tmp / "raw", tmp / "radiance", self.cal)
-            obs = load_observations(tmp / "radiance")
-        finally:
-            shutil.rmtree(tmp, ignore_errors=True)
-        h, w = obs.shape
-        step = max(1, math.ceil(math.sqrt(h * w / self.opts.sample_pixels)))
-        import torch
-
-        ys, xs = torch.meshgrid(torch.arange(step // 2, h, step), torch.arange(step // 2, w, step), indexing="ij")
-        sample = obs.pixels((ys * w + xs).reshape(-1))
+        sample = concat_images([self._round_sample(k, rounds[k]) for k in range(r + 1)])
         comps, _ = select_components(sample, seed=self.opts.seed)
         preset = get_preset("standard")
         init = None
@@ -175,6 +164,30 @@ class AdaptiveCapture:
                "sample_pixels": int(sample.images.shape[2]), "warm": init is not None}
         self._fit_cache[r] = (params, comps, sample, get_preset("standard"), sig, rec)
         return self._fit_cache[r]
+
+    def _round_sample(self, r: int, rnd: dict) -> Any:
+        """Round ``r``'s shots alone, merged and calibrated into a temporary dataset and read at
+        the sample pixels only (a regular grid of at most ``sample_pixels``): each round's images
+        are read once, at their own size, not every shot taken so far at every round; cached."""
+        if r in self._sample_cache:
+            return self._sample_cache[r]
+        import torch
+
+        from dualscale.calib.apply import to_radiance
+        from dualscale.fit.observations import load_observations
+
+        tmp = Path(tempfile.mkdtemp(prefix=f"round{r:02d}-", dir=self._round_root()))
+        try:
+            self.s.merge(self._shots(rnd["leds"], r == 0), tmp / "raw")
+            to_radiance(tmp / "raw", tmp / "radiance", self.cal)
+            obs = load_observations(tmp / "radiance")
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
+        h, w = obs.shape
+        step = max(1, math.ceil(math.sqrt(h * w / self.opts.sample_pixels)))
+        ys, xs = torch.meshgrid(torch.arange(step // 2, h, step), torch.arange(step // 2, w, step), indexing="ij")
+        self._sample_cache[r] = obs.pixels((ys * w + xs).reshape(-1))
+        return self._sample_cache[r]
 
     def _round_root(self) -> Path:
         root = self.s.work / ROUND_DIR
@@ -314,6 +327,27 @@ class AdaptiveCapture:
         self.log(f"stopped: {stop['reason']} ({record['shots']} shots, device time {record['floor_s']:.1f} s)")
         shutil.rmtree(self.s.work / ROUND_DIR, ignore_errors=True)
         return self.s.finish(taken=taken, adaptive=record)
+
+
+def concat_images(parts: list) -> Any:
+    """The :class:`~dualscale.fit.observations.Observations` of ``parts`` (the rounds' samples,
+    the same pixels) one after the other along the image axis; the back light, its weights and
+    the view are the first part's (round 0 takes the back light)."""
+    import torch
+
+    if len(parts) == 1:
+        return parts[0]
+    first = parts[0]
+    cat = lambda name: torch.cat([getattr(o, name) for o in parts])  # noqa: E731
+    valid = None
+    if any(o.valid is not None for o in parts):
+        valid = torch.cat([o.valid if o.valid is not None else torch.ones(o.images.shape[:3], dtype=torch.bool)
+                           for o in parts])
+    scale = None
+    if all(o.signal_scale is not None for o in parts):
+        scale = cat("signal_scale")
+    return replace(first, images=cat("images"), dirs=cat("dirs"), w_s=cat("w_s"), w_p=cat("w_p"), w_d=cat("w_d"),
+                      led_ids=cat("led_ids"), valid=valid, signal_scale=scale, origin=None)
 
 
 def check_calibration(path: Path, leds: list[int], rig: dict[str, str] | None = None) -> None:
