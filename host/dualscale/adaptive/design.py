@@ -48,7 +48,7 @@ from dualscale.fit import lm
 from dualscale.fit.loop import step_data
 from dualscale.fit.observations import Observations, analyzer_weights
 from dualscale.fit.presets import Preset
-from dualscale.fit.uncertainty import map_sigmas, posterior
+from dualscale.fit.uncertainty import Uncertainty, map_sigmas, median_sigmas, posterior
 
 from .options import CRITERIA  # noqa: F401  (the criteria, module doc)
 
@@ -198,12 +198,8 @@ def predicted_sigmas(state: DesignState, params: dict[str, Tensor], comps: Compo
     n, p = state.x.shape
     det = state.determined.reshape(1, n, p)
     sig, und = map_sigmas(params, cov.reshape(1, n, p, p), state.names, det, comps)
-    out = {}
-    for k, v in sig.items():
-        keep = ~und[k] & torch.isfinite(v)
-        if keep.any():
-            out[k] = float(v[keep].double().median())
-    return out
+    medians = median_sigmas(Uncertainty(sig, und, "predicted by the design", 0.0))
+    return {k: v for k, v in medians.items() if v is not None}
 
 
 def gains(state_h: Tensor, state_g: Tensor, c: float, prior: Tensor, info: Tensor, criterion: str = "D",
