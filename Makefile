@@ -145,6 +145,7 @@ demo: deps
 # Every benchmark prints a markdown table for the doc it belongs to (see each script's docstring).
 bench: deps
 	$(MAKE) -C firmware all
+	$(PY) -m pip install -q -e '.[bench]'
 	@set -e; for b in bench/bench_*.py; do echo "== $$b"; $(PY) $$b; done
 
 # 5 M inputs per harness (10 M in all), one process at a time; figures in firmware/README.md.

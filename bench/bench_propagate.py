@@ -133,25 +133,40 @@ def train_cmd(work: Path, sources: list[str], out: Path, preset: str, extra: lis
     return time.perf_counter() - t
 
 
-def stage_warm(work: Path, repo: Path, iterations: int, batch: int) -> None:
-    out = repo / "models" / "warmstart_w16.dsp"
+def stage_warm(work: Path, repo: Path, iterations: int, batch: int, seeds: tuple[int, ...] = (0,),
+               out: Path | None = None, schedule: str = "constant", lr: float = 0.002) -> None:
+    """Train the generic warm-start model on ``WARM_MATERIALS`` (never ``EVAL``), one dataset per
+    material and seed (seed 0 is the prep stage's, others are made here), and save it as float16 at
+    ``out`` (default ``models/warmstart_w16.dsp``); does nothing when ``out`` exists."""
+    out = out or repo / "models" / "warmstart_w16.dsp"
     if out.is_file():
         return
     from dualscale.propagate.data import load_source
     from dualscale.propagate.train import TrainOptions, preset_with, train
 
-    srcs = [load_source(work / m) for m in WARM_MATERIALS]
-    t = time.perf_counter()
-    r = train(srcs, preset_with("fast", iterations=iterations, batch=batch), work / "warm_full.dsp",
-              TrainOptions(width=16, progress=False), half_file=False)
+    names = []
+    for m in WARM_MATERIALS:
+        for seed in seeds:
+            name = m if seed == 0 else f"{m}_s{seed}"
+            if not (work / name / "micro" / "manifest.json").is_file():
+                sh("synth", m, "-o", str(work / name), "--size", str(MICRO), "--texel-um", str(TEXEL_UM),
+                   "--seed", str(seed), "--dataset", "--no-previews")
+            names.append(name)
+    srcs = [load_source(work / n) for n in names]
+    t, l0 = time.perf_counter(), load()
+    r = train(srcs, preset_with("fast", iterations=iterations, batch=batch, lr=lr), work / f"{out.stem}_full.dsp",
+              TrainOptions(width=16, progress=False, schedule=schedule, checkpoint_every=100, resume=True),
+              half_file=False)
     from dualscale.propagate.model import save_model
     from dualscale.propagate.train import input_reference
 
-    save_model(out, r.model, input_reference(srcs), {"materials": list(WARM_MATERIALS), "iterations": iterations,
-                                                      "batch": batch, "seconds": time.perf_counter() - t,
-                                                      "load": load(), "texel_um": TEXEL_UM, "size": MICRO},
+    save_model(out, r.model, input_reference(srcs), {"materials": list(WARM_MATERIALS), "seeds": list(seeds),
+                                                      "iterations": iterations, "batch": batch, "lr": lr,
+                                                      "schedule": schedule, "seconds": time.perf_counter() - t,
+                                                      "load": [l0, load()], "texel_um": TEXEL_UM, "size": MICRO},
                half=True)
-    print(f"warm-start model: {iterations} its x batch {batch}, {time.perf_counter() - t:.0f} s, load {load()}")
+    print(f"warm-start model {out}: {len(srcs)} datasets, {iterations} its x batch {batch}, lr {lr:g} {schedule}, "
+          f"{time.perf_counter() - t:.0f} s, load {l0}-{load()}")
 
 
 def stage_presets(work: Path, repo: Path, runs: list[str], json_out: str | None = None) -> None:
@@ -690,6 +705,10 @@ def main() -> int:
     ap.add_argument("--profile-rounds", type=int, default=2, help="rounds of the profile stage's per-tile timings")
     ap.add_argument("--warm-iterations", type=int, default=300)
     ap.add_argument("--warm-batch", type=int, default=8)
+    ap.add_argument("--warm-seeds", default="0", help="warm stage: material seeds, comma list (default: 0)")
+    ap.add_argument("--warm-out", help="warm stage: model file to write (default: models/warmstart_w16.dsp)")
+    ap.add_argument("--warm-schedule", default="constant", help="warm stage: learning-rate schedule")
+    ap.add_argument("--warm-lr", type=float, default=0.002, help="warm stage: (peak) learning rate")
     ap.add_argument("--json", help="presets stage: also write its rows as JSON to this file (for "
                     "bench_propagate_trade.py)")
     ap.add_argument("--threads", type=int, default=1, help="torch threads for training (1: the shared cores "
@@ -705,7 +724,8 @@ def main() -> int:
     if "prep" in st:
         prep(work)
     if "warm" in st:
-        stage_warm(work, repo, a.warm_iterations, a.warm_batch)
+        stage_warm(work, repo, a.warm_iterations, a.warm_batch, tuple(int(x) for x in a.warm_seeds.split(",")),
+                   Path(a.warm_out) if a.warm_out else None, a.warm_schedule, a.warm_lr)
     if "presets" in st:
         stage_presets(work, repo, a.runs.split(","), a.json)
     if "parity" in st:

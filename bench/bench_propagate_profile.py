@@ -43,6 +43,7 @@ import sys
 import time
 from collections import defaultdict
 from contextlib import contextmanager
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -56,6 +57,7 @@ from dualscale.propagate.train import PHASES  # noqa: E402
 REPO = Path(__file__).resolve().parent.parent
 WARM = REPO / "models" / "warmstart_w16.dsp"
 STEP_FLAGS = {"base", "fp32", "cl", "compile"}
+WARM_FILE = [WARM]  # the ``warm`` flag's model; ``--warm`` replaces it
 
 
 def recipe(variant: str, preset_name: str, iterations: int):
@@ -67,18 +69,30 @@ def recipe(variant: str, preset_name: str, iterations: int):
     flags = set(variant.split("+"))
     base = preset_with(preset_name)
     over: dict = {"iterations": iterations}
-    schedule = "constant"
+    schedule = None  # the preset's
+    over_opts: dict = {}
     for f in flags - STEP_FLAGS - {"warm"}:
         if m := re.fullmatch(r"oc(\d+)", f):
             schedule, over["lr"] = "onecycle", int(m[1]) / 1000
+        elif m := re.fullmatch(r"st(\d+)", f):
+            over_opts["style_triplets"] = int(m[1])
+            if not int(m[1]):
+                over_opts["style_weight"] = 0.0
+        elif m := re.fullmatch(r"df(\d+)", f):
+            over_opts["diffuse_fraction"] = int(m[1]) / 100
+        elif m := re.fullmatch(r"crop(\d+)", f):
+            over["crop"] = int(m[1])
         elif m := re.fullmatch(r"b(\d+)", f):
             over["batch"] = int(m[1])
             over["iterations"] = max(1, round(iterations * base.batch / int(m[1])))
-        else:
+        elif not re.fullmatch(r"its(\d+)", f):
             raise SystemExit(f"unknown variant flag {f!r}")
+    for f in flags:  # after bN: an explicit iteration count wins
+        if m := re.fullmatch(r"its(\d+)", f):
+            over["iterations"] = int(m[1])
     opts = TrainOptions(amp="fp32" not in flags, channels_last="cl" in flags, compile="compile" in flags,
                         progress=False, checkpoint_every=10 ** 9, schedule=schedule,
-                        init=str(WARM) if "warm" in flags else None)
+                        init=str(WARM_FILE[0]) if "warm" in flags else None, **over_opts)
     return opts, preset_with(preset_name, **over)
 
 
@@ -97,16 +111,14 @@ def source(work: Path):
 
 
 def make_step(src, preset_name: str, variant: str, seed: int = 0):
-    """``(step(phase) -> loss, model, opts)`` for one variant of the training step."""
-    from dualscale.propagate.train import TrainOptions, build, preset_with, train_step
+    """``(step(phase) -> loss, model, preset)`` for one variant of the training step (any flags of
+    :func:`recipe`; those that change only the run's length or start, ``warm``, ``ocN``, ``itsN``,
+    leave the step as it is)."""
+    from dualscale.propagate.train import build, effective_preset, train_step
 
-    flags = set(variant.split("+"))
-    bad = flags - {"base", "fp32", "cl", "compile"}
-    if bad:
-        raise SystemExit(f"unknown variant flags {sorted(bad)}")
-    opts = TrainOptions(amp="fp32" not in flags, channels_last="cl" in flags, compile="compile" in flags,
-                        progress=False, seed=seed)
-    preset = preset_with(preset_name)
+    opts, preset = recipe(variant, preset_name, 1)
+    opts = replace(opts, seed=seed, init=None, schedule="constant")
+    preset = effective_preset(preset, opts)
     model, optim, scaler, loss_fn = build([src], preset, opts)
     gen = torch.Generator().manual_seed(seed)
     model.train()
@@ -296,7 +308,7 @@ def accuracy(work: Path, preset: str, variants: list[str], iterations: int, json
         t = time.perf_counter()
         train([src], p, model, opts)
         sec = time.perf_counter() - t
-        rows.append((f"{v} ({p.iterations} x {p.batch}, lr {p.lr:g} {opts.schedule})", sec, l0, load(), scores(work, model, work / f"pred_variant_{v.replace('+', '_')}")))
+        rows.append((f"{v} ({p.iterations} x {p.batch}, lr {p.lr:g} {opts.schedule or p.schedule})", sec, l0, load(), scores(work, model, work / f"pred_variant_{v.replace('+', '_')}")))
         sc = rows[-1][4]
         print(f"{rows[-1][0]}: {sec:.0f} s, load {l0}-{rows[-1][3]}, {time.strftime('%H:%M')}; "
               + ", ".join(f"{m} {sc[m]['l1']:.4f}/{sc[m]['ssim']:.3f}" for m in sc), file=sys.stderr, flush=True)
@@ -328,9 +340,12 @@ def main() -> int:
     ap.add_argument("--variants", help="compare these step variants instead of profiling, e.g. base,fp32,cl")
     ap.add_argument("--accuracy", type=int, metavar="ITERATIONS",
                     help="with --variants: train each variant this many iterations and score it on the guidance")
+    ap.add_argument("--warm", help=f"model file of the 'warm' flag (default: {WARM.relative_to(REPO)})")
     ap.add_argument("--json", help="with --accuracy: also write the rows as JSON to this file (one preset)")
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
+    if a.warm:
+        WARM_FILE[0] = Path(a.warm)
     import platform
 
     print(f"torch {torch.__version__}, {torch.get_num_threads()} thread(s), {os.cpu_count()} cores "

@@ -84,3 +84,26 @@ def test_sample_batch_pairs_image_and_maps(twill):
         crop = y["albedo"][b].numpy()
         hits = [(i, j) for i in range(17) for j in range(17) if np.array_equal(full[:, i:i + 16, j:j + 16], crop)]
         assert hits
+
+
+def test_sample_batch_diffuse_fraction(twill):
+    """diffuse_fraction=1 takes every crop from the diffuse light's mean image (the guidance's
+    lighting); 0 keeps the uniform sampler's stream exactly; a source without a diffuse light
+    samples uniformly whatever the fraction."""
+    from dataclasses import replace
+
+    s = load_source(twill)
+    assert "diffuse" not in s.light_names  # every 16th LED: no synthesised diffuse light
+    x0, _ = sample_batch([s], 6, 16, torch.Generator().manual_seed(2))
+    x1, _ = sample_batch([s], 6, 16, torch.Generator().manual_seed(2), diffuse_fraction=0.0)
+    assert torch.equal(x0, x1)
+    x2, _ = sample_batch([s], 6, 16, torch.Generator().manual_seed(2), diffuse_fraction=1.0)
+    assert x2.shape == x0.shape  # no diffuse light: uniform draws (another stream, same shapes)
+    # give the source a diffuse light: a constant image, so every diffuse crop is that constant
+    d = torch.full((1, 2, 3, *s.size), 0.25, dtype=s.pairs.dtype)
+    sd = replace(s, pairs=torch.cat([s.pairs, d]), light_names=[*s.light_names, "diffuse"])
+    xd, _ = sample_batch([sd], 8, 16, torch.Generator().manual_seed(2), diffuse_fraction=1.0)
+    assert torch.all(xd == 0.25)
+    xh, _ = sample_batch([sd], 64, 16, torch.Generator().manual_seed(2), diffuse_fraction=0.5)
+    share = float((xh == 0.25).flatten(1).all(1).float().mean())
+    assert 0.3 < share < 0.7

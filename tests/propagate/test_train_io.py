@@ -157,3 +157,19 @@ def test_sources_must_agree(twill, tmp_path):
         check_sources([a, b])
     x, _ = sample_batch([a, a], 2, 16, torch.Generator())
     assert x.shape[0] == 2
+
+
+def test_style_and_diffuse_options_enter_the_run(twill, tmp_path):
+    """style_weight=0 drops the style term from the loss; a checkpoint of a run with other loss or
+    sampling options is not resumed by a run with the defaults."""
+    src = [load_source(twill)]
+    pre = preset_with("quick", iterations=2, batch=2, crop=16)
+    res = train(src, pre, tmp_path / "a.dsp", _opts(style_weight=0.0))
+    assert "style" not in res.history[-1]
+    res = train(src, pre, tmp_path / "b.dsp", _opts())
+    assert "style" in res.history[-1]
+    train(src, pre, tmp_path / "c.dsp", _opts(diffuse_fraction=0.5, style_triplets=1))
+    info = read_model_file(tmp_path / "c.dsp")["train"]
+    assert info["diffuse_fraction"] == 0.5 and info["style"] == [0.25, 1]
+    with pytest.raises(ValueError, match="different run"):
+        train(src, preset_with("quick", iterations=4, batch=2, crop=16), tmp_path / "c.dsp", _opts(resume=True))

@@ -26,13 +26,24 @@ def cmd_train(args: argparse.Namespace) -> int:
     sigma = (0.1, args.blur_sigma_max)
     opts = TrainOptions(width=args.width, perceptual=args.perceptual, amp=not args.no_amp, blur_sigma=sigma,
                         seed=args.seed, checkpoint_every=args.checkpoint_every, resume=args.resume, init=args.init,
-                        progress=want_progress(args), device=args.device, schedule=args.schedule)
+                        progress=want_progress(args), device=args.device, schedule=args.schedule,
+                        diffuse_fraction=args.diffuse_fraction)
     _refuse_foreign_model(Path(args.output), [s.name for s in sources], args.overwrite)
     with output_folder(args, "propagate train", record=False, folder=Path(args.output).absolute().parent):
         res = train(sources, preset, args.output, opts)
     print(f"wrote {args.output} ({res.iterations} iterations, {res.seconds:.1f} s this run, "
           f"final loss {res.history[-1]['loss']:.4f})")
     return 0
+
+
+def _fraction(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not 0 <= v <= 1:
+        raise argparse.ArgumentTypeError(f"must be in [0, 1], got {text}")
+    return v
 
 
 def _refuse_foreign_model(model: Path, names: list[str], overwrite: bool) -> None:
@@ -138,9 +149,12 @@ def register(subparsers) -> None:
     t.add_argument("--iterations", type=int, help="override the preset's iteration count")
     t.add_argument("--batch", type=int, help="override the preset's batch size")
     t.add_argument("--lr", type=float, help="override the preset's learning rate")
-    t.add_argument("--schedule", choices=SCHEDULES, default="constant",
+    t.add_argument("--schedule", choices=SCHEDULES, default=None,
                    help="learning-rate schedule: constant (the preset's lr) or onecycle (one cycle peaking at the lr; "
-                        "pair it with a higher --lr, docs/PROPAGATION.md; default: constant)")
+                        "pair it with a higher --lr, docs/PROPAGATION.md; default: the preset's)")
+    t.add_argument("--diffuse-fraction", type=_fraction, default=None, metavar="F",
+                   help="share of training crops under the diffuse light, the guidance's lighting, in [0, 1] "
+                        "(default: the preset's)")
     t.add_argument("--crop", type=int, help="override the 128 px crop (multiple of 16)")
     t.add_argument("--width", type=int, help="width factor W (default 16 for one dataset, 32 for several)")
     t.add_argument("--perceptual", choices=sorted(PERCEPTUAL), default="gram",

@@ -397,9 +397,15 @@ def check_sources(sources: list[Source]) -> list[str]:
     return first
 
 
-def sample_batch(sources: list[Source], batch: int, crop: int,
-                 gen: torch.Generator) -> tuple[Tensor, dict[str, Tensor]]:
+def sample_batch(sources: list[Source], batch: int, crop: int, gen: torch.Generator,
+                 diffuse_fraction: float = 0.0) -> tuple[Tensor, dict[str, Tensor]]:
     """Random crops: per element a random source, light, mode (P0, P90, mean) and position.
+
+    ``diffuse_fraction``: the probability that an element is the source's diffuse light without
+    analyser (its mean mode), the lighting of the guidance image (the dome's diffuse group,
+    docs/PROPAGATION.md "Sampling"); the rest draw a light and mode uniformly as before.  A source
+    without a diffuse light always draws uniformly.  At ``0`` the random stream is that of the
+    uniform sampler (no extra draws).
 
     Returns ``(images (B, 3, crop, crop) float32, {map: (B, C, crop, crop)})``.
     """
@@ -410,8 +416,12 @@ def sample_batch(sources: list[Source], batch: int, crop: int,
         h, w = s.size
         if h < crop or w < crop:
             raise ValueError(f"{s.name}: images are {(h, w)}, smaller than the {crop}px crop")
-        li = int(torch.randint(s.n_lights, (1,), generator=gen))
-        mode = int(torch.randint(MODES, (1,), generator=gen))
+        if diffuse_fraction > 0 and float(torch.rand((), generator=gen)) < diffuse_fraction \
+                and "diffuse" in s.light_names:
+            li, mode = s.light_names.index("diffuse"), 2
+        else:
+            li = int(torch.randint(s.n_lights, (1,), generator=gen))
+            mode = int(torch.randint(MODES, (1,), generator=gen))
         y = int(torch.randint(h - crop + 1, (1,), generator=gen))
         x = int(torch.randint(w - crop + 1, (1,), generator=gen))
         xs.append(s.crop_image(li, mode, y, x, crop))

@@ -41,14 +41,16 @@ from dualscale.formats.torchfile import load_torch, save_torch
 from .augment import BLUR_SIGMA, augment
 from .data import DiskSource, Source, check_sources, sample_batch
 from .model import load_model, save_model
-from .losses import PropagationLoss
+from .losses import STYLE_WEIGHT, PropagationLoss
 from .schedule import check_extend, make_schedule
 from .unet import PropagationUNet, UNetConfig
 
 
 @dataclass(frozen=True)
 class Preset:
-    """Optimisation settings; ``crop`` in pixels."""
+    """Optimisation settings; ``crop`` in pixels; ``schedule`` a key of
+    :data:`~dualscale.propagate.schedule.SCHEDULES` (``lr`` is its peak for ``"onecycle"``);
+    ``diffuse_fraction`` the share of crops under the diffuse light (:func:`~.data.sample_batch`)."""
 
     name: str
     iterations: int
@@ -56,6 +58,8 @@ class Preset:
     lr: float = 0.002
     weight_decay: float = 0.0
     crop: int = 128
+    schedule: str = "constant"
+    diffuse_fraction: float = 0.0
 
 
 PRESETS: dict[str, Preset] = {
@@ -71,7 +75,14 @@ class TrainOptions:
     """Everything besides the preset; ``width=None`` picks 16 for one dataset, 32 for several.
 
     ``schedule``: the learning-rate schedule, a key of :data:`dualscale.propagate.schedule.SCHEDULES`
-    (``"constant"``: the preset's ``lr``; ``"onecycle"``: one cycle peaking at the preset's ``lr``)."""
+    (``"constant"``: the preset's ``lr``; ``"onecycle"``: one cycle peaking at the preset's ``lr``);
+    ``None``: the preset's.
+
+    ``style_weight``, ``style_triplets``: the style term's weight in the loss (``0`` drops it) and
+    the random channel triplets it scores per step (:class:`~dualscale.propagate.losses.PropagationLoss`).
+
+    ``diffuse_fraction``: the share of crops taken from the diffuse light, the guidance's lighting
+    (:func:`~dualscale.propagate.data.sample_batch`); ``None``: the preset's."""
 
     width: int | None = None
     decoder_ratio: float = 0.5
@@ -86,7 +97,10 @@ class TrainOptions:
     device: str = "cpu"
     channels_last: bool = True
     compile: bool = False
-    schedule: str = "constant"
+    schedule: str | None = None
+    style_weight: float = STYLE_WEIGHT
+    style_triplets: int = 2
+    diffuse_fraction: float | None = None
 
 
 @dataclass
@@ -145,7 +159,7 @@ def build(sources: list[Source | DiskSource], preset: Preset, opts: TrainOptions
     optim = torch.optim.Adam(model.parameters(), lr=preset.lr, weight_decay=preset.weight_decay)
     cuda = opts.device.startswith("cuda")
     scaler = torch.amp.GradScaler("cuda", enabled=cuda and opts.amp)
-    loss_fn = PropagationLoss(maps, opts.perceptual).to(opts.device)
+    loss_fn = PropagationLoss(maps, opts.perceptual, opts.style_weight, opts.style_triplets).to(opts.device)
     return model, optim, scaler, loss_fn
 
 
@@ -154,18 +168,19 @@ def train(sources: list[Source | DiskSource], preset: Preset, out: str | Path, o
     """Train on ``sources`` and write the model file ``out`` (+ ``out.ckpt`` checkpoints)."""
     from tqdm import tqdm
 
+    preset = effective_preset(preset, opts)
     model, optim, scaler, loss_fn = build(sources, preset, opts)
     config = model.config
     # before the optimiser state is loaded: the scheduler sets the optimiser's lr when it is made
-    sched = make_schedule(opts.schedule, optim, max(preset.iterations, 1), preset.lr)
+    sched = make_schedule(preset.schedule, optim, max(preset.iterations, 1), preset.lr)
     gen = torch.Generator().manual_seed(opts.seed)
     start, history = 0, []
     ckpt = checkpoint_path(out)
     # the run's identity; the iteration count may grow between resumes
     run_id = {"preset": {k: v for k, v in asdict(preset).items() if k != "iterations"},
               "config": config.to_json(), "sources": [s.name for s in sources]}
-    if opts.schedule != "constant":  # keeps the identity of constant-lr checkpoints written before schedules
-        run_id["schedule"] = opts.schedule
+    if (opts.style_weight, opts.style_triplets) != (STYLE_WEIGHT, 2):  # keeps the default loss's identity
+        run_id["style"] = [opts.style_weight, opts.style_triplets]
     if opts.resume and ckpt.is_file():
         st = load_torch(ckpt, "training checkpoint", "delete it (training restarts) or drop --resume",
                         map_location=opts.device)
@@ -191,7 +206,7 @@ def train(sources: list[Source | DiskSource], preset: Preset, out: str | Path, o
             # a finished run whose model was not written (killed while saving it): write it now
             preset = replace(preset, iterations=start)
         # start == iterations: a run stopped after its last checkpoint; the loop is empty, the model is written
-        check_extend(opts.schedule, ckpt, st.get("target"), preset.iterations)
+        check_extend(preset.schedule, ckpt, st.get("target"), preset.iterations)
     t0 = time.perf_counter()
     model.train()
     bar = tqdm(range(start, preset.iterations), initial=start, total=preset.iterations, disable=not opts.progress,
@@ -211,7 +226,8 @@ def train(sources: list[Source | DiskSource], preset: Preset, out: str | Path, o
     info: dict[str, Any] = {"preset": asdict(preset), "iterations": preset.iterations, "seconds_this_run": seconds,
                             "resumed_from": start, "datasets": [s.name for s in sources],
                             "perceptual": opts.perceptual, "amp": opts.amp, "init": opts.init,
-                            "schedule": opts.schedule,
+                            "schedule": preset.schedule, "style": [opts.style_weight, opts.style_triplets],
+                            "diffuse_fraction": preset.diffuse_fraction,
                             "blur_sigma": list(opts.blur_sigma), "final": history[-1] if history else {}}
     save_model(out, model, input_reference(sources), info, half=half_file)
     return TrainResult(model, preset.iterations, seconds, start, history)
@@ -235,7 +251,7 @@ def train_step(model: PropagationUNet, optim, scaler, loss_fn: PropagationLoss, 
     (bench/bench_propagate_profile.py); a no-op by default.  A non-finite loss is a
     :class:`FloatingPointError` naming iteration ``it + 1``."""
     with phase("data.crops"):
-        x, y = sample_batch(sources, preset.batch, preset.crop, gen)
+        x, y = sample_batch(sources, preset.batch, preset.crop, gen, preset.diffuse_fraction)
     with phase("data.augment"):
         x = augment(x, gen, len(sources), opts.blur_sigma).to(opts.device)
         if opts.channels_last:
@@ -266,6 +282,12 @@ def _save_checkpoint(path: Path, model, optim, scaler, gen, iteration: int, hist
     if sched is not None:
         st["sched"] = sched.state_dict()
     save_torch(path, st)
+
+
+def effective_preset(preset: Preset, opts: TrainOptions) -> Preset:
+    """``preset`` with the options' ``schedule`` and ``diffuse_fraction`` where they are set."""
+    over = {"schedule": opts.schedule, "diffuse_fraction": opts.diffuse_fraction}
+    return replace(preset, **{k: v for k, v in over.items() if v is not None})
 
 
 def preset_with(name: str, **overrides: Any) -> Preset:
