@@ -30,6 +30,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from dualscale.propagate.train import WARM_START
+
 TEXEL_UM = 6.0
 MICRO = 256
 GUIDE = 768
@@ -137,8 +139,8 @@ def stage_warm(work: Path, repo: Path, iterations: int, batch: int, seeds: tuple
                out: Path | None = None, schedule: str = "constant", lr: float = 0.002) -> None:
     """Train the generic warm-start model on ``WARM_MATERIALS`` (never ``EVAL``), one dataset per
     material and seed (seed 0 is the prep stage's, others are made here), and save it as float16 at
-    ``out`` (default ``models/warmstart_w16.dsp``); does nothing when ``out`` exists."""
-    out = out or repo / "models" / "warmstart_w16.dsp"
+    ``out`` (default ``WARM_START``, the packaged model); does nothing when ``out`` exists."""
+    out = out or WARM_START
     if out.is_file():
         return
     from dualscale.propagate.data import load_source
@@ -176,7 +178,7 @@ def stage_presets(work: Path, repo: Path, runs: list[str], json_out: str | None 
     start = load()
     for run in runs:  # e.g. quick, fast, quick+warm
         preset, _, warm = run.partition("+")
-        extra = ["--init", str(repo / "models" / "warmstart_w16.dsp")] if warm else []
+        extra = ["--init", str(WARM_START)] if warm else []
         model = work / f"model_{preset}{'_warm' if warm else ''}.dsp"
         for f in (model, Path(str(model) + ".ckpt")):
             f.unlink(missing_ok=True)
@@ -264,7 +266,7 @@ def _big_inputs(work: Path, repo: Path, model: str | None, size: int = 4072) -> 
             m = found[0]
         else:
             m = work / "warmstart_w16.dsp"
-            shutil.copy(repo / "models" / "warmstart_w16.dsp", m)
+            shutil.copy(WARM_START, m)
     else:
         m = Path(model)
     if not onnx_path(m, "int8").is_file() or onnx_path(m, "int8").stat().st_mtime < m.stat().st_mtime:
@@ -599,9 +601,12 @@ def _micro_texel_run(d: Path, out: Path, preset: str, tex: float) -> tuple[dict,
     return small, t_train, time.perf_counter() - t
 
 
-def stage_bridge(work: Path, preset: str, configs: list[str]) -> None:
+def stage_bridge(work: Path, preset: str, configs: list[str], inits: tuple[str, ...] = ("",),
+                 micro: bool = True) -> None:
     """Propagation accuracy on the guidance grid: micro data resampled to the guidance texel
-    (``run_propagation``) against training at the micro texel on an enlarged guidance."""
+    (``run_propagation``, once per warm start of ``inits``: ``""`` the preset's, ``"none"`` random
+    weights, or a model file) against training at the micro texel on an enlarged guidance
+    (``micro``)."""
     from dualscale.formats.maps import load_maps
     from dualscale.propagate.metrics import compare
     from dualscale.propagate.stage import run_propagation
@@ -621,14 +626,19 @@ def stage_bridge(work: Path, preset: str, configs: list[str]) -> None:
         sb = compare(base, gt)
         print(f"| {name} | constant (mean of the micro maps) | - | - | "
               + " | ".join(f"{sb[m]['l1']:.3f} / {sb[m]['ssim']:.2f}" for m in maps) + " |")
-        l0 = load()
-        s = run_propagation(d / "micro", d / "maps", d / "mid", work / f"bridge_{name}_A", preset=preset,
-                            threads=THREADS)
-        pred, _ = load_maps(work / f"bridge_{name}_A" / "maps")
-        sa = compare({k: v.numpy() for k, v in pred.items()}, gt)
-        print(f"| {name} | guidance ({tex * 1000:.1f} um; micro resampled to {s['training_size_px'][0]} px, crop "
-              f"{s['crop']}) | {s['train_seconds']:.0f} ({l0}) | {s['run_seconds']:.0f} | "
-              + " | ".join(f"{sa[m]['l1']:.3f} / {sa[m]['ssim']:.2f}" for m in maps) + " |")
+        for init in inits:
+            l0 = load()
+            out = work / (f"bridge_{name}_A" + (f"_{Path(init).stem}" if init else ""))
+            s = run_propagation(d / "micro", d / "maps", d / "mid", out, preset=preset, threads=THREADS,
+                                init=init or None)
+            pred, _ = load_maps(out / "maps")
+            sa = compare({k: v.numpy() for k, v in pred.items()}, gt)
+            start = f"; init {init}" if init else ""
+            print(f"| {name} | guidance ({tex * 1000:.1f} um; micro resampled to {s['training_size_px'][0]} px, crop "
+                  f"{s['crop']}{start}) | {s['train_seconds']:.0f} ({l0}) | {s['run_seconds']:.0f} | "
+                  + " | ".join(f"{sa[m]['l1']:.3f} / {sa[m]['ssim']:.2f}" for m in maps) + " |", flush=True)
+        if not micro:
+            continue
         l0 = load()
         (work / f"bridge_{name}_B").mkdir(exist_ok=True)
         mb, t_train, t_run = _micro_texel_run(d, work / f"bridge_{name}_B", preset, tex)
@@ -652,7 +662,7 @@ def stage_real(work: Path, repo: Path) -> None:
         print(f"\n(real photos: {data} absent, skipped)")
         return
     model = work / "warm_real.dsp"
-    model.write_bytes((repo / "models" / "warmstart_w16.dsp").read_bytes())
+    model.write_bytes(WARM_START.read_bytes())
     export_model(model, check=False)
     om = OnnxModel.open(onnx_paths(model)[0], THREADS)
 
@@ -696,6 +706,9 @@ def main() -> int:
     ap.add_argument("--stages", default="prep,warm,presets,parity,seams,profile,big")
     ap.add_argument("--runs", default="quick,quick+warm,fast,fast+warm")
     ap.add_argument("--bridge-preset", default="fast", help="training preset of the bridge stage")
+    ap.add_argument("--bridge-inits", default="", help="bridge stage: comma list of warm starts for the "
+                    "guidance-texel rows ('' the preset's, 'none', or a model file; default: the preset's)")
+    ap.add_argument("--bridge-no-micro", action="store_true", help="bridge stage: skip the micro-texel rows")
     ap.add_argument("--bridge-configs", default=",".join(BRIDGE_CONFIGS), help="test beds of the bridge stage")
     ap.add_argument("--big-model", help="model of the big/profile stages (default: see _big_inputs)")
     ap.add_argument("--big-configs", default="before,after,int8", help=f"runs of the big stage, of {list(BIG_CONFIGS)}")
@@ -703,10 +716,10 @@ def main() -> int:
     ap.add_argument("--quiet-below", type=float, help="big stage: wait before each run until the 1-min load is "
                     "under this (a shared machine)")
     ap.add_argument("--profile-rounds", type=int, default=2, help="rounds of the profile stage's per-tile timings")
-    ap.add_argument("--warm-iterations", type=int, default=300)
+    ap.add_argument("--warm-iterations", type=int, default=1000)
     ap.add_argument("--warm-batch", type=int, default=8)
-    ap.add_argument("--warm-seeds", default="0", help="warm stage: material seeds, comma list (default: 0)")
-    ap.add_argument("--warm-out", help="warm stage: model file to write (default: models/warmstart_w16.dsp)")
+    ap.add_argument("--warm-seeds", default="0,1", help="warm stage: material seeds, comma list (default: 0,1)")
+    ap.add_argument("--warm-out", help="warm stage: model file to write (default: the packaged dualscale/propagate/models/warmstart_w16.dsp)")
     ap.add_argument("--warm-schedule", default="constant", help="warm stage: learning-rate schedule")
     ap.add_argument("--warm-lr", type=float, default=0.002, help="warm stage: (peak) learning rate")
     ap.add_argument("--json", help="presets stage: also write its rows as JSON to this file (for "
@@ -741,7 +754,14 @@ def main() -> int:
     if "real" in st:
         stage_real(work, repo)
     if "bridge" in st:
-        stage_bridge(work, a.bridge_preset, a.bridge_configs.split(","))
+        from dataclasses import replace as _replace
+
+        from dualscale.propagate.train import LEGACY_PRESETS, PRESETS
+
+        for k, v in LEGACY_PRESETS.items():  # "legacy-fast" etc.: the presets before issue 29, for old-vs-new rows
+            PRESETS.setdefault(f"legacy-{k}", _replace(v, name=f"legacy-{k}"))
+        stage_bridge(work, a.bridge_preset, a.bridge_configs.split(","), tuple(a.bridge_inits.split(",")),
+                     not a.bridge_no_micro)
     return 0
 
 

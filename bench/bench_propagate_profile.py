@@ -27,11 +27,19 @@ the default before issue 29), ``fp32`` (no autocast), ``cl`` (channels-last: tod
 ``compile``) times several settings of the step, alternated step by step.  The profile tables
 use today's defaults (:class:`~dualscale.propagate.train.TrainOptions`).
 
-With ``--accuracy`` three more flags choose the recipe (issue 29 §2, "Schedule and warm start"):
-``warm`` (warm start from ``models/warmstart_w16.dsp``), ``ocN`` (one-cycle learning rate,
-peak ``N / 1000``: ``oc8`` peaks at 0.008) and ``bN`` (batch ``N`` with the iteration count
-scaled so that the samples stay ``N_iterations x preset batch``: ``b16`` on ``fast`` at 300 is
-150 x 16), e.g. ``--variants cl+warm,cl+warm+oc8,cl+warm+oc8+b16``.
+With ``--accuracy`` more flags choose the recipe (issue 29 §2, "Schedule and warm start"). A
+variant starts from the named preset as it is today (:data:`~dualscale.propagate.train.PRESETS`),
+or as it was before issue 29 with ``legacy`` (:data:`~dualscale.propagate.train.LEGACY_PRESETS`:
+constant lr 0.002, random weights, every light alike); the other flags change it:
+``warm`` (warm start from the packaged ``warmstart_w16.dsp``, or ``--warm``), ``cold`` (random
+weights), ``ocN`` (one-cycle learning rate, peak ``N / 1000``: ``oc8`` peaks at 0.008), ``dfN``
+(``N`` % of the crops under the diffuse light), ``stN`` (``N`` style triplets per step, ``st0``
+no style term), ``cropN`` (``N`` px crops), ``bN`` (batch ``N`` with the iteration count scaled
+so that the samples stay ``N_iterations x preset batch``: ``b16`` on ``fast`` at 300 is 150 x 16)
+and ``itsN`` (``N`` iterations, whatever ``--accuracy`` says), e.g.
+``--variants cl+legacy,cl+warm+oc8,cl+warm+oc8+b16``.  The step timings (``--variants`` without
+``--accuracy``) take every flag; those that change only the run's length or start (``warm``,
+``ocN``, ``itsN``) leave the step as it is.
 """
 
 from __future__ import annotations
@@ -55,7 +63,7 @@ from dualscale.propagate.train import PHASES  # noqa: E402
 
 
 REPO = Path(__file__).resolve().parent.parent
-WARM = REPO / "models" / "warmstart_w16.dsp"
+from dualscale.propagate.train import WARM_START as WARM  # noqa: E402
 STEP_FLAGS = {"base", "fp32", "cl", "compile"}
 WARM_FILE = [WARM]  # the ``warm`` flag's model; ``--warm`` replaces it
 
@@ -64,14 +72,14 @@ def recipe(variant: str, preset_name: str, iterations: int):
     """``(TrainOptions, Preset)`` of an ``--accuracy`` variant (the flags of the module docstring)."""
     import re
 
-    from dualscale.propagate.train import TrainOptions, preset_with
+    from dualscale.propagate.train import LEGACY_PRESETS, TrainOptions, preset_with
 
     flags = set(variant.split("+"))
-    base = preset_with(preset_name)
+    base = LEGACY_PRESETS[preset_name] if "legacy" in flags else preset_with(preset_name)
     over: dict = {"iterations": iterations}
     schedule = None  # the preset's
     over_opts: dict = {}
-    for f in flags - STEP_FLAGS - {"warm"}:
+    for f in flags - STEP_FLAGS - {"warm", "cold", "legacy"}:
         if m := re.fullmatch(r"oc(\d+)", f):
             schedule, over["lr"] = "onecycle", int(m[1]) / 1000
         elif m := re.fullmatch(r"st(\d+)", f):
@@ -92,8 +100,9 @@ def recipe(variant: str, preset_name: str, iterations: int):
             over["iterations"] = int(m[1])
     opts = TrainOptions(amp="fp32" not in flags, channels_last="cl" in flags, compile="compile" in flags,
                         progress=False, checkpoint_every=10 ** 9, schedule=schedule,
-                        init=str(WARM_FILE[0]) if "warm" in flags else None, **over_opts)
-    return opts, preset_with(preset_name, **over)
+                        init=str(WARM_FILE[0]) if "warm" in flags else ("none" if flags & {"cold", "legacy"} else None),
+                        **over_opts)
+    return opts, replace(base, **over)
 
 
 def load() -> str:
@@ -117,7 +126,7 @@ def make_step(src, preset_name: str, variant: str, seed: int = 0):
     from dualscale.propagate.train import build, effective_preset, train_step
 
     opts, preset = recipe(variant, preset_name, 1)
-    opts = replace(opts, seed=seed, init=None, schedule="constant")
+    opts = replace(opts, seed=seed, init="none", schedule="constant")
     preset = effective_preset(preset, opts)
     model, optim, scaler, loss_fn = build([src], preset, opts)
     gen = torch.Generator().manual_seed(seed)
@@ -301,14 +310,15 @@ def accuracy(work: Path, preset: str, variants: list[str], iterations: int, json
     start = load()
     for v in variants:
         opts, p = recipe(v, preset, iterations)
-        model = work / f"variant_{v.replace('+', '_')}.dsp"
+        tag = f"{v.replace('+', '_')}_{p.iterations}" + (f"_{WARM_FILE[0].stem}" if opts.init else "")
+        model = work / f"variant_{tag}.dsp"  # one file per run: several benches may share the work folder
         for f in (model, Path(str(model) + ".ckpt")):
             f.unlink(missing_ok=True)
         l0 = load()
         t = time.perf_counter()
         train([src], p, model, opts)
         sec = time.perf_counter() - t
-        rows.append((f"{v} ({p.iterations} x {p.batch}, lr {p.lr:g} {opts.schedule or p.schedule})", sec, l0, load(), scores(work, model, work / f"pred_variant_{v.replace('+', '_')}")))
+        rows.append((f"{v} ({p.iterations} x {p.batch}, lr {p.lr:g} {opts.schedule or p.schedule})", sec, l0, load(), scores(work, model, work / f"pred_variant_{tag}")))
         sc = rows[-1][4]
         print(f"{rows[-1][0]}: {sec:.0f} s, load {l0}-{rows[-1][3]}, {time.strftime('%H:%M')}; "
               + ", ".join(f"{m} {sc[m]['l1']:.4f}/{sc[m]['ssim']:.3f}" for m in sc), file=sys.stderr, flush=True)
@@ -340,7 +350,7 @@ def main() -> int:
     ap.add_argument("--variants", help="compare these step variants instead of profiling, e.g. base,fp32,cl")
     ap.add_argument("--accuracy", type=int, metavar="ITERATIONS",
                     help="with --variants: train each variant this many iterations and score it on the guidance")
-    ap.add_argument("--warm", help=f"model file of the 'warm' flag (default: {WARM.relative_to(REPO)})")
+    ap.add_argument("--warm", help=f"model file of the 'warm' flag (default: {WARM.name}, packaged)")
     ap.add_argument("--json", help="with --accuracy: also write the rows as JSON to this file (one preset)")
     a = ap.parse_args()
     torch.set_num_threads(a.threads)

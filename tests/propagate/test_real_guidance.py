@@ -24,7 +24,7 @@ import pytest
 from dualscale.cli import main
 
 DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "fabric-rt"
-WARM = Path(__file__).resolve().parents[2] / "models" / "warmstart_w16.dsp"
+from dualscale.propagate.train import WARM_START as WARM
 PHOTOS = sorted(p.name for p in DATA.glob("*.png")) if DATA.is_dir() else []
 pytestmark = pytest.mark.skipif(not PHOTOS, reason=f"real fabric photos not found at {DATA} (shared data absent)")
 
@@ -35,7 +35,7 @@ RANGES = {"albedo": (0, 1), "roughness": (0, 1), "anisotropy": (0, 1), "tangent"
 @pytest.fixture(scope="module")
 def model(tmp_path_factory):
     m = tmp_path_factory.mktemp("warm") / "warm.dsp"
-    m.write_bytes(WARM.read_bytes())  # ONNX is exported next to the model: keep models/ clean
+    m.write_bytes(WARM.read_bytes())  # ONNX is exported next to the model: keep the package clean
     return m
 
 

@@ -1,6 +1,6 @@
 """End to end on the virtual dome: train on a micro capture, propagate to a larger guidance image
 of the same material (another seed) and beat the constant "mean training map" baseline.
-Uses the shipped warm-start model, so it also checks that ``models/warmstart_w16.dsp`` loads
+Uses the shipped warm-start model, so it also checks that ``dualscale/propagate/models/warmstart_w16.dsp`` loads
 and helps (twill is not in its training set)."""
 
 from pathlib import Path
@@ -11,7 +11,7 @@ import pytest
 from dualscale.cli import main
 
 pytestmark = pytest.mark.slow
-WARM = Path(__file__).resolve().parents[2] / "models" / "warmstart_w16.dsp"
+from dualscale.propagate.train import WARM_START as WARM
 
 
 def test_propagation_beats_mean_baseline(tmp_path):

@@ -23,11 +23,12 @@ def _opts(**kw):
 
 
 def test_resume_equals_uninterrupted(twill, tmp_path):
+    """A constant-rate run may be resumed to more iterations (a one-cycle one may not: its own test)."""
     src = [load_source(twill)]
     pre = lambda n: preset_with("quick", iterations=n, batch=2, crop=16)  # noqa: E731
-    full = train(src, pre(6), tmp_path / "full.dsp", _opts(amp=False)).model
-    train(src, pre(4), tmp_path / "part.dsp", _opts(amp=False))
-    res = train(src, pre(6), tmp_path / "part.dsp", _opts(amp=False, resume=True))
+    full = train(src, pre(6), tmp_path / "full.dsp", _opts(amp=False, schedule="constant")).model
+    train(src, pre(4), tmp_path / "part.dsp", _opts(amp=False, schedule="constant"))
+    res = train(src, pre(6), tmp_path / "part.dsp", _opts(amp=False, resume=True, schedule="constant"))
     assert res.resumed_from == 4 and len(res.history) == 6
     for (k, a), b in zip(full.state_dict().items(), res.model.state_dict().values()):
         assert torch.allclose(a, b, atol=1e-6), k
@@ -83,7 +84,7 @@ def test_onecycle_schedule_trace_and_resume(twill, tmp_path, monkeypatch):
         train(src, replace(pre, iterations=12), tmp_path / "part.dsp", _opts(amp=False, resume=True,
                                                                               schedule="onecycle"))
     with pytest.raises(ValueError, match="different run"):  # a constant-lr run does not take the one-cycle checkpoint
-        train(src, pre, tmp_path / "part.dsp", _opts(amp=False, resume=True))
+        train(src, pre, tmp_path / "part.dsp", _opts(amp=False, resume=True, schedule="constant"))
     with pytest.raises(ValueError, match="schedule must be one of"):
         train(src, pre, tmp_path / "x.dsp", _opts(schedule="cosine"))
 
@@ -173,3 +174,20 @@ def test_style_and_diffuse_options_enter_the_run(twill, tmp_path):
     assert info["diffuse_fraction"] == 0.5 and info["style"] == [0.25, 1]
     with pytest.raises(ValueError, match="different run"):
         train(src, preset_with("quick", iterations=4, batch=2, crop=16), tmp_path / "c.dsp", _opts(resume=True))
+
+
+def test_resolve_init_and_packaged_warm_start():
+    """The packaged warm-start model is used where the preset warm-starts and the network is its
+    width; an explicit --init wins, 'none' trains from random weights."""
+    from dualscale.propagate.train import WARM_START, Preset, resolve_init
+
+    assert WARM_START.is_file()
+    warm, cold = Preset("w", 1, 1, warm_start=True), Preset("c", 1, 1)
+    w16, w32 = UNetConfig(("albedo",), 16), UNetConfig(("albedo",), 32)
+    assert resolve_init(warm, TrainOptions(), w16) == str(WARM_START)
+    assert resolve_init(warm, TrainOptions(), w32) is None  # the packaged model is W = 16
+    assert resolve_init(cold, TrainOptions(), w16) is None
+    assert resolve_init(warm, TrainOptions(init="none"), w16) is None
+    assert resolve_init(cold, TrainOptions(init="/x/m.dsp"), w16) == "/x/m.dsp"
+    src, _ = load_model(WARM_START)
+    assert (src.config.width, src.config.decoder_ratio) == (16, 0.5)

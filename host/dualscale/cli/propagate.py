@@ -160,7 +160,9 @@ def register(subparsers) -> None:
     t.add_argument("--perceptual", choices=sorted(PERCEPTUAL), default="gram",
                    help="perceptual loss of the style term (lpips_alex needs local weights; default: gram)")
     t.add_argument("--blur-sigma-max", type=float, default=3.0, help="blur sigma ~ U(0.1, MAX) px (default: 3; paper: 11)")
-    t.add_argument("--init", help="warm-start model file (e.g. models/warmstart_w16.dsp)")
+    t.add_argument("--init", metavar="MODEL|none",
+                   help="warm-start model file, or 'none' to train from random weights (default: the preset's: "
+                        "the packaged generic model where the preset warm-starts and the width is 16)")
     t.add_argument("--resume", action="store_true", help="continue from OUTPUT.ckpt")
     t.add_argument("--checkpoint-every", type=int, default=50, help="write OUTPUT.ckpt every N steps, for --resume (default: 50)")
     t.add_argument("--seed", type=int, default=0, help="seed of the initialisation, the crops and the augmentation (default: 0)")

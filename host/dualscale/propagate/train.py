@@ -50,7 +50,9 @@ from .unet import PropagationUNet, UNetConfig
 class Preset:
     """Optimisation settings; ``crop`` in pixels; ``schedule`` a key of
     :data:`~dualscale.propagate.schedule.SCHEDULES` (``lr`` is its peak for ``"onecycle"``);
-    ``diffuse_fraction`` the share of crops under the diffuse light (:func:`~.data.sample_batch`)."""
+    ``diffuse_fraction`` the share of crops under the diffuse light (:func:`~.data.sample_batch`);
+    ``warm_start``: start from the packaged generic model :data:`WARM_START` where it fits
+    (:func:`resolve_init`)."""
 
     name: str
     iterations: int
@@ -60,14 +62,28 @@ class Preset:
     crop: int = 128
     schedule: str = "constant"
     diffuse_fraction: float = 0.0
+    warm_start: bool = False
 
 
 PRESETS: dict[str, Preset] = {
+    # Section 7.4 as printed: Adam at a constant 0.002, random weights, every light alike
     "paper": Preset("paper", 5000, 40),
-    "balanced": Preset("balanced", 1000, 8),
-    "fast": Preset("fast", 300, 8),
-    "quick": Preset("quick", 100, 4),
+    # issue 29 (docs/PROPAGATION.md "Presets re-based"): the packaged warm start, one cycle peaking
+    # at 0.01, half the crops under the diffuse light; fast is a quarter of balanced's steps
+    "balanced": Preset("balanced", 1000, 8, lr=0.01, schedule="onecycle", diffuse_fraction=0.5, warm_start=True),
+    "fast": Preset("fast", 240, 8, lr=0.01, schedule="onecycle", diffuse_fraction=0.5, warm_start=True),
+    "quick": Preset("quick", 100, 4, lr=0.01, schedule="onecycle", diffuse_fraction=0.5, warm_start=True),
 }
+LEGACY_PRESETS: dict[str, Preset] = {
+    "balanced": Preset("balanced", 1000, 8), "fast": Preset("fast", 300, 8), "quick": Preset("quick", 100, 4),
+}
+"""The presets before issue 29 (constant lr 0.002, random weights, every light alike), for the
+benchmark's old-against-new rows (``bench/bench_propagate_profile.py`` flag ``legacy``)."""
+
+
+WARM_START = Path(__file__).resolve().parent / "models" / "warmstart_w16.dsp"
+"""The packaged generic warm-start model (W = 16, decoder ratio 1/2, the woven-fabric maps;
+``models/README.md`` next to it says how it was trained)."""
 
 
 @dataclass
@@ -82,7 +98,10 @@ class TrainOptions:
     the random channel triplets it scores per step (:class:`~dualscale.propagate.losses.PropagationLoss`).
 
     ``diffuse_fraction``: the share of crops taken from the diffuse light, the guidance's lighting
-    (:func:`~dualscale.propagate.data.sample_batch`); ``None``: the preset's."""
+    (:func:`~dualscale.propagate.data.sample_batch`); ``None``: the preset's.
+
+    ``init``: a warm-start model file; ``"none"``: random weights; ``None``: the preset's
+    (:func:`resolve_init`)."""
 
     width: int | None = None
     decoder_ratio: float = 0.5
@@ -142,16 +161,29 @@ def _autocast(device: str, enabled: bool):
     return torch.autocast(device.split(":")[0], dtype=dtype, enabled=enabled)
 
 
+def resolve_init(preset: Preset, opts: TrainOptions, config: UNetConfig) -> str | None:
+    """The warm-start model of a run, or ``None`` (random weights): ``opts.init`` when given
+    (``"none"``: random weights), else :data:`WARM_START` when ``preset.warm_start`` and the
+    network is the packaged model's (width 16, decoder ratio 1/2; a wider network, e.g. W = 32 for
+    several datasets, starts from random weights)."""
+    if opts.init is not None:
+        return None if opts.init.lower() == "none" else str(opts.init)
+    if preset.warm_start and (config.width, config.decoder_ratio) == (16, 0.5):
+        return str(WARM_START)
+    return None
+
+
 def build(sources: list[Source | DiskSource], preset: Preset, opts: TrainOptions):
     """``(model, optimiser, gradient scaler, loss)`` of a training run, seeded by ``opts.seed``
-    (the warm start ``opts.init`` applied)."""
+    (the warm start of :func:`resolve_init` applied)."""
     maps = check_sources(sources)
     width = opts.width or (16 if len(sources) == 1 else 32)
     config = UNetConfig(tuple(maps), width, opts.decoder_ratio)
     torch.manual_seed(opts.seed)
     model = PropagationUNet(config).to(opts.device)
-    if opts.init:
-        warm_start(model, opts.init)
+    init = resolve_init(preset, opts, config)
+    if init:
+        warm_start(model, init)
     if opts.channels_last:
         model = model.to(memory_format=torch.channels_last)
     if opts.compile:
@@ -225,7 +257,8 @@ def train(sources: list[Source | DiskSource], preset: Preset, out: str | Path, o
     model.eval().cpu()
     info: dict[str, Any] = {"preset": asdict(preset), "iterations": preset.iterations, "seconds_this_run": seconds,
                             "resumed_from": start, "datasets": [s.name for s in sources],
-                            "perceptual": opts.perceptual, "amp": opts.amp, "init": opts.init,
+                            "perceptual": opts.perceptual, "amp": opts.amp,
+                            "init": resolve_init(preset, opts, config),
                             "schedule": preset.schedule, "style": [opts.style_weight, opts.style_triplets],
                             "diffuse_fraction": preset.diffuse_fraction,
                             "blur_sigma": list(opts.blur_sigma), "final": history[-1] if history else {}}
