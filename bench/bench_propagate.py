@@ -628,7 +628,7 @@ def stage_bridge(work: Path, preset: str, configs: list[str], inits: tuple[str, 
               + " | ".join(f"{sb[m]['l1']:.3f} / {sb[m]['ssim']:.2f}" for m in maps) + " |")
         for init in inits:
             l0 = load()
-            out = work / (f"bridge_{name}_A" + (f"_{Path(init).stem}" if init else ""))
+            out = work / (f"bridge_{name}_A_{preset}" + (f"_{Path(init).stem}" if init else ""))
             s = run_propagation(d / "micro", d / "maps", d / "mid", out, preset=preset, threads=THREADS,
                                 init=init or None)
             pred, _ = load_maps(out / "maps")

@@ -330,13 +330,16 @@ def accuracy(work: Path, preset: str, variants: list[str], iterations: int, json
         print(f"| {v} | {sec:.0f} ({l0}-{l1}) | " + " | ".join(f"{sc[m]['l1']:.4f} / {sc[m]['ssim']:.3f}" for m in maps)
               + " |")
     if json_out:  # the variants share a preset: a figure of their own, not the trade data (one point per preset)
-        from dualscale.propagate.train import preset_with
-
-        p = preset_with(preset, iterations=iterations)
-        write_rows(json_out, f"variants of {preset} at {iterations} iterations", [
-            {"label": f"{preset} {iterations} its, {v}", "kind": "preset", "preset": preset, "variant": v,
-             "warm_start": False, "iterations": iterations, "batch": p.batch, "seconds": float(f"{sec:.4g}"),
-             "load": float(l0), "maps": score_pairs(sc)} for v, sec, l0, l1, sc in rows], start)
+        points = []
+        for v, sec, l0, l1, sc in rows:
+            opts, p = recipe(v, preset, iterations)
+            legacy = "legacy" in v.split("+")
+            warm = opts.init not in (None, "none") or (opts.init is None and p.warm_start)
+            points.append({"label": f"{'legacy-' if legacy else ''}{preset} {p.iterations} its, {v}", "kind": "preset",
+                           "preset": f"legacy-{preset}" if legacy else preset, "variant": v, "warm_start": bool(warm),
+                           "iterations": p.iterations, "batch": p.batch, "seconds": float(f"{sec:.4g}"),
+                           "load": float(l0), "maps": score_pairs(sc)})
+        write_rows(json_out, f"variants of {preset} at {iterations} iterations", points, start)
 
 
 def main() -> int:

@@ -29,7 +29,7 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 RUNS = "quick,quick+warm,fast,fast+warm,balanced"
 #: the markers and colours of the series (a preset series is joined by a line, in time order)
-SERIES = {"preset": ("o", "#1f77b4", "presets, cold"), "warm": ("s", "#ff7f0e", "presets + warm start"),
+SERIES = {"preset": ("o", "#1f77b4", "presets, random weights"), "warm": ("s", "#ff7f0e", "presets, warm start"),
           "baseline": ("D", "#2ca02c", "classic baselines")}
 SHORT = {"quick + warm start": "quick+w", "fast + warm start": "fast+w"}
 
@@ -64,6 +64,41 @@ def assemble(old: dict, presets: dict, baselines: dict) -> dict:
            "benchmark": old["benchmark"], "metrics": old["metrics"], "maps": list(presets["points"][0]["maps"]),
            "runs": [presets, baselines]}
     return validate(doc, "measured trade data")
+
+
+def from_runs(spec_path: Path) -> dict:
+    """The trade data from earlier benches' ``--json`` files, chosen by a spec (JSON):
+    ``{"runs": [{"name", "source", "load", "points": [{"file", "label", ...overrides}]}]}``.
+    Each point is the row of ``file`` whose label is ``label``, with the spec's other keys
+    replacing its own (e.g. ``"preset": "fast"`` for a variant that is today's ``fast``, or
+    ``"seconds"`` from a same-run step timing: the spec says why in its run's ``source``)."""
+    import json
+
+    from dualscale.report.trade import TRADE_FILE
+
+    spec = json.loads(spec_path.read_text(encoding="utf-8"))
+    old = json.loads(TRADE_FILE.read_text(encoding="utf-8"))
+    runs = []
+    for r in spec["runs"]:
+        points, dates, machine = [], [], None
+        for want in r["points"]:
+            doc = json.loads((spec_path.parent / want["file"]).read_text(encoding="utf-8"))
+            row = next((p for p in doc["points"] if p["label"] == want["label"]), None)
+            if row is None:
+                raise SystemExit(f"{want['file']}: no point labelled {want['label']!r}")
+            points.append({**row, **{k: v for k, v in want.items() if k not in ("file", "label")},
+                           "label": want.get("as", row["label"])})
+            points[-1].pop("as", None)
+            dates.append(doc["date"])
+            machine = machine or doc["machine"]
+        runs.append({"name": r["name"], "date": min(dates)[:10], "machine": machine, "load": r["load"],
+                     "source": r["source"], "points": points})
+    from dualscale.report.trade import FORMAT, VERSION, validate
+
+    doc = {"format": FORMAT, "version": VERSION, "written_by": f"bench/bench_propagate_trade.py --from-runs {spec_path.name}",
+           "benchmark": old["benchmark"], "metrics": old["metrics"], "maps": list(runs[0]["points"][0]["maps"]),
+           "runs": runs}
+    return validate(doc, f"trade data from {spec_path}")
 
 
 def _series(p: dict) -> str:
@@ -123,11 +158,17 @@ def main() -> int:
     ap.add_argument("--measure", action="store_true", help="re-measure presets and baselines first (~1 h)")
     ap.add_argument("--work", default="/tmp/propbench", help="--measure: the benches' work folder")
     ap.add_argument("--threads", type=int, default=1, help="--measure: torch threads for training")
+    ap.add_argument("--from-runs", metavar="SPEC", help="rewrite the data from earlier benches' --json files "
+                    "chosen by SPEC (see from_runs)")
     a = ap.parse_args()
     from dualscale.report.trade import TRADE_FILE, load_trade
 
     if a.measure:
         measure(TRADE_FILE, a.work, a.threads)
+    elif a.from_runs:
+        from dualscale.formats.atomic import write_json
+
+        write_json(TRADE_FILE, from_runs(Path(a.from_runs)))
     doc = load_trade()
     print(f"wrote {draw(doc, Path(a.out))} from {TRADE_FILE}")
     for run in doc["runs"]:

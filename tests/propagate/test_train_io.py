@@ -161,17 +161,17 @@ def test_sources_must_agree(twill, tmp_path):
 
 
 def test_style_and_diffuse_options_enter_the_run(twill, tmp_path):
-    """style_weight=0 drops the style term from the loss; a checkpoint of a run with other loss or
-    sampling options is not resumed by a run with the defaults."""
+    """style_weight=0 drops the style term from the loss; a checkpoint of a run with other loss
+    options is not resumed by a run with the defaults."""
     src = [load_source(twill)]
     pre = preset_with("quick", iterations=2, batch=2, crop=16)
     res = train(src, pre, tmp_path / "a.dsp", _opts(style_weight=0.0))
     assert "style" not in res.history[-1]
     res = train(src, pre, tmp_path / "b.dsp", _opts())
     assert "style" in res.history[-1]
-    train(src, pre, tmp_path / "c.dsp", _opts(diffuse_fraction=0.5, style_triplets=1))
+    train(src, pre, tmp_path / "c.dsp", _opts(style_triplets=1))
     info = read_model_file(tmp_path / "c.dsp")["train"]
-    assert info["diffuse_fraction"] == 0.5 and info["style"] == [0.25, 1]
+    assert info["style"] == [0.25, 1]
     with pytest.raises(ValueError, match="different run"):
         train(src, preset_with("quick", iterations=4, batch=2, crop=16), tmp_path / "c.dsp", _opts(resume=True))
 
@@ -191,3 +191,41 @@ def test_resolve_init_and_packaged_warm_start():
     assert resolve_init(cold, TrainOptions(init="/x/m.dsp"), w16) == "/x/m.dsp"
     src, _ = load_model(WARM_START)
     assert (src.config.width, src.config.decoder_ratio) == (16, 0.5)
+
+
+def test_bad_training_settings_are_refused_before_training(twill, tmp_path):
+    """Iterations, batch, crop, lr and diffuse fraction out of range are a ValueError naming the
+    field (exit 2 at the command line), before any file is written; an empty --init too."""
+    for kw, what in (({"iterations": 0}, "iterations must be at least 1"), ({"batch": 0}, "batch must be at least 1"),
+                     ({"crop": 33}, "crop must be a positive multiple of 16"), ({"lr": 0.0}, "lr must be positive"),
+                     ({"diffuse_fraction": 1.5}, r"diffuse_fraction must be in \[0, 1\]")):
+        with pytest.raises(ValueError, match=what):
+            preset_with("quick", **kw)
+    src = [load_source(twill)]
+    pre = preset_with("quick", iterations=2, batch=2, crop=16)
+    with pytest.raises(ValueError, match="checkpoint_every"):
+        train(src, pre, tmp_path / "a.dsp", TrainOptions(width=8, progress=False, checkpoint_every=0))
+    with pytest.raises(ValueError, match="init must name"):
+        train(src, pre, tmp_path / "a.dsp", _opts(init=""))
+    assert not list(tmp_path.iterdir())
+
+
+def test_warm_start_is_in_the_run_and_skips_are_said(twill, tmp_path):
+    """A warm-started checkpoint is not resumed from random weights (--init none is another run);
+    a preset's warm start that does not fit the network, and a diffuse fraction with no diffuse
+    light, are warned about and recorded as what was used."""
+    from dualscale.propagate.train import WARM_START
+
+    src = [load_source(twill)]
+    pre = preset_with("quick", iterations=2, batch=2, crop=16)
+    with pytest.warns(UserWarning) as rec:  # W = 8: the packaged W = 16 model does not fit; mod16: no diffuse light
+        train(src, pre, tmp_path / "c.dsp", _opts())
+    text = " ".join(str(w.message) for w in rec)
+    assert "training from random weights" in text and "has no effect: no training source has a diffuse" in text
+    info = read_model_file(tmp_path / "c.dsp")["train"]
+    assert info["init"] is None and info["diffuse_fraction"] == 0.0
+    opts16 = TrainOptions(width=16, progress=False, checkpoint_every=1)
+    train(src, replace(pre, iterations=1), tmp_path / "w.dsp", opts16)
+    assert read_model_file(tmp_path / "w.dsp")["train"]["init"] == str(WARM_START)
+    with pytest.raises(ValueError, match="different run"):
+        train(src, pre, tmp_path / "w.dsp", replace(opts16, resume=True, init="none"))

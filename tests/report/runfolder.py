@@ -149,7 +149,8 @@ def make_run(root: Path, *, flyouts: bool = True, guidance: bool = True, seed: i
                                           "micro_box_px": [40, 30, 3.1, 3.1],
                                           "registration": {"method": "phase correlation", "scale": 0.098123456,
                                                            "residual_px": 0.4123456}, "train_seconds": 58.9,
-                                          "preset": "fast", "iterations": 300, "crop": 128},
+                                          "preset": "fast", "iterations": 240, "crop": 128,
+                                          "warm_start": "warmstart_w16.dsp"},
                warnings=["guidance image has no colour calibration; maps may be tinted"])
     else:
         _stage(root, "propagate", 0.0, {"skipped": "no guidance image given"})

@@ -26,11 +26,17 @@ def _set_preset(run, preset: str, iterations: int) -> None:
 
 
 def test_packaged_trade_data_load_and_give_every_preset_once():
+    from dualscale.propagate.train import LEGACY_PRESETS, PRESETS
+
     doc = trade.load_trade()
-    run, p = trade.measured_point(doc, "fast")
-    assert p["preset"] == "fast" and not p["warm_start"] and p["iterations"] == 300
-    assert set(p["maps"]) == set(doc["maps"]) and run["date"] and run["machine"]
-    assert trade.measured_point(doc, "fast", warm_start=True)[1]["warm_start"]
+    for name in ("quick", "fast", "balanced"):  # today's presets, warm-started as they train
+        run, p = trade.measured_point(doc, name, warm_start=True)
+        assert p["preset"] == name and p["warm_start"] and p["iterations"] == PRESETS[name].iterations
+        assert p["batch"] == PRESETS[name].batch
+        assert set(p["maps"]) == set(doc["maps"]) and run["date"] and run["machine"]
+        old = trade.measured_point(doc, f"legacy-{name}")[1]  # the same run's presets before issue 29
+        assert old["iterations"] == LEGACY_PRESETS[name].iterations and not old["warm_start"]
+    assert trade.measured_point(doc, "fast") is None  # today's fast from random weights: not measured
     assert trade.measured_point(doc, "paper") is None
 
 
@@ -38,20 +44,20 @@ def test_report_says_where_its_preset_sits_on_the_curve(tmp_path, figures_not_dr
     from dualscale.report import write_run_report
 
     doc = trade.load_trade()
-    run_meta, p = trade.measured_point(doc, "fast")
+    run_meta, p = trade.measured_point(doc, "fast", warm_start=True)
     run = make_run(tmp_path / "R", flyouts=False)
     sec = _section(write_run_report(run), "propagation")
-    assert "training preset fast" in sec
-    assert "training of this run 58.9 s, 300 iterations" in sec  # the run's own record
+    assert "training preset fast" in sec and "warm start warmstart_w16.dsp" in sec
+    assert "training of this run 58.9 s, 240 iterations" in sec  # the run's own record
     assert f"measured on the twill benchmark, {run_meta['date']}, {run_meta['machine']}; not this run's accuracy" in sec
     albedo_l1, albedo_ssim = p["maps"]["albedo"]
-    assert f"fast: 5 min 6 s for 300 iterations × batch 8 (load {p['load']:g})" in sec
+    assert f"{p['label']}: " in sec and f"for 240 iterations × batch 8 (load {p['load']:g})" in sec
     assert f"albedo L1 {albedo_l1:.3f}, SSIM {albedo_ssim:.2f}" in sec
     assert "not the benchmark's" not in sec
 
     _set_preset(run, "fast", 120)  # an overridden iteration count is pointed out
     sec = _section(write_run_report(run), "propagation")
-    assert "this run trained 120 iterations, not the benchmark's 300" in sec
+    assert "this run trained 120 iterations, not the benchmark's 240" in sec
 
 
 def test_report_says_when_its_preset_has_no_measured_point(tmp_path, figures_not_drawn):
@@ -61,8 +67,16 @@ def test_report_says_when_its_preset_has_no_measured_point(tmp_path, figures_not
     _set_preset(run, "paper", 5000)
     sec = _section(write_run_report(run), "propagation")
     assert "training preset paper" in sec and "training of this run 58.9 s, 5\u2009000 iterations" in sec
-    assert "the preset paper has no measured point on the twill benchmark (measured: quick, fast, balanced)" in sec
+    assert "the preset paper (warm-started) has no measured point on the twill benchmark (measured: " in sec
     assert "measured on the twill benchmark," not in sec
+    _set_preset(run, "fast", 240)  # a run from random weights has no point either: today's fast was measured warm
+    rec = run / "stages" / "propagate.json"
+    d = json.loads(rec.read_text())
+    d["summary"]["warm_start"] = None
+    rec.write_text(json.dumps(d))
+    sec = _section(write_run_report(run), "propagation")
+    assert "warm start none (random weights)" in sec
+    assert "the preset fast (from random weights) has no measured point" in sec
 
 
 def test_bad_trade_data_are_refused_with_the_field(tmp_path):
@@ -71,7 +85,7 @@ def test_bad_trade_data_are_refused_with_the_field(tmp_path):
     dup["runs"][0]["points"].append(copy.deepcopy(dup["runs"][0]["points"][0]))
     short = copy.deepcopy(good)
     del short["runs"][0]["points"][0]["maps"]["normal"]
-    for doc, what in ((dup, "a second point for preset 'quick'"), (short, "must give every map"),
+    for doc, what in ((dup, "a second point for preset '" + good["runs"][0]["points"][0]["preset"] + "'"), (short, "must give every map"),
                       ({"format": "other"}, "not a dualscale-propagate-trade document")):
         f = tmp_path / "t.json"
         f.write_text(json.dumps(doc))

@@ -21,6 +21,9 @@ def cmd_train(args: argparse.Namespace) -> int:
     if maps and len(maps) != len(args.datasets):
         raise InputError(f"--maps given {len(maps)} times for {len(args.datasets)} datasets; pair them one to one")
     apply_threads(args)
+    args.resume_hint = "continue it with the same command and --resume (its checkpoint is OUTPUT.ckpt)"
+    if args.checkpoint_every < 1:
+        raise InputError(f"--checkpoint-every must be at least 1, got {args.checkpoint_every}")
     sources = [load_source(d, maps[i] if maps else None) for i, d in enumerate(args.datasets)]
     preset = preset_with(args.preset, iterations=args.iterations, batch=args.batch, lr=args.lr, crop=args.crop)
     sigma = (0.1, args.blur_sigma_max)
@@ -151,7 +154,8 @@ def register(subparsers) -> None:
     t.add_argument("--lr", type=float, help="override the preset's learning rate")
     t.add_argument("--schedule", choices=SCHEDULES, default=None,
                    help="learning-rate schedule: constant (the preset's lr) or onecycle (one cycle peaking at the lr; "
-                        "pair it with a higher --lr, docs/PROPAGATION.md; default: the preset's)")
+                        "default: the preset's, onecycle peaking at 0.01 for quick/fast/balanced, so --schedule "
+                        "constant alone runs at 0.01: pass --lr 0.002 with it)")
     t.add_argument("--diffuse-fraction", type=_fraction, default=None, metavar="F",
                    help="share of training crops under the diffuse light, the guidance's lighting, in [0, 1] "
                         "(default: the preset's)")

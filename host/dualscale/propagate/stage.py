@@ -198,9 +198,11 @@ def run_propagation(dataset: Path, maps: Path, guidance: Path, out: Path, *, pre
         res = train([small], p, model_path, TrainOptions(resume=True, progress=progress, seed=seed,
                                                         init=None if init is None else str(init)))
         resumed_from = res.resumed_from
+        done = _trained(model_path, small.name, p) or {}
     else:
         resumed_from = p.iterations
     train_seconds = time.perf_counter() - t0
+    warm_start = done.get("init")  # the warm-start model the training started from (None: random weights)
 
     # 6. export and run over the guidance
     t1 = time.perf_counter()
@@ -225,6 +227,7 @@ def run_propagation(dataset: Path, maps: Path, guidance: Path, out: Path, *, pre
                "micro_size_px": [w_m, h_m], "training_size_px": [small.size[1], small.size[0]],
                "micro_box_px": [round(v, 3) for v in reg.box_px], "registration": reg.to_json(),
                "preset": p.name, "iterations": p.iterations, "crop": p.crop, "resumed_from": resumed_from,
+               "warm_start": Path(warm_start).name if warm_start else None,
                "train_seconds": train_seconds, "run_seconds": run_seconds, "gain": info["gain"],
                "maps": [m for m in MAP_NAMES if m in info["maps"]], "onnx_parity_fp32": parity,
                "in_field_l1": in_field, "warnings": warnings}

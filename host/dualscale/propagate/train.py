@@ -29,13 +29,14 @@ from __future__ import annotations
 
 import contextlib
 import time
+import warnings
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from dualscale.errors import FormatError
+from dualscale.errors import FormatError, InputError
 from dualscale.formats.torchfile import load_torch, save_torch
 
 from .augment import BLUR_SIGMA, augment
@@ -64,6 +65,21 @@ class Preset:
     diffuse_fraction: float = 0.0
     warm_start: bool = False
 
+    def __post_init__(self) -> None:
+        bad = []
+        if not (isinstance(self.iterations, int) and self.iterations >= 1):
+            bad.append(f"iterations must be at least 1, got {self.iterations}")
+        if not (isinstance(self.batch, int) and self.batch >= 1):
+            bad.append(f"batch must be at least 1, got {self.batch}")
+        if not (isinstance(self.crop, int) and self.crop >= 16 and self.crop % 16 == 0):
+            bad.append(f"crop must be a positive multiple of 16 px, got {self.crop}")
+        if not self.lr > 0:
+            bad.append(f"lr must be positive, got {self.lr}")
+        if not 0 <= self.diffuse_fraction <= 1:
+            bad.append(f"diffuse_fraction must be in [0, 1], got {self.diffuse_fraction}")
+        if bad:
+            raise ValueError(f"training preset {self.name!r}: " + "; ".join(bad))
+
 
 PRESETS: dict[str, Preset] = {
     # Section 7.4 as printed: Adam at a constant 0.002, random weights, every light alike
@@ -83,7 +99,7 @@ benchmark's old-against-new rows (``bench/bench_propagate_profile.py`` flag ``le
 
 WARM_START = Path(__file__).resolve().parent / "models" / "warmstart_w16.dsp"
 """The packaged generic warm-start model (W = 16, decoder ratio 1/2, the woven-fabric maps;
-``models/README.md`` next to it says how it was trained)."""
+``README.md`` next to it says how it was trained)."""
 
 
 @dataclass
@@ -137,11 +153,18 @@ def checkpoint_path(model_path: str | Path) -> Path:
 
 def warm_start(model: PropagationUNet, path: str | Path) -> list[str]:
     """Copy every parameter of the model file at ``path`` whose name and shape match; returns them."""
-    src, _ = load_model(path)
+    if not Path(path).is_file():
+        raise InputError(f"warm-start model (--init) {path}: no such file; pass a dualscale propagation model "
+                         "(.dsp), or --init none for random weights")
+    try:
+        src, _ = load_model(path)
+    except (FormatError, InputError) as e:
+        raise InputError(f"warm-start model (--init) {path} cannot be used: {str(e).split('; train it again')[0]}; pass a dualscale "
+                         "propagation model (.dsp), or --init none for random weights") from None
     if src.config.width != model.config.width or src.config.decoder_ratio != model.config.decoder_ratio:
-        raise ValueError(f"warm-start model {path} has width {src.config.width}/decoder ratio "
+        raise InputError(f"warm-start model (--init) {path} has width {src.config.width}/decoder ratio "
                          f"{src.config.decoder_ratio}, this run needs {model.config.width}/"
-                         f"{model.config.decoder_ratio}")
+                         f"{model.config.decoder_ratio}: pass --width {src.config.width}, or --init none")
     own = model.state_dict()
     copied = [k for k, v in src.state_dict().items() if k in own and own[k].shape == v.shape]
     model.load_state_dict({**own, **{k: src.state_dict()[k] for k in copied}})
@@ -167,7 +190,9 @@ def resolve_init(preset: Preset, opts: TrainOptions, config: UNetConfig) -> str 
     network is the packaged model's (width 16, decoder ratio 1/2; a wider network, e.g. W = 32 for
     several datasets, starts from random weights)."""
     if opts.init is not None:
-        return None if opts.init.lower() == "none" else str(opts.init)
+        if not str(opts.init).strip():
+            raise ValueError("init must name a warm-start model file, or be 'none' for random weights; got ''")
+        return None if str(opts.init).lower() == "none" else str(opts.init)
     if preset.warm_start and (config.width, config.decoder_ratio) == (16, 0.5):
         return str(WARM_START)
     return None
@@ -201,6 +226,8 @@ def train(sources: list[Source | DiskSource], preset: Preset, out: str | Path, o
     from tqdm import tqdm
 
     preset = effective_preset(preset, opts)
+    if opts.checkpoint_every < 1:
+        raise ValueError(f"checkpoint_every must be at least 1 iteration, got {opts.checkpoint_every}")
     model, optim, scaler, loss_fn = build(sources, preset, opts)
     config = model.config
     # before the optimiser state is loaded: the scheduler sets the optimiser's lr when it is made
@@ -213,6 +240,18 @@ def train(sources: list[Source | DiskSource], preset: Preset, out: str | Path, o
               "config": config.to_json(), "sources": [s.name for s in sources]}
     if (opts.style_weight, opts.style_triplets) != (STYLE_WEIGHT, 2):  # keeps the default loss's identity
         run_id["style"] = [opts.style_weight, opts.style_triplets]
+    init = resolve_init(preset, opts, config)
+    if init is not None:  # a warm start is part of the run (cold runs keep their identity of before)
+        run_id["init"] = Path(init).name
+    elif preset.warm_start and opts.init is None:
+        warnings.warn(f"preset {preset.name!r} warm-starts from {WARM_START.name}, a W = 16 network, but this one is "
+                      f"W = {config.width}, decoder ratio {config.decoder_ratio:g}: training from random weights "
+                      "(one cycle at the preset's peak lr; compare with --schedule constant --lr 0.002)", stacklevel=2)
+    if preset.diffuse_fraction and not any("diffuse" in s.light_names for s in sources):
+        warnings.warn(f"diffuse_fraction {preset.diffuse_fraction:g} has no effect: no training source has a diffuse "
+                      "light (it needs every dome LED); every crop draws a light uniformly", stacklevel=2)
+        preset = replace(preset, diffuse_fraction=0.0)
+        run_id["preset"]["diffuse_fraction"] = 0.0
     if opts.resume and ckpt.is_file():
         st = load_torch(ckpt, "training checkpoint", "delete it (training restarts) or drop --resume",
                         map_location=opts.device)
@@ -258,7 +297,7 @@ def train(sources: list[Source | DiskSource], preset: Preset, out: str | Path, o
     info: dict[str, Any] = {"preset": asdict(preset), "iterations": preset.iterations, "seconds_this_run": seconds,
                             "resumed_from": start, "datasets": [s.name for s in sources],
                             "perceptual": opts.perceptual, "amp": opts.amp,
-                            "init": resolve_init(preset, opts, config),
+                            "init": init,
                             "schedule": preset.schedule, "style": [opts.style_weight, opts.style_triplets],
                             "diffuse_fraction": preset.diffuse_fraction,
                             "blur_sigma": list(opts.blur_sigma), "final": history[-1] if history else {}}

@@ -122,8 +122,8 @@ def _accuracy_text(doc: dict[str, Any], point: dict[str, Any]) -> str:
 def trade_rows(summary: dict[str, Any], doc: dict[str, Any] | None = None) -> list[tuple[str, str]]:
     """The report's rows for a propagate stage ``summary`` (its ``preset``, ``iterations``,
     ``train_seconds``): the run's own preset, training time and iterations, then the
-    benchmark's measured point for that preset (cold: the ``digitize`` stage trains without a
-    warm start), labelled "measured on the twill benchmark, <date>, <machine>", or a sentence
+    benchmark's measured point for that preset, warm-started or not as the run was (its
+    ``warm_start``: the warm-start model's file name, or ``None``), labelled "measured on the twill benchmark, <date>, <machine>", or a sentence
     saying the preset has no measured point.  ``doc``: the trade data (default
     :func:`load_trade`)."""
     doc = load_trade() if doc is None else doc
@@ -132,9 +132,13 @@ def trade_rows(summary: dict[str, Any], doc: dict[str, Any] | None = None) -> li
     rows = [("training preset", fmt.value(preset)),
             ("training of this run", f"{fmt.duration(summary.get('train_seconds'))}, "
                                      f"{fmt.value(its)} iterations")]
-    found = measured_point(doc, preset, False) if isinstance(preset, str) else None
+    warm = bool(summary.get("warm_start"))
+    rows.append(("warm start", fmt.value(summary["warm_start"]) if warm else "none (random weights)"))
+    found = measured_point(doc, preset, warm) if isinstance(preset, str) else None
     if found is None:
-        rows.append(("on the trade curve", f"the preset {fmt.value(preset)} has no measured point on the twill "
+        rows.append(("on the trade curve", f"the preset {fmt.value(preset)} "
+                                           f"({'warm-started' if warm else 'from random weights'}) has no measured "
+                                           "point on the twill "
                                            f"benchmark (measured: {', '.join(_measured_names(doc))})"))
         return rows
     run, p = found
@@ -150,8 +154,7 @@ def trade_rows(summary: dict[str, Any], doc: dict[str, Any] | None = None) -> li
 def _measured_names(doc: dict[str, Any]) -> list[str]:
     names: list[str] = []
     for run in doc["runs"]:
-        names += [p["preset"] for p in run["points"] if p["kind"] == "preset" and not p["warm_start"]
-                  and p["preset"] not in names]
+        names += [p["preset"] for p in run["points"] if p["kind"] == "preset" and p["preset"] not in names]
     return names
 
 
