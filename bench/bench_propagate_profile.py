@@ -318,7 +318,8 @@ def accuracy(work: Path, preset: str, variants: list[str], iterations: int, json
         t = time.perf_counter()
         train([src], p, model, opts)
         sec = time.perf_counter() - t
-        rows.append((f"{v} ({p.iterations} x {p.batch}, lr {p.lr:g} {opts.schedule or p.schedule})", sec, l0, load(), scores(work, model, work / f"pred_variant_{tag}")))
+        rows.append((f"{v} ({p.iterations} x {p.batch}, lr {p.lr:g} {opts.schedule or p.schedule})", sec, l0, load(),
+                     scores(work, model, work / f"pred_variant_{tag}"), v))
         sc = rows[-1][4]
         print(f"{rows[-1][0]}: {sec:.0f} s, load {l0}-{rows[-1][3]}, {time.strftime('%H:%M')}; "
               + ", ".join(f"{m} {sc[m]['l1']:.4f}/{sc[m]['ssim']:.3f}" for m in sc), file=sys.stderr, flush=True)
@@ -326,12 +327,12 @@ def accuracy(work: Path, preset: str, variants: list[str], iterations: int, json
     print(f"\nAccuracy of the variants: `{preset}` at {iterations} iterations' samples, same seed, trained one after "
           f"the other; L1 / SSIM on the twill guidance:\n")
     print("| variant | train [s] (load) | " + " | ".join(maps) + " |\n|---|---:|" + "---:|" * len(maps))
-    for v, sec, l0, l1, sc in rows:
+    for v, sec, l0, l1, sc, _ in rows:
         print(f"| {v} | {sec:.0f} ({l0}-{l1}) | " + " | ".join(f"{sc[m]['l1']:.4f} / {sc[m]['ssim']:.3f}" for m in maps)
               + " |")
     if json_out:  # the variants share a preset: a figure of their own, not the trade data (one point per preset)
         points = []
-        for v, sec, l0, l1, sc in rows:
+        for _, sec, l0, l1, sc, v in rows:
             opts, p = recipe(v, preset, iterations)
             legacy = "legacy" in v.split("+")
             warm = opts.init not in (None, "none") or (opts.init is None and p.warm_start)

@@ -225,7 +225,7 @@ def train(sources: list[Source | DiskSource], preset: Preset, out: str | Path, o
     """Train on ``sources`` and write the model file ``out`` (+ ``out.ckpt`` checkpoints)."""
     from tqdm import tqdm
 
-    preset = effective_preset(preset, opts)
+    preset = asked = effective_preset(preset, opts)
     if opts.checkpoint_every < 1:
         raise ValueError(f"checkpoint_every must be at least 1 iteration, got {opts.checkpoint_every}")
     model, optim, scaler, loss_fn = build(sources, preset, opts)
@@ -250,8 +250,7 @@ def train(sources: list[Source | DiskSource], preset: Preset, out: str | Path, o
     if preset.diffuse_fraction and not any("diffuse" in s.light_names for s in sources):
         warnings.warn(f"diffuse_fraction {preset.diffuse_fraction:g} has no effect: no training source has a diffuse "
                       "light (it needs every dome LED); every crop draws a light uniformly", stacklevel=2)
-        preset = replace(preset, diffuse_fraction=0.0)
-        run_id["preset"]["diffuse_fraction"] = 0.0
+        preset = replace(preset, diffuse_fraction=0.0)  # what is used; the record keeps the preset as asked
     if opts.resume and ckpt.is_file():
         st = load_torch(ckpt, "training checkpoint", "delete it (training restarts) or drop --resume",
                         map_location=opts.device)
@@ -275,7 +274,7 @@ def train(sources: list[Source | DiskSource], preset: Preset, out: str | Path, o
                 raise ValueError(f"checkpoint {ckpt} is at iteration {start}, beyond this run's {preset.iterations}; "
                                  f"pass --iterations {start} or more to continue it, or delete it")
             # a finished run whose model was not written (killed while saving it): write it now
-            preset = replace(preset, iterations=start)
+            preset, asked = replace(preset, iterations=start), replace(asked, iterations=start)
         # start == iterations: a run stopped after its last checkpoint; the loop is empty, the model is written
         check_extend(preset.schedule, ckpt, st.get("target"), preset.iterations)
     t0 = time.perf_counter()
@@ -294,7 +293,7 @@ def train(sources: list[Source | DiskSource], preset: Preset, out: str | Path, o
             _save_checkpoint(ckpt, model, optim, scaler, gen, done, history, run_id, preset.iterations, sched)
     seconds = time.perf_counter() - t0
     model.eval().cpu()
-    info: dict[str, Any] = {"preset": asdict(preset), "iterations": preset.iterations, "seconds_this_run": seconds,
+    info: dict[str, Any] = {"preset": asdict(asked), "iterations": preset.iterations, "seconds_this_run": seconds,
                             "resumed_from": start, "datasets": [s.name for s in sources],
                             "perceptual": opts.perceptual, "amp": opts.amp,
                             "init": init,
