@@ -45,11 +45,11 @@ def _interrupt(argv: list[str], started: Path, after_s: float = 1.0, timeout: fl
     return subprocess.CompletedProcess(p.args, p.returncode, out, err)
 
 
-def _check(r: subprocess.CompletedProcess, cmd: str) -> None:
+def _check(r: subprocess.CompletedProcess, cmd: str, hint: str = HINT) -> None:
     assert r.returncode == 130, r.stderr
     assert "Traceback" not in r.stderr and "KeyboardInterrupt" not in r.stderr, r.stderr
     last = r.stderr.splitlines()[-1]
-    assert last.startswith(f"dualscale {cmd}: ") and last.endswith(HINT), r.stderr
+    assert last.startswith(f"dualscale {cmd}: ") and last.endswith(hint), r.stderr
 
 
 def test_ctrl_c_in_fit(tmp_path):
@@ -77,7 +77,7 @@ def test_ctrl_c_in_propagate_train(tmp_path):
     r = _interrupt(["propagate", "train", str(src), "-o", str(model), "--preset", "quick", "--iterations", "100000",
                     "--crop", "32", "--width", "8", "--threads", "1", "--checkpoint-every", "1"],
                    Path(str(model) + ".ckpt"))
-    _check(r, "propagate train")
+    _check(r, "propagate train", "continue it with the same command and --resume (its checkpoint is OUTPUT.ckpt)")
 
 
 def test_ctrl_c_in_digitize(tmp_path):
