@@ -1,8 +1,11 @@
 """Training loop: presets, mixed precision, progress bar, resumable checkpoints, warm start.
 
 Presets (``PRESETS``): ``paper`` is Section 7.4 (Adam, lr 0.002, batch 40, 5,000 iterations,
-no weight decay; ~15 min on a 1080Ti, ~8 h on one busy CPU core).  ``balanced``, ``fast`` and
-``quick`` cut the samples seen for CPU use; docs/PROPAGATION.md has their measured trade.
+no weight decay, random weights; ~15 min on a 1080Ti, ~8 h on one busy CPU core).  ``balanced``,
+``fast`` and ``quick`` cut the samples seen for CPU use and, since issue 29, start from the
+packaged warm start :data:`WARM_START` (:func:`resolve_init`), run one cycle peaking at 0.01 and
+take half their crops under the diffuse light; :data:`LEGACY_PRESETS` are the ones before.
+docs/PROPAGATION.md ("Presets re-based") has their measured trade.
 
 Mixed precision: bfloat16 autocast on the CPU, float16 autocast with gradient scaling on CUDA.
 
